@@ -1,0 +1,77 @@
+"""The ``amigo`` command line.
+
+Each sub-command lives in its own module of this package and is imported only when it
+runs, so ``amigo info`` starts in a fraction of a second without importing JAX. To add a
+command, write ``amigo/cli/<name>.py`` with a :func:`click.command` called ``command`` and
+list it in :data:`COMMANDS`.
+
+Exit status (see docs/interfaces): 0 success, 2 bad input or usage (one line on stderr, no
+traceback), 1 unexpected internal error.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+import sys
+from typing import Any
+
+import click
+
+from amigo._version import __version__
+from amigo.errors import InputError
+
+#: command name -> (module under amigo.cli, one-line help shown in ``amigo --help``)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "info": ("amigo.cli.info", "Identify and validate JWST NIRISS AMI files."),
+}
+
+
+class _LazyGroup(click.Group):
+    """A click group whose sub-commands are imported on first use."""
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return list(COMMANDS)
+
+    def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
+        if cmd_name not in COMMANDS:
+            return None
+        module = importlib.import_module(COMMANDS[cmd_name][0])
+        return module.command
+
+    def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        # Show the short help without importing every command module.
+        with formatter.section("Commands"):
+            formatter.write_dl([(name, text) for name, (_, text) in COMMANDS.items()])
+
+
+@click.group(cls=_LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="amigo")
+def cli() -> None:
+    """amigo: JWST NIRISS aperture masking interferometry, from pixels to planets."""
+
+
+def fail_input(error: InputError) -> None:
+    """Print one line for a bad input and exit with status 2."""
+    click.echo(f"amigo: error: {error}", err=True)
+    sys.exit(2)
+
+
+def main(argv: list[str] | None = None) -> Any:
+    """Entry point of the ``amigo`` console script."""
+    try:
+        return cli.main(args=argv, prog_name="amigo", standalone_mode=True)
+    except InputError as error:
+        fail_input(error)
+    except KeyboardInterrupt:
+        click.echo("amigo: interrupted", err=True)
+        sys.exit(130)
+    except Exception as error:  # noqa: BLE001 - the last line of defence of the CLI
+        if os.environ.get("AMIGO_DEBUG"):
+            raise
+        click.echo(
+            f"amigo: internal error: {type(error).__name__}: {error} "
+            "(set AMIGO_DEBUG=1 for a traceback, and please report it)",
+            err=True,
+        )
+        sys.exit(1)
