@@ -17,7 +17,9 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
 def _require(path: Path) -> Path:
     if not path.exists():
-        pytest.skip(f"development data not available: {path} (it lives in ../shared, beside the repo)")
+        pytest.skip(
+            f"development data not available: {path} (it lives in ../shared, beside the repo)"
+        )
     return path
 
 
