@@ -12,6 +12,7 @@ from amigo.detector import (
     LinearDetector,
     bin_pixels,
     cubic_resample,
+    displacement_reach,
     gaussian_blur,
     geometry_matrix,
     sky_to_optical_matrix,
@@ -51,6 +52,12 @@ def test_geometry_matrix_is_rotation_times_area_preserving_scale():
     )
 
 
+def test_resampling_refuses_displacements_beyond_its_reach():
+    image = jnp.ones((60, 60))
+    with pytest.raises(Exception, match="reach"):
+        cubic_resample(image, geometry_matrix(10.0, 1.0), reach=3)
+
+
 def test_identity_resampling_is_exact():
     image = np.random.default_rng(0).normal(size=(30, 30))
     out = cubic_resample(jnp.asarray(image), jnp.eye(2))
@@ -64,7 +71,8 @@ def test_resampling_moves_an_analytic_image_by_the_matrix():
     g_big = np.asarray(geometry_matrix(5.61, 1.0765))
     for matrix in (g, g_big):
         image = gaussian_image(n, centre, sigma)
-        out = np.asarray(cubic_resample(jnp.asarray(image), jnp.asarray(matrix)))
+        reach = displacement_reach(matrix, image.shape)
+        out = np.asarray(cubic_resample(jnp.asarray(image), jnp.asarray(matrix), reach))
         expected = gaussian_image(n, centre, sigma, matrix)
         err = np.abs(out - expected).max() / expected.max()
         assert err < 2e-3, err

@@ -82,7 +82,7 @@ class OpticsConfig:
     zernike_radius_factor: float = 1.2
     fresnel: bool = True
     fresnel_pad: int = 2
-    defocus_method: str = "angular_spectrum"
+    defocus_method: str = "pupil"
     pixel_integration: str = "fir"
 
     @property
