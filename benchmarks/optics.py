@@ -24,12 +24,12 @@ import time
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
-import equinox as eqx  # noqa: E402
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
+import equinox as eqx
+import jax
+import jax.numpy as jnp
 
-from amigo.detector import LinearDetector  # noqa: E402
-from amigo.optics import NRMOptics, OpticsConfig, PointSource  # noqa: E402
+from amigo.detector import LinearDetector
+from amigo.optics import NRMOptics, OpticsConfig, PointSource
 
 
 def build(filter_name: str, config: OpticsConfig, static: bool):
@@ -42,7 +42,6 @@ def build(filter_name: str, config: OpticsConfig, static: bool):
 
 def fittable(model, static: bool):
     """(parameters, rest): every optical/source/detector parameter, nothing else."""
-    optics, source, detector = model
     spec = jax.tree.map(lambda _: False, model)
     picks = [
         lambda m: m[0].zernikes_nm,
@@ -111,17 +110,21 @@ def main() -> None:
 
     device = jax.devices()[0]
     print(f"# amigo optics benchmark: {args.filter}, 9 wavelengths, SUB80 at 3x (240x240)")
-    print(f"# jax {jax.__version__} on {device.platform} ({device.device_kind}); "
-          f"{os.cpu_count()} CPU cores; {platform.processor() or platform.machine()}; "
-          f"load average {os.getloadavg()[0]:.1f}")
+    print(
+        f"# jax {jax.__version__} on {device.platform} ({device.device_kind}); "
+        f"{os.cpu_count()} CPU cores; {platform.processor() or platform.machine()}; "
+        f"load average {os.getloadavg()[0]:.1f}"
+    )
     base = OpticsConfig()
     configs = [("pupil defocus", base)]
     if not args.quick:
         configs.append(
             ("angular spectrum", dataclasses.replace(base, defocus_method="angular_spectrum"))
         )
-    print("| defocus method | mask | dtype | parameters | image ms (min / median) "
-          "| image + gradient ms (min / median) |")
+    print(
+        "| defocus method | mask | dtype | parameters | image ms (min / median) "
+        "| image + gradient ms (min / median) |"
+    )
     print("|---|---|---|---|---|---|")
     for label, config in configs:
         for static in (True, False):
@@ -130,8 +133,11 @@ def main() -> None:
                     continue
                 n, fwd, grad = run_case(args.filter, config, static, dtype, args.repeats)
                 mask = "static" if static else "dynamic"
-                print(f"| {label} | {mask} | {dtype} | {n} | {fwd[0]:.1f} / {fwd[1]:.1f} "
-                      f"| {grad[0]:.1f} / {grad[1]:.1f} |", flush=True)
+                print(
+                    f"| {label} | {mask} | {dtype} | {n} | {fwd[0]:.1f} / {fwd[1]:.1f} "
+                    f"| {grad[0]:.1f} / {grad[1]:.1f} |",
+                    flush=True,
+                )
 
 
 if __name__ == "__main__":

@@ -199,21 +199,31 @@ def test_pixel_integration_beats_12x_point_sampling():
         def to_pixels(image, factor):
             return np.asarray(image).reshape(npix, factor, npix, factor).sum(axis=(1, 3))
 
-        ref = to_pixels(point_psf(30), 30)
+        psf30 = point_psf(30)
+        ref = to_pixels(psf30, 30)
+        # The 30x reference is itself a midpoint rule (error ~ h^2): Richardson
+        # extrapolation with a 15x one removes that term, for an exact-to-1e-7 reference.
+        exact = (4 * ref - to_pixels(point_psf(15), 15)) / 3
         plain12 = to_pixels(point_psf(12), 12)
         psf3 = point_psf(3)
-        errors = {
+        models = {
             "3x fir": to_pixels(integrate_pixels(psf3, "fir"), 3),
             "3x cubic (paper)": to_pixels(integrate_pixels(psf3, "cubic"), 3),
             "3x none": to_pixels(psf3, 3),
             "12x point": plain12,
+            "30x point": ref,
         }
-    errors = {k: np.abs(v - ref).max() / ref.max() for k, v in errors.items()}
-    print(
-        "\npixel integration, max |diff| / peak vs 30x:", {k: f"{v:.1e}" for k, v in errors.items()}
-    )
-    assert errors["3x fir"] <= errors["12x point"]
-    assert errors["3x cubic (paper)"] < errors["3x none"]
+    vs30 = {k: np.abs(v - ref).max() / ref.max() for k, v in models.items() if k != "30x point"}
+    # Filters see zeros beyond the field: away from its edge (here 1% of the peak, on
+    # SUB80 1e-4) they are exact; compare the interior too.
+    inner = (slice(1, -1), slice(1, -1))
+    vs_exact = {k: np.abs(v - exact)[inner].max() / ref.max() for k, v in models.items()}
+    print("\npixel integration, max |diff| / peak over 24x24 pixels at 3.8 um")
+    print("  vs 30x:   ", {k: f"{v:.1e}" for k, v in vs30.items()})
+    print("  vs exact (inner 22x22): ", {k: f"{v:.1e}" for k, v in vs_exact.items()})
+    assert vs30["3x fir"] <= vs30["12x point"]  # the paper's benchmark
+    assert vs_exact["3x fir"] < 0.1 * vs_exact["12x point"]  # and far better in truth
+    assert vs_exact["3x cubic (paper)"] < vs_exact["3x none"]
 
 
 def test_fir_taps_and_transfer():
@@ -321,7 +331,9 @@ def direct_defocused_psf(optics, defocus_nm, wavelength):
 
 
 def test_fresnel_defocus_matches_quadratic_pupil_phase():
-    config = dataclasses.replace(SMALL, npix_detector=80, fresnel=True)
+    config = dataclasses.replace(
+        SMALL, npix_detector=80, fresnel=True, defocus_method="angular_spectrum"
+    )
     optics = NRMOptics.create(config, defocus_nm=DEFOCUS_NM)
     model = _psf(optics)
     direct = direct_defocused_psf(optics, DEFOCUS_NM, WAVELENGTH)
@@ -390,7 +402,9 @@ def test_global_distortion_moves_holes_without_shift_freedom():
         hole = np.asarray(optics.aperture.hole_transmissions(optics.grid))[h]
         centroid_x = (hole.sum(0) * x).sum() / hole.sum()
         assert abs(centroid_x - cx / (1 + a)) < 2e-3, h
-    assert amp.max() <= 1.0
+    holes = np.asarray(optics.aperture.hole_transmissions(optics.grid))
+    assert holes.max() <= 1.0 and holes.min() >= 0.0
+    assert abs(amp.sum() - holes.sum()) < 1e-9 * holes.sum()  # sharpening keeps the area
     # No constant term: the zero polynomial leaves the mask exactly in place.
     assert aperture.global_distortion.shape == (2, 9)
     assert aperture.hole_distortion.shape == (7, 2, 5)

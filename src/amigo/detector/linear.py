@@ -175,7 +175,8 @@ class LinearDetector(eqx.Module):
     ) -> LinearDetector:
         """Detector with the given geometry; the resampling reach is sized for twice the
         rotation and anisotropy given (so that a fit can move them), at least 3."""
-        doubled = geometry_matrix(2 * rotation_deg, anisotropy**2)
+        with jax.ensure_compile_time_eval():  # a constant, even when built under jit
+            doubled = np.asarray(geometry_matrix(2 * rotation_deg, anisotropy**2))
         n = npix * oversample
         return cls(
             jnp.asarray(float(jitter_arcsec)),

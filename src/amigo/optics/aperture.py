@@ -18,7 +18,8 @@ Conventions
   distorts each hexagon's shape).
 * Zernikes: Noll-ordered, unit-rms on a disc of ``zernike_radius_factor`` times the hole
   circumradius centred on each hole's nominal centre (the wavefront belongs to the
-  telescope, so it does not follow the mask distortions).
+  telescope, so it does not follow the mask distortions), and extended (same
+  polynomials) to half the closest hole spacing.
 """
 
 from __future__ import annotations
@@ -149,18 +150,27 @@ def zernike_basis(
     centres_m: Float[Array, "h 2"],
     radius_m: Array | float,
     n_modes: int,
+    support_m: Array | float | None = None,
 ) -> Float[Array, "h j ny nx"]:
-    """Noll Zernikes ``1..n_modes`` on a disc of ``radius_m`` about each hole centre.
+    """Noll Zernikes ``1..n_modes`` about each hole centre, unit rms on a disc of ``radius_m``.
 
-    Each mode has unit rms over its disc and is zero outside it.
+    The polynomials are evaluated out to ``support_m`` (default ``radius_m``) and are zero
+    beyond: a support a little larger than the normalisation disc keeps the wavefront
+    defined wherever the sharpened hole amplitude is not zero.
     """
     x, y = grid.coordinates()
     factors = [_zernike_factors(j) for j in range(1, n_modes + 1)]
-    diameter = 2.0 * radius_m
+    support = radius_m if support_m is None else support_m
 
     def one_hole(centre):
-        coords = jnp.stack([x - centre[0], y - centre[1]])
-        return jnp.stack([dlu.zernike_fast(n, m, c, k, coords, diameter) for n, m, c, k in factors])
+        rho, theta = dlu.cart2polar(jnp.stack([x - centre[0], y - centre[1]]) / radius_m)
+        inside = rho * radius_m <= support
+        return jnp.stack(
+            [
+                inside * dlu.eval_radial(rho, n, c, k) * dlu.eval_azimuthal(theta, n, m)
+                for n, m, c, k in factors
+            ]
+        )
 
     return jax.vmap(one_hole)(jnp.asarray(centres_m))
 
@@ -217,10 +227,24 @@ class Aperture(eqx.Module):
         return order
 
     def hole_transmissions(
-        self, grid: PupilGrid, softening_px: float = 1.0
+        self, grid: PupilGrid, softening_px: float = 1.0, supersample: int = 1
     ) -> Float[Array, "7 ny nx"]:
-        """(7, ny, nx) amplitude transmission of each hole (soft edges, values in [0, 1])."""
+        """(7, ny, nx) amplitude transmission of each hole (soft edges, values in [0, 1]).
+
+        With ``supersample`` > 1 each pixel is the mean of ``supersample^2`` sub-samples
+        (soft edges of ``softening_px`` sub-sample widths): closer to a pixel average.
+        """
+        offsets = (np.arange(supersample) - 0.5 * (supersample - 1)) / supersample
+        edge_m = softening_px * grid.pixel_m / supersample
+        total = 0.0
+        for oy in offsets:
+            for ox in offsets:
+                total = total + self._draw(grid, ox * grid.pixel_m, oy * grid.pixel_m, edge_m)
+        return total / supersample**2
+
+    def _draw(self, grid: PupilGrid, dx_m: float, dy_m: float, edge_m: float) -> Array:
         x, y = grid.coordinates()
+        x, y = x + dx_m, y + dy_m
         scale = self.global_scale_m
         gx, gy = polynomial_displacement(
             x / scale,
@@ -231,7 +255,6 @@ class Aperture(eqx.Module):
         x, y = x + scale * gx, y + scale * gy
         rc = self.circumradius_m
         powers = polynomial_powers(self._order(self.hole_distortion.shape[-1]))
-        edge_m = softening_px * grid.pixel_m
 
         def one_hole(centre, coefficients):
             qx, qy = x - centre[0], y - centre[1]
@@ -242,8 +265,16 @@ class Aperture(eqx.Module):
         return jax.vmap(one_hole)(self.centres_m, self.hole_distortion)
 
     def zernike_basis(self, grid: PupilGrid, n_modes: int, radius_factor: float) -> Array:
-        """(7, n_modes, ny, nx) per-hole Zernike basis (see module notes)."""
-        return zernike_basis(grid, self.centres_m, radius_factor * self.circumradius_m, n_modes)
+        """(7, n_modes, ny, nx) per-hole Zernike basis (see module notes).
+
+        Normalised on ``radius_factor`` times the hole circumradius, supported out to
+        half the closest hole spacing (0.66 m), so the discs never overlap.
+        """
+        centres = self.centres_m
+        gaps = jnp.linalg.norm(centres[:, None] - centres[None, :], axis=-1)
+        gaps = gaps + jnp.eye(centres.shape[0]) * 1e9
+        support = 0.5 * jax.lax.stop_gradient(jnp.min(gaps))
+        return zernike_basis(grid, centres, radius_factor * self.circumradius_m, n_modes, support)
 
 
 class StaticAperture(eqx.Module):
@@ -265,14 +296,17 @@ class StaticAperture(eqx.Module):
         n_modes: int,
         radius_factor: float,
         softening_px: float,
+        supersample: int = 1,
     ) -> StaticAperture:
         return cls(
-            holes=aperture.hole_transmissions(grid, softening_px),
+            holes=aperture.hole_transmissions(grid, softening_px, supersample),
             basis=aperture.zernike_basis(grid, n_modes, radius_factor),
         )
 
-    def hole_transmissions(self, grid: PupilGrid, softening_px: float = 1.0) -> Array:
-        del grid, softening_px  # fixed at construction
+    def hole_transmissions(
+        self, grid: PupilGrid, softening_px: float = 1.0, supersample: int = 1
+    ) -> Array:
+        del grid, softening_px, supersample  # fixed at construction
         return self.holes
 
     def zernike_basis(self, grid: PupilGrid, n_modes: int, radius_factor: float) -> Array:
