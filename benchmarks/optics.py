@@ -116,28 +116,34 @@ def main() -> None:
         f"load average {os.getloadavg()[0]:.1f}"
     )
     base = OpticsConfig()
-    configs = [("pupil defocus", base)]
-    if not args.quick:
-        configs.append(
-            ("angular spectrum", dataclasses.replace(base, defocus_method="angular_spectrum"))
-        )
+    cases = [
+        ("pupil", 128, static, dtype)
+        for static in (True, False)
+        for dtype in ("float32", "float64")
+    ]
+    if args.quick:
+        cases = cases[:1]
+    else:
+        cases += [
+            ("angular_spectrum", 128, True, "float32"),
+            ("angular_spectrum", 128, False, "float32"),
+            ("pupil", 96, True, "float32"),
+            ("pupil", 256, True, "float32"),
+        ]
     print(
-        "| defocus method | mask | dtype | parameters | image ms (min / median) "
+        "| defocus | pupil px | mask | dtype | parameters | image ms (min / median) "
         "| image + gradient ms (min / median) |"
     )
-    print("|---|---|---|---|---|---|")
-    for label, config in configs:
-        for static in (True, False):
-            for dtype in ("float32", "float64"):
-                if args.quick and (dtype == "float64" or not static):
-                    continue
-                n, fwd, grad = run_case(args.filter, config, static, dtype, args.repeats)
-                mask = "static" if static else "dynamic"
-                print(
-                    f"| {label} | {mask} | {dtype} | {n} | {fwd[0]:.1f} / {fwd[1]:.1f} "
-                    f"| {grad[0]:.1f} / {grad[1]:.1f} |",
-                    flush=True,
-                )
+    print("|---|---|---|---|---|---|---|")
+    for method, npix, static, dtype in cases:
+        config = dataclasses.replace(base, defocus_method=method, pupil_npix=npix)
+        n, fwd, grad = run_case(args.filter, config, static, dtype, args.repeats)
+        mask = "static" if static else "dynamic"
+        print(
+            f"| {method} | {npix} | {mask} | {dtype} | {n} | {fwd[0]:.1f} / {fwd[1]:.1f} "
+            f"| {grad[0]:.1f} / {grad[1]:.1f} |",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

@@ -142,7 +142,7 @@ def _zernike_factors(j: int) -> tuple[int, int, np.ndarray, np.ndarray]:
     with jax.ensure_compile_time_eval():
         n, m = dlu.noll_indices(j)
         c, k = dlu.zernike_factors(j)
-        return int(n), int(m), np.asarray(c), np.asarray(k)
+        return int(n), int(m), np.asarray(c, dtype=float), np.asarray(k, dtype=float)
 
 
 def zernike_basis(
@@ -167,7 +167,9 @@ def zernike_basis(
         inside = rho * radius_m <= support
         return jnp.stack(
             [
-                inside * dlu.eval_radial(rho, n, c, k) * dlu.eval_azimuthal(theta, n, m)
+                inside
+                * dlu.eval_radial(rho, n, c.astype(rho.dtype), k.astype(rho.dtype))
+                * dlu.eval_azimuthal(theta, n, m)
                 for n, m, c, k in factors
             ]
         )

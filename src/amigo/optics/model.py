@@ -192,6 +192,14 @@ class NRMOptics(eqx.Module):
         The amplitude is the sharpened pixel average of the mask (it slightly overshoots
         1 and undershoots 0 along the hole edges); the OPD is defined everywhere.
         """
+        amplitude, opd_m, _ = self._pupil_and_power()
+        return amplitude, opd_m
+
+    def pupil_power(self) -> Float[Array, ""]:
+        """Power through the mask in pupil pixels: ``sum_h a_h^2 * area_h / pixel^2``."""
+        return self._pupil_and_power()[2]
+
+    def _pupil_and_power(self) -> tuple[Array, Array, Array]:
         c = self.config
         holes = self.aperture.hole_transmissions(self.grid, c.softening_px, c.supersample)
         # The soft holes are pixel averages of the mask; sharpen them back (in band) so
@@ -199,17 +207,14 @@ class NRMOptics(eqx.Module):
         amplitude = propagation.separable_filter(
             jnp.tensordot(self.hole_amplitudes, holes, 1), propagation.pupil_sharpen_taps()
         )
+        # The soft edges stand for a binary mask whose area is the sum of the soft
+        # transmission (not of its square): the power is sum_h a_h^2 * area_h.
+        power = jnp.sum(self.hole_amplitudes**2 * jnp.sum(holes, axis=(-2, -1)))
         z = self.zernikes_nm
         z = z.at[:, 0].add(-jnp.mean(z[:, 0]))  # global piston is unobservable
         basis = self.aperture.zernike_basis(self.grid, c.n_zernike, c.zernike_radius_factor)
         opd_m = 1e-9 * jnp.einsum("hj,hjyx->yx", z, basis)
-        return amplitude, opd_m
-
-    def pupil_power(self) -> Float[Array, ""]:
-        """Power through the mask in pupil pixels: ``sum_h a_h^2 * area_h / pixel^2``."""
-        c = self.config
-        holes = self.aperture.hole_transmissions(self.grid, c.softening_px, c.supersample)
-        return jnp.sum(self.hole_amplitudes**2 * jnp.sum(holes, axis=(-2, -1)))
+        return amplitude, opd_m, power
 
     # ------------------------------------------------------------------ propagation
     def focal_grid_rad(self) -> Float[Array, " m"]:
@@ -228,7 +233,7 @@ class NRMOptics(eqx.Module):
         the gradient cheap).
         """
         c = self.config
-        amplitude, opd_m = self.pupil()
+        amplitude, opd_m, power = self._pupil_and_power()
         x, y = self.grid.x_m, self.grid.y_m
         pos = jnp.asarray(position_arcsec) * ARCSEC_TO_RAD
         opd_m = opd_m + x[None, :] * pos[0] + y[:, None] * pos[1]
@@ -237,9 +242,6 @@ class NRMOptics(eqx.Module):
             opd_m = opd_m + defocus_opd_m(self.grid, self.defocus_nm, 0.5 * c.pupil_diameter_m)
         theta = jax.lax.stop_gradient(self.focal_grid_rad())
         # Parseval: sum |E|^2 dtheta^2 over the plane = lambda^2 dx^2 * (power in pupil).
-        # The soft edges stand for a binary mask whose area is the sum of the soft
-        # transmission (not of its square), so the power is sum_h a_h^2 * area_h.
-        power = self.pupil_power()
 
         def one(wavelength):
             wavelength = jax.lax.stop_gradient(wavelength)
