@@ -150,6 +150,11 @@ def test_offsets_round_trip_and_sky_chain():
     np.testing.assert_allclose(
         detector.detector_arcsec_to_optical(arcsec), detector.detector_to_optical(pix), atol=1e-12
     )
+    np.testing.assert_allclose(
+        detector.optical_to_detector_arcsec(detector.detector_arcsec_to_optical(arcsec)),
+        arcsec,
+        atol=1e-12,
+    )
     # Sky -> optical matrix equals the chain sky -> detector (WCS) -> optical.
     orientation = Orientation(pa_aper_deg=172.3)
     sky = np.array([-323.4, 59.9])  # mas

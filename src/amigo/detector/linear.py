@@ -208,6 +208,12 @@ class LinearDetector(eqx.Module):
         scales = jnp.array([instrument.PIXEL_SCALE_X_ARCSEC, instrument.PIXEL_SCALE_Y_ARCSEC])
         return self.detector_to_optical(jnp.asarray(offset_arcsec) / scales)
 
+    def optical_to_detector_arcsec(self, position_arcsec: Float[Array, "... 2"]) -> Array:
+        """Optical-frame offset (arcsec) -> detector offset in arcsec along x and y
+        (inverse of :meth:`detector_arcsec_to_optical`)."""
+        scales = jnp.array([instrument.PIXEL_SCALE_X_ARCSEC, instrument.PIXEL_SCALE_Y_ARCSEC])
+        return self.optical_to_detector(position_arcsec) * scales
+
     # ------------------------------------------------------------------ image
     def jitter(self, image: Float[Array, "n m"]) -> Float[Array, "n m"]:
         """Gaussian jitter blur on the oversampled optical grid."""
