@@ -4,9 +4,10 @@ Data flow (one exposure)::
 
     spectrum (wavelengths, weights)      source position (optical frame, arcsec)
             |                                      |
-    pupil = sum_h a_h hole_h * exp(2 pi i OPD / lambda),  OPD = sum_hj z_hj Z_hj  (nm)
-            |  MFT to the (80 * oversample)^2 focal grid, centred on the source
-            |  Fresnel defocus (angular spectrum, optional)
+    pupil = sharpen(sum_h a_h hole_h) * exp(2 pi i OPD / lambda),
+            OPD = sum_hj z_hj Z_hj + source tilt + defocus (the "pupil" defocus method)
+            |  MFT to the (80 * oversample)^2 focal grid
+            |  [or Fresnel defocus by the angular-spectrum transfer function]
     monochromatic PSFs (n_lambda, 240, 240): point samples, each normalised to unit power
             |  weighted sum over wavelengths (visibility injection goes here, per lambda)
             |  pixel integration (sub-pixel box integrals)
