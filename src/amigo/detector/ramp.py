@@ -24,6 +24,8 @@ with ``.T``, which swapped pixel (r, c) with (c, r); see tests/test_ramp.py for 
 
 from __future__ import annotations
 
+import itertools
+
 import equinox as eqx
 import interpax
 import jax
@@ -95,7 +97,7 @@ class ChargeMigrationNetwork(eqx.Module):
         channels = [gradient_kernels().shape[0]] + [width] * depth + [N_OUTPUTS]
         keys = jax.random.split(key, len(channels) - 1)
         layers = []
-        for i, (c_in, c_out) in enumerate(zip(channels[:-1], channels[1:], strict=True)):
+        for i, (c_in, c_out) in enumerate(itertools.pairwise(channels)):
             conv = eqx.nn.Conv2d(c_in, c_out, 3, padding=1, use_bias=False, key=keys[i])
             if i == len(channels) - 2:  # start close to "no migration"
                 conv = eqx.tree_at(lambda c: c.weight, conv, conv.weight * init_scale)

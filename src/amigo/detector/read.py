@@ -50,7 +50,7 @@ def convolve_ipc(frames: Float[Array, "... ny nx"], kernel: Float[Array, "5 5"])
     pixel (y, x) couples a fraction ``kernel[dy + 2, dx + 2]`` into pixel (y + dy, x + dx).
     """
     shape = frames.shape
-    flat = frames.reshape((-1, 1) + shape[-2:])
+    flat = frames.reshape((-1, 1, *shape[-2:]))
     # conv_general_dilated correlates; flipping the kernel makes it a convolution.
     out = jax.lax.conv_general_dilated(
         flat, jnp.asarray(kernel, frames.dtype)[::-1, ::-1][None, None], (1, 1), "SAME"
