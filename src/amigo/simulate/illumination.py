@@ -170,23 +170,48 @@ def hole_phases_and_tilts(
     return piston, gradient
 
 
-def gaussian_blur(image: np.ndarray, sigma_pix: float) -> np.ndarray:
-    """Blur a 2-D image by a Gaussian (sigma in that image's pixels), flux-conserving.
+def nrm_intensity(
+    theta_x_rad: np.ndarray,
+    theta_y_rad: np.ndarray,
+    wavelength_m: float,
+    centres_m: np.ndarray,
+    piston_m: np.ndarray,
+    gradient: np.ndarray,
+) -> np.ndarray:
+    """Monochromatic image of the mask for a unit photon rate, per steradian.
 
-    Done in Fourier space on a zero-padded copy (no wrap-around for blurs much smaller
-    than the image); the exact transform of a Gaussian is used, so it is exact for
-    band-limited images.
+    ``|sum_h F_hex(q - t_h / lambda) exp(2 pi i (p_h / lambda - q . c_h))|^2 /
+    (lambda^2 A)`` at ``q = theta / lambda``, with ``A`` the total open area so that the
+    image integrates to one over the sky (Parseval); ``p_h`` is the piston OPD and
+    ``t_h`` the OPD gradient of hole ``h`` centred on ``c_h``.
+
+    Parameters
+    ----------
+    theta_x_rad, theta_y_rad
+        Angles in the optical (pupil-aligned) frame, radians, broadcastable.
+    wavelength_m
+        Wavelength (m).
+    centres_m, piston_m, gradient
+        (7, 2) hole centres (m), (7,) piston OPD (m), (7, 2) OPD gradient (m/m).
     """
-    if sigma_pix <= 0:
-        return image
-    ny, nx = image.shape
-    pad = int(np.ceil(6 * sigma_pix)) + 1
-    padded = np.pad(image, pad)
-    fy = np.fft.fftfreq(padded.shape[0])[:, None]
-    fx = np.fft.rfftfreq(padded.shape[1])[None, :]
-    transfer = np.exp(-2.0 * (np.pi * sigma_pix) ** 2 * (fx**2 + fy**2))
-    blurred = np.fft.irfft2(np.fft.rfft2(padded) * transfer, s=padded.shape)
-    return blurred[pad : pad + ny, pad : pad + nx]
+    vertices = hexagon_vertices_m()
+    total_area = len(centres_m) * 1.5 * np.sqrt(3.0) * float(np.sum(vertices[0] ** 2))
+    qx = np.asarray(theta_x_rad) / wavelength_m
+    qy = np.asarray(theta_y_rad) / wavelength_m
+    field = np.zeros(np.broadcast(qx, qy).shape, complex)
+    for h in range(len(centres_m)):
+        # A tilt shifts this hole's envelope by gradient / lambda in q; the piston and
+        # the hole's position set its fringe phase.
+        envelope = _hexagon_transform_real(
+            qx - gradient[h, 0] / wavelength_m, qy - gradient[h, 1] / wavelength_m, vertices
+        )
+        phase = (
+            2.0
+            * np.pi
+            * (piston_m[h] / wavelength_m - (qx * centres_m[h, 0] + qy * centres_m[h, 1]))
+        )
+        field += envelope * np.exp(1j * phase)
+    return np.abs(field) ** 2 / (wavelength_m**2 * total_area)
 
 
 def integrate_subpixels(samples: np.ndarray, jitter_sigma: float = 0.0) -> np.ndarray:
@@ -250,8 +275,6 @@ class AnalyticNRM:
         solid_angle = abs(np.linalg.det(to_optical)) / k**2  # sr per sub-pixel
         centres = state.hole_centres_m()
         piston_m, gradient = hole_phases_and_tilts(state, filter_name)
-        vertices = hexagon_vertices_m()
-        total_area = instrument.N_HOLES * 1.5 * np.sqrt(3.0) * float(np.sum(vertices[0] ** 2))
         axis = pixel_grid(k, instrument.SUBARRAY_SIZE + 2 * pad) - pad
         samples = np.zeros((axis.size, axis.size))
         for source in scene.sources:
@@ -262,21 +285,7 @@ class AnalyticNRM:
             theta_x = to_optical[0, 0] * dx + to_optical[0, 1] * dy
             theta_y = to_optical[1, 0] * dx + to_optical[1, 1] * dy
             for wavelength, weight in zip(bins.wavelengths_m, bins.weights, strict=True):
-                qx, qy = theta_x / wavelength, theta_y / wavelength
-                field = np.zeros(qx.shape, complex)
-                for h in range(instrument.N_HOLES):
-                    # Tilt shifts this hole's envelope by gradient/lambda in q; piston and
-                    # the hole position set the fringe phase.
-                    envelope = _hexagon_transform_real(
-                        qx - gradient[h, 0] / wavelength, qy - gradient[h, 1] / wavelength, vertices
-                    )
-                    phase = (
-                        2.0
-                        * np.pi
-                        * (piston_m[h] / wavelength - (qx * centres[h, 0] + qy * centres[h, 1]))
-                    )
-                    field += envelope * np.exp(1j * phase)
-                intensity = np.abs(field) ** 2 / (wavelength**2 * total_area)
+                intensity = nrm_intensity(theta_x, theta_y, wavelength, centres, piston_m, gradient)
                 samples += (source.photons_per_s * weight * solid_angle) * intensity
         sigma_sub = state.jitter_mas / (instrument.PIXEL_SCALE_ARCSEC * 1000.0) * k
         image = integrate_subpixels(samples, sigma_sub)
