@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from astropy.time import TimeDelta
 
 from amigo import instrument
 from amigo._version import __version__
@@ -119,7 +120,9 @@ def simulate_exposure(
     scene = scene.scaled(scale)
 
     simulator = RampSimulator(rate, k, detector_truth, config, spec.ngroups)
-    start = start_time(scenario.date_obs, scenario.time_obs) + start_mjd_offset_s / 86400.0
+    start = start_time(scenario.date_obs, scenario.time_obs) + TimeDelta(
+        start_mjd_offset_s, format="sec"
+    )
     # XOFFSET/YOFFSET: the dither offset in the ideal frame (arcsec), to first order.
     ideal = np.asarray(instrument.SCI_TO_IDEAL_ARCSEC_PER_PIX) @ np.asarray(spec.dither_offset_pix)
     dither_arcsec = (float(ideal[0]), float(ideal[1]))

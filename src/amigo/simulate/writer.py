@@ -11,7 +11,8 @@ The SCI header carries the orientation keywords (``ROLL_REF``, ``V3I_YANG``,
 ``VPARITY``, ``PA_APER``) and a celestial FITS WCS (``RA---TAN``/``DEC--TAN``) whose CD
 matrix is :meth:`amigo.orientation.Orientation.detector_to_sky_matrix`, so the WCS and the
 orientation keywords agree by construction; ``CRPIX`` is the primary star's position and
-``CRVAL`` the target's coordinates.
+``CRVAL`` the target's coordinates. The SCI array is 4-D, so a FITS WCS reader sees four
+axes: take the celestial part (``astropy.wcs.WCS(header).celestial``).
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from typing import Any
 
 import numpy as np
 from astropy.io import fits
-from astropy.time import Time
+from astropy.time import Time, TimeDelta
 
 from amigo import instrument
 from amigo._version import __version__
@@ -87,18 +88,18 @@ def uncal_primary_cards(
 ) -> dict[str, Any]:
     """The PRIMARY keywords of a simulated NIRISS AMI level-1b file."""
     duration = exposure_duration_s(nints, ngroups)
-    end = start + duration / 86400.0
-    mid = start + 0.5 * duration / 86400.0
+    end = start + TimeDelta(duration, format="sec")
+    mid = start + TimeDelta(0.5 * duration, format="sec")
     visit_id = f"{program:05d}{observation:03d}{visit:03d}"
     effective_int = ngroups * instrument.GROUP_TIME_S
     cards: dict[str, Any] = {
-        "DATE": (start.isot[:10], "[yyyy-mm-dd] simulated: set to the observation date"),
+        "DATE": (start.isot[:10], "[yyyy-mm-dd] simulated file: the obs. date"),
         "ORIGIN": ("amigo", "organization responsible for creating file"),
         "FILENAME": (filename, "name of the file"),
         "FILETYPE": ("uncalibrated", "type of data in the file"),
         "DATAMODL": ("Level1bModel", "type of data model"),
         "TELESCOP": ("JWST", "telescope used to acquire the data"),
-        "AMISIM": (True, "simulated by amigo simulate (truth in _truth.json)"),
+        "AMISIM": (True, "simulated by amigo (truth in _truth.json)"),
         "AMIGOVER": (__version__, "amigo version that wrote this file"),
         "PROGRAM": (f"{program:05d}", "program number"),
         "OBSERVTN": (f"{observation:03d}", "observation number"),
@@ -154,8 +155,8 @@ def uncal_primary_cards(
         "PATTTYPE": (dither_pattern if dither_total > 1 else "NONE", "primary dither pattern"),
         "NUMDTHPT": (dither_total, "total number of points in pattern"),
         "PATT_NUM": (dither_position, "position number in primary pattern"),
-        "XOFFSET": (dither_offset_arcsec[0], "[arcsec] x offset from pattern starting position"),
-        "YOFFSET": (dither_offset_arcsec[1], "[arcsec] y offset from pattern starting position"),
+        "XOFFSET": (dither_offset_arcsec[0], "[arcsec] x offset from pattern start"),
+        "YOFFSET": (dither_offset_arcsec[1], "[arcsec] y offset from pattern start"),
     }
     if extra:
         cards.update(extra)
@@ -205,7 +206,6 @@ def sci_header(
         }[key]
         header[key] = (value, comment)
     cd = orientation.detector_to_sky_matrix() * DEG_PER_MAS
-    header["WCSAXES"] = (2, "number of World Coordinate System axes")
     header["RADESYS"] = ("ICRS", "name of the coordinate reference frame")
     header["CRPIX1"] = (primary_xy_pix[0] + 1.0, "axis 1 coordinate of the reference pixel")
     header["CRPIX2"] = (primary_xy_pix[1] + 1.0, "axis 2 coordinate of the reference pixel")
