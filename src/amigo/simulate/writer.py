@@ -200,7 +200,7 @@ def sci_header(
     for key, value in orientation.to_header().items():
         comment = {
             "PA_APER": "[deg] Position angle of aperture used",
-            "VPARITY": "Relative sense of rotation between Ideal xy and V2V3",
+            "VPARITY": "Relative sense of rotation, Ideal xy vs V2V3",
             "V3I_YANG": "[deg] Angle from V3 axis to Ideal y axis",
             "ROLL_REF": "[deg] V3 roll angle at the ref point (N over E)",
         }[key]
