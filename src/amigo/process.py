@@ -92,6 +92,32 @@ ADC_AMPLITUDE_DN: float = 2.0
 #: 1 / Phi^-1(3/4): turns a median absolute deviation into a Gaussian standard deviation.
 MAD_TO_SIGMA: float = 1.482602218505602
 
+#: Small-sample consistency factors of 1.4826 MAD for n = 2..9 values (Croux & Rousseeuw
+#: 1992, "Time-efficient algorithms for two highly robust estimators of scale"); beyond 9,
+#: n / (n - 0.8). Without them a handful of integrations gives a scale ~20 % too small and
+#: clips good data at ~2.5 sigma. tests/test_process.py checks them by Monte Carlo.
+MAD_SMALL_SAMPLE_FACTOR: dict[int, float] = {
+    2: 1.196,
+    3: 1.495,
+    4: 1.363,
+    5: 1.206,
+    6: 1.200,
+    7: 1.140,
+    8: 1.129,
+    9: 1.107,
+}
+
+
+def mad_consistency_factor(n: np.ndarray) -> np.ndarray:
+    """Factor making ``1.4826 MAD`` of ``n`` Gaussian values unbiased for sigma (1 for n<2)."""
+    n = np.asarray(n, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        factor = np.where(n > 9, n / (n - 0.8), 1.0)
+    for count, value in MAD_SMALL_SAMPLE_FACTOR.items():
+        factor = np.where(n == count, value, factor)
+    return factor
+
+
 #: Floor of the robust scale (DN). Raw counts are integers: when more than half of the
 #: values of a pixel are equal (very low noise, or few integrations) the MAD is zero, and a
 #: tiny scale would reject values that differ from the median by a count or two.
@@ -247,7 +273,7 @@ def saturated_integrations(
 
 
 def robust_centre_scale(values: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Median and Gaussian-equivalent scale (1.4826 MAD) along axis 0 over ``mask``.
+    """Median and Gaussian-equivalent scale (1.4826 MAD, small-sample corrected) along axis 0.
 
     Parameters
     ----------
@@ -264,7 +290,8 @@ def robust_centre_scale(values: np.ndarray, mask: np.ndarray) -> tuple[np.ndarra
     masked = np.where(mask, values, np.nan)
     with np.errstate(invalid="ignore"):
         centre = _nanmedian0(masked)
-        scale = MAD_TO_SIGMA * _nanmedian0(np.abs(masked - centre))
+        count = np.sum(mask, axis=0)
+        scale = MAD_TO_SIGMA * mad_consistency_factor(count) * _nanmedian0(np.abs(masked - centre))
     return centre, np.maximum(scale, MIN_SCALE_DN, where=np.isfinite(scale), out=scale)
 
 
