@@ -58,23 +58,22 @@ def write_synthetic_uncal(path: Path, nints: int, ngroups: int, seed: int = 0) -
         header[key] = value
     # Written by hand (header block, big-endian data, padding to 2880 bytes) so that the
     # file never has to fit in memory.
-    handle = open(path, "ab")  # noqa: SIM115 - closed below, after the loop
-    handle.write(header.tostring().encode("ascii"))
     chunk = 500
-    for start in range(0, nints, chunk):
-        n = min(chunk, nints - start)
-        photons = rng.normal(flux, np.sqrt(flux / 1.61), (n, ngroups, 80, 80))
-        analog = bias + np.cumsum(photons, axis=1) + rng.normal(0.0, 10.0, (n, ngroups, 80, 80))
-        hit = rng.random((n, 1, 80, 80)) < 0.01
-        first = rng.integers(1, ngroups, (n, 1, 80, 80))
-        groups = np.arange(ngroups)[None, :, None, None]
-        analog += np.where(hit & (groups >= first), 1000.0, 0.0)
-        analog += 2.0 * np.sin(2.0 * np.pi * analog / 1024.0)
-        raw = np.clip(np.rint(analog), 0, 65535).astype(np.int32) - 32768
-        handle.write(raw.astype(">i2").tobytes())
-    nbytes = nints * ngroups * 80 * 80 * 2
-    handle.write(b"\0" * (-nbytes % 2880))
-    handle.close()
+    groups = np.arange(ngroups)[None, :, None, None]
+    with open(path, "ab") as handle:
+        handle.write(header.tostring().encode("ascii"))
+        for start in range(0, nints, chunk):
+            n = min(chunk, nints - start)
+            shape = (n, ngroups, 80, 80)
+            photons = rng.normal(flux, np.sqrt(flux / 1.61), shape)
+            analog = bias + np.cumsum(photons, axis=1) + rng.normal(0.0, 10.0, shape)
+            hit = rng.random((n, 1, 80, 80)) < 0.01
+            first = rng.integers(1, ngroups, (n, 1, 80, 80))
+            analog += np.where(hit & (groups >= first), 1000.0, 0.0)
+            analog += 2.0 * np.sin(2.0 * np.pi * analog / 1024.0)
+            raw = np.clip(np.rint(analog), 0, 65535).astype(np.int32) - 32768
+            handle.write(raw.astype(">i2").tobytes())
+        handle.write(b"\0" * (-(nints * ngroups * 80 * 80 * 2) % 2880))
 
 
 def child(uncal: Path, out: Path) -> None:
