@@ -17,7 +17,9 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
 def _require(path: Path) -> Path:
     if not path.exists():
-        pytest.skip(f"development data not available: {path} (it lives in ../shared, beside the repo)")
+        pytest.skip(
+            f"development data not available: {path} (it lives in ../shared, beside the repo)"
+        )
     return path
 
 
@@ -37,3 +39,15 @@ def mirage_uncal() -> Path:
 def oifits_dir() -> Path:
     """OIFITS files written by other pipelines."""
     return _require(SHARED_DATA / "oifits")
+
+
+@pytest.fixture
+def x64():
+    """Run a test with 64-bit JAX (gradients vs finite differences, Hessians, HMC).
+
+    A context, not a global switch, so that test order never changes precision.
+    """
+    import jax
+
+    with jax.enable_x64(True):
+        yield

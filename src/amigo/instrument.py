@@ -198,7 +198,9 @@ def _filter_curve_cached(name: str) -> tuple[np.ndarray, np.ndarray]:
     resource = resources.files("svo_filters") / "data" / "filters" / f"NIRISS.{name}"
     root = ET.fromstring(resource.read_bytes())
     rows = [
-        [float(td.text) for td in tr.findall("{*}TD")] for tr in root.iter() if tr.tag.endswith("TR")
+        [float(td.text) for td in tr.findall("{*}TD")]
+        for tr in root.iter()
+        if tr.tag.endswith("TR")
     ]
     table = np.array(rows, dtype=float)
     order = np.argsort(table[:, 0])
@@ -278,8 +280,9 @@ def filter_bins(name: str, n: int = 9) -> FilterBins:
     which = np.clip(np.searchsorted(edges, fine, side="right") - 1, 0, n - 1)
     weight = np.bincount(which, weights=t_fine, minlength=n)
     first_moment = np.bincount(which, weights=t_fine * fine, minlength=n)
-    centroids = np.where(weight > 0, first_moment / np.where(weight > 0, weight, 1.0),
-                         0.5 * (edges[:-1] + edges[1:]))
+    centroids = np.where(
+        weight > 0, first_moment / np.where(weight > 0, weight, 1.0), 0.5 * (edges[:-1] + edges[1:])
+    )
     return FilterBins(
         name=name,
         wavelengths_m=centroids,

@@ -60,8 +60,12 @@ class Orientation:
     roll_ref_deg: float | None = None
 
     @classmethod
-    def from_roll(cls, roll_ref_deg: float, v3_idl_y_angle_deg: float | None = None,
-                  vparity: int | None = None) -> Orientation:
+    def from_roll(
+        cls,
+        roll_ref_deg: float,
+        v3_idl_y_angle_deg: float | None = None,
+        vparity: int | None = None,
+    ) -> Orientation:
         """Orientation from the V3 roll angle, as JWST computes ``PA_APER``."""
         yang = instrument.V3_IDL_Y_ANGLE_DEG if v3_idl_y_angle_deg is None else v3_idl_y_angle_deg
         parity = instrument.VIDL_PARITY if vparity is None else int(vparity)
@@ -154,7 +158,9 @@ class Orientation:
         dx, dy = self.sky_to_detector(dra_mas, ddec_mas)
         return dx * instrument.PIXEL_SCALE_X_ARCSEC, dy * instrument.PIXEL_SCALE_Y_ARCSEC
 
-    def detector_arcsec_to_sky(self, dx_arcsec: Any, dy_arcsec: Any) -> tuple[np.ndarray, np.ndarray]:
+    def detector_arcsec_to_sky(
+        self, dx_arcsec: Any, dy_arcsec: Any
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Inverse of :meth:`sky_to_detector_arcsec`."""
         return self.detector_to_sky(
             np.asarray(dx_arcsec) / instrument.PIXEL_SCALE_X_ARCSEC,

@@ -67,7 +67,7 @@ def main(argv: list[str] | None = None) -> Any:
     except KeyboardInterrupt:
         click.echo("amigo: interrupted", err=True)
         sys.exit(130)
-    except Exception as error:  # noqa: BLE001 - the last line of defence of the CLI
+    except Exception as error:
         if os.environ.get("AMIGO_DEBUG"):
             raise
         click.echo(

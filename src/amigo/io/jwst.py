@@ -1,0 +1,449 @@
+"""Readers of JWST NIRISS AMI exposures: raw ramps (level 1b) and STScI level 2.
+
+One entry point per need:
+
+* :func:`read_header` opens a file, identifies it and validates everything a reader needs
+  without loading the pixels: it returns :class:`ExposureMeta` or raises
+  :class:`~amigo.errors.InputError` naming the file and the problem.
+* :func:`read_exposure` returns an :class:`Exposure`: metadata plus data, errors, DQ and a
+  ``usable`` mask in which the 4 reference rows of SUB80, DQ ``DO_NOT_USE`` pixels and
+  non-finite values are False. Arrays always keep the full 80x80 SUB80 shape (the forward
+  model predicts all 80x80 pixels); reference rows are *flagged*, never trimmed, so that
+  pixel indices mean the same thing in every product.
+* :func:`iter_ramps` streams the integrations of a raw-ramp file in chunks (memory bounded
+  whatever NINTS is), for :mod:`amigo.process`.
+
+Kinds: ``uncal`` (SCI uint16, (nints, ngroups, ny, nx)), ``rateints`` / ``calints``
+(SCI float DN/s, (nints, ny, nx)), ``rate`` / ``cal`` (SCI float DN/s, (ny, nx)).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import warnings
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from astropy.io import fits
+
+from amigo import instrument
+from amigo.errors import InputError
+from amigo.orientation import Orientation
+
+#: DQ bit flags used by amigo. Source: JWST pipeline DQ definitions (jwst-formats-and-stack).
+DQ_DO_NOT_USE = 1
+DQ_SATURATED = 2
+DQ_JUMP_DET = 4
+DQ_REFERENCE_PIXEL = 2**31
+
+RAMP_KINDS = ("uncal",)
+IMAGE_KINDS = ("cal", "rate")
+CUBE_KINDS = ("calints", "rateints")
+KINDS = RAMP_KINDS + IMAGE_KINDS + CUBE_KINDS
+
+#: Keywords every AMI exposure must carry (primary header).
+REQUIRED_KEYWORDS = ("INSTRUME", "FILTER", "PUPIL", "EXP_TYPE", "SUBARRAY", "NGROUPS", "NINTS")
+
+_SUFFIX = re.compile(r"_(uncal|rateints|calints|rate|cal)\.fits(\.gz)?$", re.IGNORECASE)
+
+
+class AmiWarning(UserWarning):
+    """The file is usable but unusual (e.g. EXP_TYPE NIS_IMAGE with the NRM pupil)."""
+
+
+@dataclass(frozen=True)
+class ExposureMeta:
+    """Validated metadata of one exposure.
+
+    Attributes
+    ----------
+    path
+        The file.
+    kind
+        One of :data:`KINDS`.
+    target
+        Target as proposed (``TARGPROP``), else ``TARGNAME``, else ``"UNKNOWN"``.
+    filter, pupil, exp_type, subarray
+        Instrument configuration (``FILTER`` is an AMI filter, ``PUPIL`` is ``NRM``).
+    ngroups, nints, nframes
+        Read-out pattern.
+    group_time_s, frame_time_s
+        ``TGROUP`` and ``TFRAME`` (s).
+    program, observation, visit, exposure
+        JWST identifiers as strings (``"01093"``, ``"012"``, ...), empty when absent.
+    date_obs
+        ``DATE-OBS`` and ``TIME-OBS`` joined, empty when absent.
+    orientation
+        Sky orientation from the orientation keywords.
+    bunit
+        Unit of SCI (``"DN"`` for ramps, ``"DN/s"`` for level 2).
+    primary_header, sci_header
+        The headers as read (copies), to carry over into products.
+    notes
+        Warnings raised while validating (also emitted as :class:`AmiWarning`).
+    """
+
+    path: Path
+    kind: str
+    target: str
+    filter: str
+    pupil: str
+    exp_type: str
+    subarray: str
+    ngroups: int
+    nints: int
+    nframes: int
+    group_time_s: float
+    frame_time_s: float
+    program: str
+    observation: str
+    visit: str
+    exposure: str
+    date_obs: str
+    orientation: Orientation
+    bunit: str
+    primary_header: fits.Header = field(repr=False)
+    sci_header: fits.Header = field(repr=False)
+    sci_shape: tuple[int, ...] = ()
+    notes: tuple[str, ...] = ()
+
+    @property
+    def stem(self) -> str:
+        """File name without its product suffix (``jw..._nis`` for ``jw..._nis_uncal.fits``)."""
+        return _SUFFIX.sub("", self.path.name) if _SUFFIX.search(self.path.name) else self.path.stem
+
+    @property
+    def is_ramp(self) -> bool:
+        return self.kind in RAMP_KINDS
+
+
+@dataclass(frozen=True)
+class Exposure:
+    """An exposure's pixels and metadata.
+
+    Attributes
+    ----------
+    meta
+        :class:`ExposureMeta`.
+    data
+        ``uncal``: (nints, ngroups, 80, 80) float64 raw counts in DN (BZERO applied).
+        ``rateints``/``calints``: (nints, 80, 80) float64 DN/s. ``rate``/``cal``: (80, 80).
+    err
+        1-sigma errors of ``data`` (level 2 only), same shape, or ``None``.
+    dq
+        uint32 DQ flags broadcastable to ``data`` (level 2 DQ, or uncal PIXELDQ), or ``None``.
+    usable
+        bool, shape of ``data`` without the ramp axes for uncal ((80, 80)) and the shape of
+        ``data`` for level 2: False on reference rows, DO_NOT_USE pixels and non-finite
+        values (and non-positive errors).
+    """
+
+    meta: ExposureMeta
+    data: np.ndarray
+    err: np.ndarray | None
+    dq: np.ndarray | None
+    usable: np.ndarray
+
+
+# ------------------------------------------------------------------------------ helpers
+def _open(path: Path) -> fits.HDUList:
+    """Open a FITS file lazily, turning every failure into one InputError."""
+    if not path.exists():
+        raise InputError(path, "no such file")
+    if path.is_dir():
+        raise InputError(path, "is a directory, not a FITS file")
+    with open(path, "rb") as handle:
+        start = handle.read(30)
+    if not start.startswith(b"SIMPLE  ="):
+        raise InputError(path, "not a FITS file")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            hdul = fits.open(path, memmap=False, lazy_load_hdus=False)
+    except Exception as error:  # astropy raises several types for damaged files
+        raise InputError(path, f"cannot be read as FITS ({error})") from None
+    _check_complete(path, hdul)
+    return hdul
+
+
+def _check_complete(path: Path, hdul: fits.HDUList) -> None:
+    """Raise if the file is shorter than its headers say (a truncated download)."""
+    size = path.stat().st_size
+    for index in range(len(hdul)):
+        info = hdul.fileinfo(index)
+        if info is None:
+            continue
+        end = info["datLoc"] + info["datSpan"]
+        if end > size:
+            hdul.close()
+            name = hdul[index].name or f"HDU {index}"
+            raise InputError(
+                path, f"truncated file: {name} needs {end} bytes but the file has {size}"
+            )
+
+
+def _get(headers: tuple[fits.Header, ...], key: str) -> Any:
+    for header in headers:
+        if key in header and header[key] is not None and header[key] != "":
+            return header[key]
+    return None
+
+
+def _ext(hdul: fits.HDUList, name: str) -> fits.ImageHDU | None:
+    try:
+        return hdul[name]
+    except KeyError:
+        return None
+
+
+def _kind(path: Path, hdul: fits.HDUList, sci: fits.ImageHDU) -> str:
+    naxis = sci.header.get("NAXIS", 0)
+    integer = sci.header.get("BITPIX", -32) > 0
+    match = _SUFFIX.search(path.name)
+    suffix = match.group(1).lower() if match else None
+    if naxis == 4:
+        if not integer:
+            raise InputError(path, "SCI is 4-D but not integer: not a raw (uncal) ramp")
+        return "uncal"
+    if naxis == 3:
+        return suffix if suffix in CUBE_KINDS else "calints"
+    if naxis == 2:
+        return suffix if suffix in IMAGE_KINDS else "cal"
+    raise InputError(path, f"SCI has {naxis} dimensions: expected 4 (uncal), 3 or 2 (level 2)")
+
+
+# ------------------------------------------------------------------------------ public API
+def read_header(path: str | os.PathLike[str], *, need_slopes: bool = False) -> ExposureMeta:
+    """Identify and validate a NIRISS AMI exposure without reading its pixels.
+
+    Parameters
+    ----------
+    path
+        A JWST uncal, rate(ints) or cal(ints) file.
+    need_slopes
+        Also require at least two groups (slopes need two reads).
+
+    Raises
+    ------
+    InputError
+        Not a FITS file, truncated, not NIRISS, PUPIL not NRM, unsupported subarray,
+        missing keywords, wrong dimensionality, one group when slopes are needed.
+    """
+    path = Path(path)
+    hdul = _open(path)
+    try:
+        return _validate(path, hdul, need_slopes=need_slopes)
+    finally:
+        hdul.close()
+
+
+def _validate(path: Path, hdul: fits.HDUList, *, need_slopes: bool) -> ExposureMeta:
+    primary = hdul[0].header
+    sci = _ext(hdul, "SCI")
+    if sci is None:
+        if _ext(hdul, "OI_VIS2") is not None or _ext(hdul, "OI_T3") is not None:
+            raise InputError(path, "is an OIFITS file, not a JWST exposure")
+        raise InputError(path, "has no SCI extension: not a JWST exposure")
+    headers = (primary, sci.header)
+
+    telescope = _get(headers, "TELESCOP")
+    if telescope is not None and str(telescope).strip().upper() != "JWST":
+        raise InputError(path, f"TELESCOP is {telescope!r}, expected 'JWST'")
+    instrument_name = _get(headers, "INSTRUME")
+    if instrument_name is None:
+        raise InputError(path, "missing required keyword INSTRUME")
+    if str(instrument_name).strip().upper() != "NIRISS":
+        raise InputError(path, f"INSTRUME is {instrument_name!r}, expected 'NIRISS'")
+    missing = [key for key in REQUIRED_KEYWORDS if _get(headers, key) is None]
+    if missing:
+        raise InputError(path, f"missing required keyword(s) {', '.join(missing)}")
+
+    pupil = str(_get(headers, "PUPIL")).strip().upper()
+    if pupil != "NRM":
+        raise InputError(path, f"PUPIL is {pupil!r}, expected 'NRM' (not an AMI exposure)")
+    notes: list[str] = []
+    exp_type = str(_get(headers, "EXP_TYPE")).strip().upper()
+    if exp_type != "NIS_AMI":
+        if exp_type in ("NIS_IMAGE", "NIS_TACQ", "NIS_TACONFIRM", "NIS_FOCUS"):
+            notes.append(f"EXP_TYPE is {exp_type!r} with PUPIL 'NRM': treated as AMI")
+        else:
+            raise InputError(path, f"EXP_TYPE is {exp_type!r}: not an AMI exposure")
+
+    subarray = str(_get(headers, "SUBARRAY")).strip().upper()
+    if subarray != instrument.SUBARRAY:
+        raise InputError(path, f"SUBARRAY is {subarray!r}: only SUB80 is supported")
+
+    try:
+        filter_name = instrument.check_filter(str(_get(headers, "FILTER")))
+    except ValueError as error:
+        raise InputError(path, str(error)) from None
+    if filter_name not in instrument.CALIBRATED_FILTERS:
+        notes.append(f"{filter_name} is not calibrated (the paper and the base model exclude it)")
+
+    kind = _kind(path, hdul, sci)
+    shape = tuple(int(sci.header[f"NAXIS{i}"]) for i in range(sci.header["NAXIS"], 0, -1))
+    if shape[-2:] != (instrument.SUBARRAY_SIZE, instrument.SUBARRAY_SIZE):
+        raise InputError(path, f"SCI frames are {shape[-2]}x{shape[-1]}, expected 80x80 (SUB80)")
+
+    ngroups = int(_get(headers, "NGROUPS"))
+    nints = int(_get(headers, "NINTS"))
+    if kind == "uncal":
+        if shape[0] != nints or shape[1] != ngroups:
+            raise InputError(
+                path,
+                f"SCI has {shape[0]} integrations x {shape[1]} groups but the header says "
+                f"NINTS={nints}, NGROUPS={ngroups}",
+            )
+        if need_slopes and ngroups < 2:
+            raise InputError(path, "has one group per integration: slopes need at least 2")
+    elif kind in CUBE_KINDS and shape[0] < 1:
+        raise InputError(path, "SCI has no integrations")
+
+    try:
+        orientation = Orientation.from_header(sci.header, primary)
+    except KeyError:
+        raise InputError(path, "missing orientation keywords (PA_APER or ROLL_REF)") from None
+
+    group_time = _get(headers, "TGROUP")
+    frame_time = _get(headers, "TFRAME")
+    if group_time is None:
+        if kind == "uncal":
+            raise InputError(path, "missing required keyword TGROUP")
+        group_time = instrument.GROUP_TIME_S
+    target = _get(headers, "TARGPROP") or _get(headers, "TARGNAME") or "UNKNOWN"
+    date = " ".join(str(v) for v in (_get(headers, "DATE-OBS"), _get(headers, "TIME-OBS")) if v)
+    bunit = str(sci.header.get("BUNIT", "DN" if kind == "uncal" else "DN/s"))
+
+    for note in notes:
+        warnings.warn(f"{path.name}: {note}", AmiWarning, stacklevel=3)
+    return ExposureMeta(
+        path=path,
+        kind=kind,
+        target=str(target).strip(),
+        filter=filter_name,
+        pupil=pupil,
+        exp_type=exp_type,
+        subarray=subarray,
+        ngroups=ngroups,
+        nints=nints,
+        nframes=int(_get(headers, "NFRAMES") or 1),
+        group_time_s=float(group_time),
+        frame_time_s=float(frame_time) if frame_time is not None else float(group_time),
+        program=str(_get(headers, "PROGRAM") or ""),
+        observation=str(_get(headers, "OBSERVTN") or ""),
+        visit=str(_get(headers, "VISIT") or ""),
+        exposure=str(_get(headers, "EXPOSURE") or ""),
+        date_obs=date,
+        orientation=orientation,
+        bunit=bunit,
+        primary_header=primary.copy(),
+        sci_header=sci.header.copy(),
+        sci_shape=shape,
+        notes=tuple(notes),
+    )
+
+
+def read_exposure(path: str | os.PathLike[str], *, need_slopes: bool = False) -> Exposure:
+    """Read a whole exposure (see :class:`Exposure` for shapes and units).
+
+    For large raw-ramp files prefer :func:`iter_ramps`, which streams integrations.
+    """
+    path = Path(path)
+    hdul = _open(path)
+    try:
+        meta = _validate(path, hdul, need_slopes=need_slopes)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            try:
+                data = np.array(hdul["SCI"].data, dtype=np.float64)
+            except Exception as error:
+                raise InputError(path, f"SCI data cannot be read ({error})") from None
+        frame_shape = data.shape[-2:]
+        usable = ~instrument.reference_row_mask(*frame_shape)
+        if meta.kind == "uncal":
+            dq_hdu = _ext(hdul, "PIXELDQ")
+            dq = None if dq_hdu is None else np.asarray(dq_hdu.data, dtype=np.uint32)
+            if dq is not None:
+                usable &= (dq & DQ_DO_NOT_USE) == 0
+            return Exposure(meta=meta, data=data, err=None, dq=dq, usable=usable)
+
+        err_hdu, dq_hdu = _ext(hdul, "ERR"), _ext(hdul, "DQ")
+        err = None if err_hdu is None else np.array(err_hdu.data, dtype=np.float64)
+        dq = None if dq_hdu is None else np.array(dq_hdu.data, dtype=np.uint32)
+        flagged = np.zeros(data.shape, dtype=bool)
+        if dq is not None:
+            flagged |= np.broadcast_to((dq & DQ_DO_NOT_USE) != 0, data.shape)
+        nonfinite = ~np.isfinite(data)
+        bad_nonfinite = nonfinite & ~flagged & ~instrument.reference_row_mask(*frame_shape)
+        if bad_nonfinite.any():
+            raise InputError(
+                path,
+                f"SCI has {int(bad_nonfinite.sum())} NaN/inf values in pixels not flagged "
+                "DO_NOT_USE",
+            )
+        usable = np.broadcast_to(usable, data.shape) & ~flagged & ~nonfinite
+        if err is not None:
+            usable &= np.isfinite(err) & (err > 0)
+        return Exposure(meta=meta, data=data, err=err, dq=dq, usable=usable)
+    finally:
+        hdul.close()
+
+
+def iter_ramps(
+    path: str | os.PathLike[str], chunk: int = 256, *, with_dq: bool = False
+) -> Iterator[Any]:
+    """Stream the integrations of a raw-ramp (uncal) file.
+
+    Parameters
+    ----------
+    path
+        An uncal file (validated with ``need_slopes=True``).
+    chunk
+        Number of integrations per yielded array.
+    with_dq
+        Also yield the GROUPDQ chunk (uint8/uint32, same shape) or ``None`` when the file
+        has none (level-1b files from STScI carry none; RampModel files do).
+
+    Yields
+    ------
+    ramps
+        float64 (n, ngroups, 80, 80) raw counts in DN with BZERO applied, ``n <= chunk``;
+        or ``(ramps, groupdq)`` when ``with_dq``.
+    """
+    path = Path(path)
+    if chunk < 1:
+        raise ValueError(f"chunk must be >= 1, got {chunk}")
+    hdul = _open(path)
+    try:
+        meta = _validate(path, hdul, need_slopes=True)
+        if meta.kind != "uncal":
+            raise InputError(path, f"is a {meta.kind} product, not raw ramps (uncal)")
+        sci = hdul["SCI"]
+        gdq = _ext(hdul, "GROUPDQ") if with_dq else None
+        for start in range(0, meta.nints, chunk):
+            stop = min(start + chunk, meta.nints)
+            try:
+                block = np.asarray(sci.section[start:stop], dtype=np.float64)
+            except Exception as error:
+                raise InputError(path, f"SCI data cannot be read ({error})") from None
+            if with_dq:
+                dq_block = None if gdq is None else np.asarray(gdq.section[start:stop])
+                yield block, dq_block
+            else:
+                yield block
+    finally:
+        hdul.close()
+
+
+def read_pixel_dq(path: str | os.PathLike[str]) -> np.ndarray | None:
+    """The PIXELDQ (80, 80) uint32 flags of a ramp file, or ``None`` when it has none."""
+    hdul = _open(Path(path))
+    try:
+        hdu = _ext(hdul, "PIXELDQ")
+        return None if hdu is None else np.asarray(hdu.data, dtype=np.uint32)
+    finally:
+        hdul.close()
