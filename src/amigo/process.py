@@ -837,15 +837,6 @@ def process_ramps(
 # --------------------------------------------------------------------------------------
 
 
-def _ramp_reader() -> Any:
-    """The raw-ramp reader module (``amigo.io.jwst``, or the stop-gap until it lands)."""
-    try:
-        from amigo.io import jwst
-    except ImportError:  # pragma: no cover - removed once amigo.io.jwst is on main
-        from amigo.io import _uncal_stopgap as jwst
-    return jwst
-
-
 @dataclass(frozen=True)
 class FileSource:
     """A :class:`RampSource` streaming an uncal file (validated on construction)."""
@@ -858,15 +849,19 @@ class FileSource:
     @classmethod
     def open(cls, path: str | os.PathLike[str]) -> tuple[FileSource, Any]:
         """Validate ``path`` as raw ramps; return the source and the file's metadata."""
+        from amigo.io import jwst
+
         path = Path(path)
-        meta = _ramp_reader().read_header(path, need_slopes=True)
+        meta = jwst.read_header(path, need_slopes=True)
         if meta.kind != "uncal":
             raise InputError(path, f"is a {meta.kind} product, not raw ramps (uncal)")
         shape = tuple(meta.sci_shape)
         return cls(path, int(meta.nints), int(meta.ngroups), (shape[-2], shape[-1])), meta
 
     def chunks(self, size: int) -> Iterator[tuple[np.ndarray, np.ndarray | None]]:
-        yield from _ramp_reader().iter_ramps(self.path, size, with_dq=True)
+        from amigo.io import jwst
+
+        yield from jwst.iter_ramps(self.path, size, with_dq=True)
 
 
 def check_usable(path: str | os.PathLike[str], product: SlopeProduct) -> None:
@@ -904,10 +899,11 @@ def process_file(
         The file is not usable raw ramps (see :func:`amigo.io.jwst.read_header`), or no
         pixel survives (e.g. everything saturated). Nothing is written then.
     """
+    from amigo.io import jwst
     from amigo.io.calslope import calslope_name, write_calslope
 
     source, meta = FileSource.open(uncal_path)
-    pixel_dq = _ramp_reader().read_pixel_dq(source.path)
+    pixel_dq = jwst.read_pixel_dq(source.path)
     product = process_ramps(source, settings, pixel_dq=pixel_dq, progress=progress)
     check_usable(source.path, product)
     out = Path(out_dir) / calslope_name(source.path)

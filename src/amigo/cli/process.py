@@ -78,8 +78,9 @@ def command(
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
                 out, product = process_file(path, out_dir, settings, progress=progress)
-            for warning in caught:
-                click.echo(f"amigo: note: {warning.message}", err=True)
+            # The reader validates the file on each pass: say each note once.
+            for message in dict.fromkeys(str(warning.message) for warning in caught):
+                click.echo(f"amigo: note: {message}", err=True)
         except InputError as error:
             click.echo(f"amigo: error: {error}", err=True)
             failed += 1
