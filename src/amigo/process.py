@@ -42,8 +42,8 @@ kept sets. Read noise makes adjacent slopes of one integration anti-correlated (
 so ``SLOPE_COV`` is a full matrix per pixel.
 
 The clipping bands are centred on medians of the same data, so they move with it, and the
-scatter of a clipped mean exceeds that formula: by about 5 % per band for many
-integrations at 3 sigma, 10-25 % for 4 groups and 40 integrations. :func:`clipping_influence`
+scatter of a clipped mean exceeds that formula: for a single band at 3 sigma by 5 % for
+many integrations, and by 8-18 % in our 4-group simulations. :func:`clipping_influence`
 adds this first-order effect (derived for Gaussian noise) to the reported covariances;
 docs/process.md gives the derivation and the Monte Carlo check.
 
@@ -180,7 +180,7 @@ class ProcessSettings:
     covariance_correction
         Add the first-order effect of the data-derived clipping bands to the covariances
         (:func:`clipping_influence`); ``False`` gives the plain covariance of the kept
-        values (the paper's estimator, too small by 5-25 %).
+        values (the paper's estimator, 8-18 % too small in our simulations).
     """
 
     nsigma: float = 3.0
@@ -553,8 +553,9 @@ def clipping_influence(
 
         Delta = (D Sigma + Sigma D^T) / N + D R D^T / n,   R_ww' = sigma_w sigma_w' arcsin(rho)
 
-    Without it the covariance of the mean is too small by ~5 % per band at large ``N``
-    (10-25 % for 4 groups at N = 40); tests/test_process.py checks the corrected value
+    Without it the covariance of the mean is too small: by 5 % for one band and many
+    integrations, by 8-18 % for 4 groups (N = 40 and 300); tests/test_process.py checks the
+    corrected value
     against the scatter of the means over many realisations.
 
     Parameters
