@@ -1,1 +1,20 @@
-"""Detector models: linear geometry, the non-linear ramp (brighter-fatter) model, read-out."""
+"""Detector models: linear geometry (:mod:`amigo.detector.linear`), the non-linear ramp
+(brighter-fatter) model (:mod:`amigo.detector.ramp`) and the read-out (:mod:`amigo.detector.read`)."""
+
+from amigo.detector.linear import (
+    LinearDetector,
+    bin_pixels,
+    cubic_resample,
+    gaussian_blur,
+    geometry_matrix,
+    sky_to_optical_matrix,
+)
+
+__all__ = [
+    "LinearDetector",
+    "bin_pixels",
+    "cubic_resample",
+    "gaussian_blur",
+    "geometry_matrix",
+    "sky_to_optical_matrix",
+]

@@ -1,0 +1,1 @@
+"""Figures a user can look at (matplotlib, Agg backend; functions return figures)."""
