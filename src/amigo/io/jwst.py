@@ -45,6 +45,10 @@ IMAGE_KINDS = ("cal", "rate")
 CUBE_KINDS = ("calints", "rateints")
 KINDS = RAMP_KINDS + IMAGE_KINDS + CUBE_KINDS
 
+#: Exposure types of flat-field (lamp) exposures: accepted with any pupil, because they
+#: calibrate the pixels (flat field, non-linearity), not the optics.
+FLAT_EXP_TYPES = ("NIS_LAMP", "NIS_FLAT")
+
 #: Keywords every AMI exposure must carry (primary header).
 REQUIRED_KEYWORDS = ("INSTRUME", "FILTER", "PUPIL", "EXP_TYPE", "SUBARRAY", "NGROUPS", "NINTS")
 
@@ -119,6 +123,11 @@ class ExposureMeta:
     @property
     def is_ramp(self) -> bool:
         return self.kind in RAMP_KINDS
+
+    @property
+    def is_flat(self) -> bool:
+        """A flat-field (lamp) exposure, used only to calibrate per-pixel response."""
+        return self.exp_type in FLAT_EXP_TYPES
 
 
 @dataclass(frozen=True)
@@ -263,11 +272,13 @@ def _validate(path: Path, hdul: fits.HDUList, *, need_slopes: bool) -> ExposureM
         raise InputError(path, f"missing required keyword(s) {', '.join(missing)}")
 
     pupil = str(_get(headers, "PUPIL")).strip().upper()
-    if pupil != "NRM":
-        raise InputError(path, f"PUPIL is {pupil!r}, expected 'NRM' (not an AMI exposure)")
-    notes: list[str] = []
     exp_type = str(_get(headers, "EXP_TYPE")).strip().upper()
-    if exp_type != "NIS_AMI":
+    notes: list[str] = []
+    if exp_type in FLAT_EXP_TYPES:
+        notes.append(f"flat-field exposure ({exp_type}, PUPIL {pupil!r})")
+    elif pupil != "NRM":
+        raise InputError(path, f"PUPIL is {pupil!r}, expected 'NRM' (not an AMI exposure)")
+    elif exp_type != "NIS_AMI":
         if exp_type in ("NIS_IMAGE", "NIS_TACQ", "NIS_TACONFIRM", "NIS_FOCUS"):
             notes.append(f"EXP_TYPE is {exp_type!r} with PUPIL 'NRM': treated as AMI")
         else:
