@@ -159,8 +159,13 @@ class Exposure:
 
 
 # ------------------------------------------------------------------------------ helpers
-def _open(path: Path) -> fits.HDUList:
-    """Open a FITS file lazily, turning every failure into one InputError."""
+def open_fits(path: str | os.PathLike[str]) -> fits.HDUList:
+    """Open a FITS file lazily, turning every failure into one InputError.
+
+    Checks that the file exists, starts like a FITS file, parses, and is as long as its
+    headers say (a truncated download). Used by every FITS reader of amigo.
+    """
+    path = Path(path)
     if not path.exists():
         raise InputError(path, "no such file")
     if path.is_dir():
@@ -243,7 +248,7 @@ def read_header(path: str | os.PathLike[str], *, need_slopes: bool = False) -> E
         missing keywords, wrong dimensionality, one group when slopes are needed.
     """
     path = Path(path)
-    hdul = _open(path)
+    hdul = open_fits(path)
     try:
         return _validate(path, hdul, need_slopes=need_slopes)
     finally:
@@ -364,7 +369,7 @@ def read_exposure(path: str | os.PathLike[str], *, need_slopes: bool = False) ->
     For large raw-ramp files prefer :func:`iter_ramps`, which streams integrations.
     """
     path = Path(path)
-    hdul = _open(path)
+    hdul = open_fits(path)
     try:
         meta = _validate(path, hdul, need_slopes=need_slopes)
         with warnings.catch_warnings():
@@ -428,7 +433,7 @@ def iter_ramps(
     path = Path(path)
     if chunk < 1:
         raise ValueError(f"chunk must be >= 1, got {chunk}")
-    hdul = _open(path)
+    hdul = open_fits(path)
     try:
         meta = _validate(path, hdul, need_slopes=True)
         if meta.kind != "uncal":
@@ -452,7 +457,7 @@ def iter_ramps(
 
 def read_pixel_dq(path: str | os.PathLike[str]) -> np.ndarray | None:
     """The PIXELDQ (80, 80) uint32 flags of a ramp file, or ``None`` when it has none."""
-    hdul = _open(Path(path))
+    hdul = open_fits(Path(path))
     try:
         hdu = _ext(hdul, "PIXELDQ")
         return None if hdu is None else np.asarray(hdu.data, dtype=np.uint32)
