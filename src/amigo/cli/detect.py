@@ -47,11 +47,11 @@ from amigo.errors import InputError
 )
 @click.option(
     "--observables",
-    type=click.Choice(["auto", "all", "phase", "amplitude"]),
-    default="auto",
+    type=click.Choice(["all", "phase", "amplitude"]),
+    default="all",
     show_default=True,
-    help="Observables to fit: auto = all DISCOs of calvis files, closure phases "
-    "only of OIFITS files.",
+    help="Observables to fit: all, phase-type only (kernel or closure phases: for OIFITS "
+    "whose V2 are poorly calibrated) or amplitude-type only.",
 )
 @click.option(
     "--cp-correlation",

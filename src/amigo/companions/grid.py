@@ -155,7 +155,12 @@ def sigma_from_chi2(dchi2: np.ndarray | float, dof: int) -> np.ndarray:
     dchi2 = np.clip(np.asarray(dchi2, dtype=float), 0.0, None)
     if dof == 1:
         return np.sqrt(dchi2)
-    log_p = stats.chi2.logsf(dchi2, dof)
+    log_p = np.asarray(stats.chi2.logsf(dchi2, dof), dtype=float)
+    lost = ~np.isfinite(log_p)
+    if np.any(lost):
+        # Far tail, where SciPy underflows: Gamma(s, y) ~ y^(s-1) e^-y (1 + (s-1)/y).
+        s, y = 0.5 * dof, 0.5 * dchi2[lost]
+        log_p[lost] = (s - 1) * np.log(y) - y - special.gammaln(s) + np.log1p((s - 1) / y)
     return np.clip(-special.ndtri_exp(log_p - np.log(2.0)), 0.0, None)
 
 
@@ -177,8 +182,27 @@ def _axis_phasors(block: Observables, axis_mas: np.ndarray, column: int) -> jax.
     return jnp.exp(-2j * jnp.pi * path / jnp.asarray(block.wavelengths_m)[None])
 
 
+def _gauss_newton(residual_and_jacobian, r0, n_steps):
+    """A few bounded Gauss-Newton steps on one scalar contrast, from c = 0."""
+    lo, hi = CONTRAST_BOUNDS
+    c = jnp.zeros((), dtype=r0.dtype)
+    for _ in range(n_steps):
+        r, j = residual_and_jacobian(c)
+        curvature = jnp.dot(j, j)
+        # At the origin the companion is the primary (no signal, zero curvature): stay at 0.
+        safe = jnp.where(curvature > 0, curvature, 1.0)
+        c = jnp.clip(c - jnp.where(curvature > 0, jnp.dot(j, r) / safe, 0.0), lo, hi)
+    r, j = residual_and_jacobian(c)
+    curvature = jnp.dot(j, j)
+    safe = jnp.where(curvature > 0, curvature, 1.0)
+    sigma = jnp.where(curvature > 0, 1.0 / jnp.sqrt(safe), jnp.inf)
+    # chi2(0) - chi2(c) written as a product of small differences: no cancellation.
+    dchi2 = jnp.sum((r0 - r) * (r0 + r))
+    return c, sigma, dchi2
+
+
 def _solve_position(blocks, background, scales, r0, phasors, n_steps):
-    """Gauss-Newton on one position's contrast; returns (c, sigma, dchi2)."""
+    """Exact model: Gauss-Newton with forward-mode derivatives; returns (c, sigma, dchi2)."""
 
     def residual(c):
         parts = []
@@ -193,22 +217,40 @@ def _solve_position(blocks, background, scales, r0, phasors, n_steps):
             parts.append(block.residuals((num + c * e) / (den + c)) / scale)
         return jnp.concatenate(parts)
 
-    lo, hi = CONTRAST_BOUNDS
-    c = jnp.zeros((), dtype=r0.dtype)
-    for _ in range(n_steps):
-        r, j = jax.jvp(residual, (c,), (jnp.ones_like(c),))
-        curvature = jnp.dot(j, j)
-        # At the origin the companion is the primary (no signal, zero curvature): stay at 0.
-        step = jnp.where(curvature > 0, jnp.dot(j, r) / jnp.where(curvature > 0, curvature, 1), 0.0)
-        c = jnp.clip(c - step, lo, hi)
-    r, j = jax.jvp(residual, (c,), (jnp.ones_like(c),))
-    curvature = jnp.dot(j, j)
-    sigma = jnp.where(
-        curvature > 0, 1.0 / jnp.sqrt(jnp.where(curvature > 0, curvature, 1)), jnp.inf
-    )
-    # chi2(0) - chi2(c) written as a product of small differences: no cancellation.
-    dchi2 = jnp.sum((r0 - r) * (r0 + r))
-    return c, sigma, dchi2
+    return _gauss_newton(lambda c: jax.jvp(residual, (c,), (jnp.ones_like(c),)), r0, n_steps)
+
+
+#: Terms of the series of log V(c) used by the fast path for linear (calvis) blocks.
+SERIES_TERMS = 5
+
+
+def _solve_position_linear(blocks, background, scales, r0, phasors, n_steps):
+    """Linear observables (y = D log V): expand log V in powers of c, then Gauss-Newton.
+
+    ``log V(c) = log(N + c e) - log(D + c) = log V(0) + sum_k (-1)^(k+1)/k c^k
+    [(e/N)^k - D^-k]``, converging for ``c |e/N| < 1``; with 5 terms the relative error is
+    below 1e-6 for c < 0.06 and 1e-3 at c = 0.3 (the grid only starts the exact fits).
+    Each block then needs one product of its matrix with 5 vectors instead of two per
+    Gauss-Newton step.
+    """
+    terms = []
+    for block, num, den, scale, e in zip(
+        blocks, background.numerators, background.denominators, scales, phasors, strict=True
+    ):
+        ratio = e / num
+        k = jnp.arange(1, SERIES_TERMS + 1)[:, None]
+        series = (-1.0) ** (k + 1) / k * (ratio[None, :] ** k - den ** (-k))  # (K, n_uv)
+        log_terms = jnp.concatenate([series.real, series.imag], axis=1)  # (K, 2 n_uv)
+        terms.append((log_terms @ block.design.T) / (block.errors * scale))  # (K, n_obs)
+    m = jnp.concatenate(terms, axis=1)
+    powers = jnp.arange(1, SERIES_TERMS + 1)
+
+    def residual_and_jacobian(c):
+        r = r0 + jnp.sum(c ** powers[:, None] * m, axis=0)
+        j = jnp.sum((powers * c ** (powers - 1))[:, None] * m, axis=0)
+        return r, j
+
+    return _gauss_newton(residual_and_jacobian, r0, n_steps)
 
 
 @eqx.filter_jit
@@ -219,7 +261,8 @@ def _solve_chunk(blocks, background, scales, r0, x_phasors, y_phasors, n_steps):
     )
     n_y, n_i = phasors[0].shape[:2]
     flat = tuple(p.reshape(n_y * n_i, -1) for p in phasors)
-    solve = jax.vmap(lambda *e: _solve_position(blocks, background, scales, r0, e, n_steps))
+    solver = _solve_position_linear if all(b.linear for b in blocks) else _solve_position
+    solve = jax.vmap(lambda *e: solver(blocks, background, scales, r0, e, n_steps))
     c, sigma, dchi2 = solve(*flat)
     return (c.reshape(n_y, n_i), sigma.reshape(n_y, n_i), dchi2.reshape(n_y, n_i))
 

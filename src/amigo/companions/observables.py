@@ -83,6 +83,9 @@ class Observables(eqx.Module):
     n_photons
         Photons behind the observables (NaN if unknown); ``photon_source`` says where the
         number came from (``"NPHOT"`` or ``"closure-phase errors"``).
+    linear
+        True when the observables are linear in the log visibility (no ``exp`` rows, no
+        wrapping, no projection: calvis files); the grid search then uses a faster path.
     """
 
     uv_m: Array
@@ -100,6 +103,7 @@ class Observables(eqx.Module):
     target: str = eqx.field(static=True, default="")
     n_photons: float = eqx.field(static=True, default=float("nan"))
     photon_source: str = eqx.field(static=True, default="")
+    linear: bool = eqx.field(static=True, default=False)
     sky_to_uv: tuple[tuple[float, float], tuple[float, float]] = eqx.field(
         static=True, default=((1.0, 0.0), (0.0, 1.0))
     )
@@ -179,6 +183,7 @@ def from_calvis(calvis: CalVis, source: str = "") -> Observables:
         target=calvis.target,
         n_photons=float(calvis.n_photons),
         photon_source="NPHOT" if np.isfinite(calvis.n_photons) else "",
+        linear=True,
         sky_to_uv=tuple(tuple(float(x) for x in row) for row in sky_to_uv),
     )
 
@@ -371,26 +376,25 @@ def select_kinds(block: Observables, kinds: Sequence[str]) -> Observables | None
 
 
 # ---------------------------------------------------------------------------- loading
-#: Which observables each choice of ``observables`` keeps, per file type.
-OBSERVABLE_CHOICES: dict[str, dict[str, tuple[str, ...]]] = {
-    "auto": {"calvis": ("amplitude", "phase"), "oifits": ("phase",)},
-    "all": {"calvis": ("amplitude", "phase"), "oifits": ("amplitude", "phase")},
-    "phase": {"calvis": ("phase",), "oifits": ("phase",)},
-    "amplitude": {"calvis": ("amplitude",), "oifits": ("amplitude",)},
+#: Which observables each choice of ``observables`` keeps.
+OBSERVABLE_CHOICES: dict[str, tuple[str, ...]] = {
+    "all": ("amplitude", "phase"),
+    "phase": ("phase",),
+    "amplitude": ("amplitude",),
 }
 
 
 def load(
     path: str | os.PathLike[str],
     cp_correlation: CpCorrelation = "baseline",
-    observables: str = "auto",
+    observables: str = "all",
 ) -> Observables:
     """Read a calvis or OIFITS file into :class:`Observables`; :class:`InputError` if neither.
 
-    ``observables`` chooses what is fitted (:data:`OBSERVABLE_CHOICES`): ``"auto"`` keeps
-    every DISCO of a calvis file but only the closure phases of an OIFITS file, whose
-    squared visibilities carry the uncalibrated visibility loss of AMI pipelines (see
-    docs/detect.md); ``"all"``, ``"phase"`` and ``"amplitude"`` force a choice.
+    ``observables`` chooses what is fitted: ``"all"`` (default: DISCO amplitudes and
+    phases, or V2 and closure phases), ``"phase"`` (kernel/closure phases only: for
+    OIFITS files whose V2 are poorly calibrated) or ``"amplitude"``. Closure phases alone
+    leave aliases of a 7-hole mask almost degenerate (docs/detect.md).
     """
     path = os.fspath(path)
     if observables not in OBSERVABLE_CHOICES:
@@ -398,12 +402,12 @@ def load(
     if not os.path.isfile(path):
         raise InputError(path, "no such file")
     if is_calvis(path):
-        kind, block = "calvis", from_calvis(read_calvis(path), source=path)
+        block = from_calvis(read_calvis(path), source=path)
     elif is_oifits(path):
-        kind, block = "oifits", from_oifits(read_oifits(path), cp_correlation=cp_correlation)
+        block = from_oifits(read_oifits(path), cp_correlation=cp_correlation)
     else:
         raise InputError(path, "is neither an amigo calvis file nor an OIFITS file")
-    wanted = OBSERVABLE_CHOICES[observables][kind]
+    wanted = OBSERVABLE_CHOICES[observables]
     selected = select_kinds(block, wanted)
     if selected is None:
         raise InputError(path, f"holds no {' or '.join(wanted)} observables")

@@ -344,13 +344,13 @@ def _validate(c: CalVis, path: str | os.PathLike[str] | None) -> None:
 def _to_hdulist(c: CalVis) -> fits.HDUList:
     primary = fits.PrimaryHDU()
     h = primary.header
-    h["CONTENT"] = (CONTENT, "amigo calibrated observables of one target/filter")
+    h["CONTENT"] = (CONTENT, "calibrated observables, one target and filter")
     h["CALVREV"] = (FORMAT_REVISION, "revision of the calvis layout")
-    h["AMIGOVER"] = (__version__, "amigo version that wrote this file")
+    h["AMIGOVER"] = (__version__, "amigo version")
     h["TELESCOP"] = "JWST"
     h["INSTRUME"] = "NIRISS"
-    h["TARGPROP"] = (c.target, "target (proposer's name)")
-    h["FILTER"] = (c.filter_name, "filter")
+    h["TARGPROP"] = c.target
+    h["FILTER"] = c.filter_name
     for key, value in c.orientation.to_header().items():
         h[key] = value
     h["NPHOT"] = (float(c.n_photons), "photons used for the science observables")

@@ -124,12 +124,12 @@ def read_oifits(path: str | os.PathLike[str]) -> OIFits:
     except (OSError, ValueError) as error:
         raise InputError(path, f"cannot be read as FITS ({error})") from None
     with hdul:
+        if not any(h.name in ("OI_VIS2", "OI_T3") for h in hdul):
+            raise InputError(path, "has neither OI_VIS2 nor OI_T3 table: not an OIFITS file")
         wavelengths = _wavelength_tables(hdul, path)
         corr = _correlation_matrix(hdul, path)
         vis2_parts = [_read_vis2(h, wavelengths, corr, path) for h in hdul if h.name == "OI_VIS2"]
         t3_parts = [_read_t3(h, wavelengths, corr, path) for h in hdul if h.name == "OI_T3"]
-        if not vis2_parts and not t3_parts:
-            raise InputError(path, "has neither OI_VIS2 nor OI_T3 table: not an OIFITS file")
         vis2 = _concat_vis2([p for p in vis2_parts if p is not None])
         t3 = _concat_t3([p for p in t3_parts if p is not None])
         if t3 is not None and t3.covariance is None and "CPCOV" in hdul:
