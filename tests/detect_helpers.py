@@ -32,18 +32,40 @@ def null_space_rows(matrix: np.ndarray) -> np.ndarray:
     return u[:, rank:].T
 
 
-def kernel_disco_matrix(rng: np.random.Generator) -> np.ndarray:
-    """(29, 42) map from [log|V|, arg V] at the 21 baselines to independent kernel observables."""
+def uv_points(splodge_radius_m: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """uv points (m) and the baseline (0..20) each belongs to.
+
+    With ``splodge_radius_m = 0`` the 21 baselines; otherwise each baseline plus six points
+    around it, as a forward model samples the extended splodge of two 0.8 m holes.
+    """
+    baselines = instrument.baselines_m()
+    if splodge_radius_m == 0:
+        return baselines, np.arange(len(baselines))
+    angles = np.deg2rad(np.arange(6) * 60.0 + 15.0)
+    ring = splodge_radius_m * np.column_stack([np.cos(angles), np.sin(angles)])
+    offsets = np.vstack([[0.0, 0.0], ring])
+    points = (baselines[:, None, :] + offsets[None]).reshape(-1, 2)
+    return points, np.repeat(np.arange(len(baselines)), len(offsets))
+
+
+def kernel_disco_matrix(rng: np.random.Generator, owner: np.ndarray | None = None) -> np.ndarray:
+    """Map from [log|V|, arg V] at the uv points to independent kernel observables.
+
+    Kernel amplitudes: the left null space of the hole-gain Jacobian; kernel phases: of the
+    hole-piston Jacobian (every point of a splodge inherits its baseline's row); each
+    randomly rotated. For the 21 baselines alone: (14 + 15, 42).
+    """
     pairs = np.array(instrument.baseline_pairs())
-    n_b = len(pairs)
+    owner = np.arange(len(pairs)) if owner is None else owner
+    n_b = len(owner)
     gains = np.zeros((n_b, instrument.N_HOLES))
     pistons = np.zeros((n_b, instrument.N_HOLES))
-    gains[np.arange(n_b), pairs[:, 0]] = 1.0
-    gains[np.arange(n_b), pairs[:, 1]] = 1.0
-    pistons[np.arange(n_b), pairs[:, 0]] = -1.0
-    pistons[np.arange(n_b), pairs[:, 1]] = 1.0
-    k_amp = null_space_rows(gains)  # (14, 21)
-    k_phase = null_space_rows(pistons)  # (15, 21)
+    gains[np.arange(n_b), pairs[owner, 0]] = 1.0
+    gains[np.arange(n_b), pairs[owner, 1]] = 1.0
+    pistons[np.arange(n_b), pairs[owner, 0]] = -1.0
+    pistons[np.arange(n_b), pairs[owner, 1]] = 1.0
+    k_amp = null_space_rows(gains)  # (n_b - 7, n_b)
+    k_phase = null_space_rows(pistons)  # (n_b - 6, n_b)
     # A random rotation inside each kernel: a different, non-sparse basis (like DISCOs).
     q_amp, _ = np.linalg.qr(rng.normal(size=(k_amp.shape[0],) * 2))
     q_phase, _ = np.linalg.qr(rng.normal(size=(k_phase.shape[0],) * 2))
@@ -77,11 +99,15 @@ def write_sim_calvis(
     error: float = 2e-3,
     pa_aper_deg: float = 172.3,
     target: str = "SIM-STAR",
+    splodge_radius_m: float = 0.0,
 ) -> Path:
-    """A calvis file of one filter with companions ``(dRA mas, dDec mas, flux ratio)``."""
+    """A calvis file of one filter with companions ``(dRA mas, dDec mas, flux ratio)``.
+
+    ``splodge_radius_m > 0`` samples each splodge at 7 uv points (see :func:`uv_points`).
+    """
     bins = instrument.filter_bins(filter_name, 5)
-    uv = instrument.baselines_m()
-    d = kernel_disco_matrix(rng)
+    uv, owner = uv_points(splodge_radius_m)
+    d = kernel_disco_matrix(rng, owner)
     orientation = Orientation(pa_aper_deg=pa_aper_deg)
     sky_to_uv = nominal_sky_to_uv(orientation)
     if companions:
@@ -95,7 +121,8 @@ def write_sim_calvis(
     log_vis = np.concatenate([np.log(np.abs(vis)), np.angle(vis)])
     errors = error * rng.uniform(0.7, 1.3, size=d.shape[0])
     values = d @ log_vis + errors * rng.normal(size=d.shape[0])
-    kinds = ["amplitude"] * 14 + ["phase"] * 15
+    n_amp = len(uv) - instrument.N_HOLES
+    kinds = ["amplitude"] * n_amp + ["phase"] * (d.shape[0] - n_amp)
     return write_calvis(
         path,
         values=values,

@@ -2,9 +2,8 @@
 
 Parameters: each companion's sky offset (dRA, dDec in mas, shared by all filters) and its
 log10 flux ratio in every filter. The fit minimises the sum of squared whitened residuals
-(errors multiplied by the fixed group error scales) with Levenberg-Marquardt
-(optimistix); the Laplace covariance is the inverse Gauss-Newton Hessian ``(J^T J)^-1``
-at the optimum.
+(errors multiplied by the fixed group error scales) with Levenberg-Marquardt; the Laplace
+covariance is the inverse Gauss-Newton Hessian ``(J^T J)^-1`` at the optimum.
 """
 
 from __future__ import annotations
@@ -15,7 +14,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 
 from amigo.companions.models import scene_visibility
 from amigo.companions.observables import Dataset
@@ -124,7 +122,7 @@ def _total_residual(dataset, offsets, log10c, scale_vectors, primary_diameter_ma
 def _flat_residual(flat, args):
     """Residual of flattened parameters ``[offsets.ravel(), log10c.ravel()]``.
 
-    A module-level function (not a closure) so that optimistix's compiled solver is reused
+    A module-level function (not a closure) so that the compiled Jacobian is reused
     by every fit of the same dataset layout; ``args = (dataset, scale_vectors, k,
     diameter)`` with ``k`` and ``diameter`` static.
     """
@@ -135,8 +133,47 @@ def _flat_residual(flat, args):
 
 
 @eqx.filter_jit
-def _jacobian(flat, args):
-    return jax.jacfwd(_flat_residual)(flat, args)
+def _residual_and_jacobian(flat, args):
+    """Residual vector and its Jacobian (forward mode: few parameters, many residuals)."""
+    jacobian, residual = jax.jacfwd(lambda y: (_flat_residual(y, args),) * 2, has_aux=True)(flat)
+    return residual, jacobian
+
+
+def levenberg_marquardt(
+    function, x0: np.ndarray, max_steps: int = 200, rtol: float = 1e-10
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
+    """Minimise ``|r(x)|^2`` by Levenberg-Marquardt with Marquardt's diagonal scaling.
+
+    ``function(x) -> (r, J)``. A small host-side loop around one jitted residual+Jacobian
+    call: the problems have at most a few tens of parameters, and compiling this is much
+    cheaper than compiling a general solver. Returns ``(x, r, J, converged)``; converged
+    means the relative chi2 decrease fell below ``rtol``.
+    """
+    x = np.asarray(x0, dtype=float)
+    r, j = (np.asarray(a) for a in function(x))
+    chi2 = float(r @ r)
+    damping = 1e-3
+    for _ in range(max_steps):
+        fisher = j.T @ j
+        scale = np.maximum(np.diag(fisher), 1e-30)
+        try:
+            step = np.linalg.solve(fisher + damping * np.diag(scale), -(j.T @ r))
+        except np.linalg.LinAlgError:
+            damping *= 10.0
+            continue
+        r_new, j_new = (np.asarray(a) for a in function(x + step))
+        chi2_new = float(r_new @ r_new)
+        if np.isfinite(chi2_new) and chi2_new <= chi2:
+            x, r, j = x + step, r_new, j_new
+            gain, chi2 = chi2 - chi2_new, chi2_new
+            damping = max(damping / 3.0, 1e-12)
+            if gain <= rtol * max(chi2, 1.0):
+                return x, r, j, True
+        else:
+            damping *= 4.0
+            if damping > 1e10:
+                return x, r, j, True  # no downhill step left: a (local) minimum
+    return x, r, j, False
 
 
 def fit_companions(
@@ -166,24 +203,18 @@ def fit_companions(
     )
     k = offsets0.shape[0]
     args = (dataset, scale_vectors, k, float(primary_diameter_mas))
-    y0 = jnp.asarray(np.concatenate([offsets0.ravel(), log10c0.ravel()]))
-    solver = optx.LevenbergMarquardt(rtol=1e-10, atol=1e-10)
-    solution = optx.least_squares(
-        _flat_residual, solver, y0, args=args, max_steps=max_steps, throw=False
+    y0 = np.concatenate([offsets0.ravel(), log10c0.ravel()])
+    best, residual, jacobian, converged = levenberg_marquardt(
+        lambda y: _residual_and_jacobian(jnp.asarray(y), args), y0, max_steps
     )
-    best = solution.value
-    jacobian = _jacobian(best, args)
-    fisher = np.asarray(jacobian.T @ jacobian)
-    covariance = np.linalg.pinv(fisher, rcond=1e-12, hermitian=True)
-    chi2 = float(jnp.sum(_flat_residual(best, args) ** 2))
-    best = np.asarray(best)
+    covariance = np.linalg.pinv(jacobian.T @ jacobian, rcond=1e-12, hermitian=True)
     return FitResult(
         offsets_mas=best[: 2 * k].reshape(k, 2),
         log10_contrasts=np.clip(best[2 * k :].reshape(k, -1), LOG10_CONTRAST_FLOOR, 0.0),
         covariance=covariance,
-        chi2=chi2,
+        chi2=float(residual @ residual),
         group_scales=scales,
-        converged=bool(solution.result == optx.RESULTS.successful),
+        converged=converged,
     )
 
 

@@ -95,6 +95,7 @@ def sample_posterior(
     priors: Priors | None = None,
     primary_diameter_mas: float = 0.0,
     progress_bar: bool = False,
+    chain_method: str = "vectorized",
 ) -> Posterior:
     """Run NUTS from the best fit ``best`` and return samples with R-hat and ESS.
 
@@ -150,7 +151,7 @@ def sample_posterior(
             num_warmup=num_warmup,
             num_samples=num_samples,
             num_chains=num_chains,
-            chain_method="sequential",
+            chain_method=chain_method,
             progress_bar=progress_bar,
         )
         mcmc.run(jax.random.PRNGKey(seed), dataset, bounds)

@@ -44,6 +44,11 @@ from amigo.companions.posterior import Posterior, Priors, sample_posterior
 from amigo.orientation import separation_pa
 from amigo.progress import step
 
+#: Candidates whose chi2 gain is within this of the best are followed as alternatives.
+ALIAS_DCHI2 = 25.0
+#: Most hypotheses followed per search level.
+BEAM_WIDTH = 3
+
 
 @dataclass(frozen=True)
 class SearchSettings:
@@ -53,7 +58,7 @@ class SearchSettings:
     step_mas: float | None = None
     threshold_sigma: float = 5.0
     max_companions: int = 3
-    n_candidates: int = 5
+    n_candidates: int = 20
     primary_diameter_mas: float = 0.0
     hmc: bool = True
     per_filter: bool = True
@@ -151,6 +156,8 @@ def _photon_counts(dataset: Dataset) -> dict[str, float]:
 
 @dataclass(frozen=True)
 class _Candidate:
+    """One more companion, refined: the joint fit, its chi2 gain and the scales used."""
+
     fit: fitting.FitResult
     dchi2: float
     scales: np.ndarray
@@ -161,25 +168,24 @@ def _search_one(
     grid: Grid,
     current: fitting.FitResult | None,
     settings: SearchSettings,
-) -> tuple[GridResult, _Candidate | None]:
-    """Grid-search one more companion; refine the best candidates; settle error scales."""
+) -> tuple[GridResult, list[_Candidate]]:
+    """Grid-search one more companion; refine the best peaks; settle the error scales.
+
+    Returns the grid and the refined candidates, best (largest chi2 gain) first.
+    """
     k = 0 if current is None else current.n_companions
     offsets = np.zeros((0, 2)) if current is None else current.offsets_mas
     log10c = np.zeros((0, dataset.n_filters)) if current is None else current.log10_contrasts
     scales = np.ones(dataset.n_groups)
     diameter = settings.primary_diameter_mas
+    candidates: list[_Candidate] = []
     for _ in range(3):  # error scales depend on the candidate, the candidate on the scales
         result = contrast_grid(dataset, grid, offsets, 10.0**log10c, scales, diameter)
         if k:
-            residuals = fitting.block_residuals(dataset, offsets, 10.0**log10c, diameter)
-            scaled = [
-                np.asarray(r) / np.asarray(s)
-                for r, s in zip(residuals, dataset.scale_vectors(scales), strict=True)
-            ]
-            chi2_before = float(sum(np.sum(r**2) for r in scaled))
+            chi2_before = _chi2(dataset, offsets, log10c, scales, diameter)
         else:
             chi2_before = fitting.background_chi2(dataset, scales, diameter)
-        best: _Candidate | None = None
+        candidates = []
         for x, y, _ in result.peaks(settings.n_candidates):
             iy = int(np.argmin(np.abs(grid.y_mas - y)))
             ix = int(np.argmin(np.abs(grid.x_mas - x)))
@@ -191,19 +197,114 @@ def _search_one(
                 scales,
                 diameter,
             )
-            gain = chi2_before - trial.chi2
-            if best is None or gain > best.dchi2:
-                best = _Candidate(trial, gain, scales)
-        if best is None:
-            return result, None
+            candidates.append(_Candidate(trial, chi2_before - trial.chi2, scales))
+        if not candidates:
+            return result, []
+        candidates.sort(key=lambda c: -c.dchi2)
+        best = candidates[0].fit
         new_scales = np.maximum(
-            1.0,
-            fitting.estimate_scales(dataset, best.fit.offsets_mas, best.fit.contrasts, diameter),
+            1.0, fitting.estimate_scales(dataset, best.offsets_mas, best.contrasts, diameter)
         )
         if np.allclose(new_scales, scales, rtol=0.02):
             break
         scales = new_scales
-    return result, best
+    return result, candidates
+
+
+def _chi2(dataset, offsets, log10c, scales, diameter) -> float:
+    residuals = fitting.block_residuals(dataset, offsets, 10.0**log10c, diameter)
+    return float(
+        sum(
+            np.sum((np.asarray(r) / np.asarray(s)) ** 2)
+            for r, s in zip(residuals, dataset.scale_vectors(scales), strict=True)
+        )
+    )
+
+
+@dataclass(frozen=True)
+class _Hypothesis:
+    """A scene on the search path: its fit, significances and the maps that led to it."""
+
+    fit: fitting.FitResult | None
+    chi2: float  # with unit error scales, to rank hypotheses on the same footing
+    significances: tuple[float, ...]
+    maps: tuple[GridResult, ...]
+
+
+def _unit_chi2(dataset: Dataset, fit: fitting.FitResult | None, diameter: float) -> float:
+    ones = np.ones(dataset.n_groups)
+    if fit is None:
+        return fitting.background_chi2(dataset, ones, diameter)
+    return _chi2(dataset, fit.offsets_mas, fit.log10_contrasts, ones, diameter)
+
+
+def _beam_search(
+    dataset: Dataset, grid: Grid, settings: SearchSettings, notes: list[str]
+) -> _Hypothesis:
+    """Iterative search, keeping near-degenerate alternatives (aliases) alive.
+
+    A sparse uv coverage has aliases: positions where one companion fits almost as well
+    as at the truth, and a second, fainter companion can tip the balance towards the wrong
+    one. Every candidate whose chi2 gain is within :data:`ALIAS_DCHI2` of the best is
+    followed as a separate hypothesis (at most :data:`BEAM_WIDTH` per level); the final
+    scene is the one with the lowest chi2.
+    """
+    diameter = settings.primary_diameter_mas
+    beam = [_Hypothesis(None, _unit_chi2(dataset, None, diameter), (), ())]
+    finished: list[_Hypothesis] = []
+    for level in range(settings.max_companions + 1):
+        expansions: list[_Hypothesis] = []
+        for parent in beam:
+            step(
+                f"grid search {level + 1}: {grid.shape[0]}x{grid.shape[1]} positions, "
+                f"{grid.step_mas:.1f} mas steps, {dataset.n_filters} filter(s)"
+            )
+            result, candidates = _search_one(dataset, grid, parent.fit, settings)
+            finished.append(
+                _Hypothesis(parent.fit, parent.chi2, parent.significances, (*parent.maps, result))
+            )
+            for rank, cand in enumerate(candidates):
+                if cand.dchi2 < candidates[0].dchi2 - ALIAS_DCHI2:
+                    break
+                sigma = float(sigma_from_chi2(cand.dchi2, dataset.n_filters))
+                if rank == 0:
+                    dra, ddec = cand.fit.offsets_mas[-1]
+                    step(
+                        f"  best candidate at dRA={dra:.1f} dDec={ddec:.1f} mas: {sigma:.1f} sigma"
+                    )
+                if sigma >= settings.threshold_sigma:
+                    expansions.append(
+                        _Hypothesis(
+                            cand.fit,
+                            _unit_chi2(dataset, cand.fit, diameter),
+                            (*parent.significances, sigma),
+                            (*parent.maps, result),
+                        )
+                    )
+        if not expansions:
+            break
+        expansions.sort(key=lambda h: h.chi2)
+        if level == settings.max_companions:
+            notes.append(
+                f"stopped at --max-companions={settings.max_companions}: one more candidate "
+                f"exceeds the threshold ({expansions[0].significances[-1]:.1f} sigma)"
+            )
+            break
+        beam = expansions[:BEAM_WIDTH]
+        finished = []  # a deeper level supersedes the shallower scenes
+    # The final scene: among the searches that found nothing more, the lowest chi2.
+    best = min(finished, key=lambda h: h.chi2)
+    for other in finished:
+        if other is best or other.fit is None or best.fit is None:
+            continue
+        moved = np.max(np.hypot(*(other.fit.offsets_mas - best.fit.offsets_mas).T))
+        if other.chi2 - best.chi2 < ALIAS_DCHI2 and moved > grid.step_mas:
+            positions = ", ".join(f"({x:.0f}, {y:.0f})" for x, y in other.fit.offsets_mas)
+            notes.append(
+                f"possible alias: companions at (dRA, dDec) = {positions} mas fit almost as "
+                f"well (chi2 larger by {other.chi2 - best.chi2:.1f}); see detection_maps.png"
+            )
+    return best
 
 
 def _estimate_from_samples(dra, ddec, log10c, filters) -> Estimate:
@@ -267,31 +368,10 @@ def _detect(dataset: Dataset, settings: SearchSettings) -> DetectionResult:
     step_mas = settings.step_mas or default_step_mas(dataset)
     grid = Grid.square(settings.rmax_mas, step_mas)
     notes: list[str] = []
-    current: fitting.FitResult | None = None
-    significances: list[float] = []
-    maps: list[GridResult] = []
-    for iteration in range(settings.max_companions + 1):
-        step(
-            f"grid search {iteration + 1}: {grid.shape[0]}x{grid.shape[1]} positions, "
-            f"{step_mas:.1f} mas steps, {dataset.n_filters} filter(s)"
-        )
-        result, candidate = _search_one(dataset, grid, current, settings)
-        maps.append(result)
-        if candidate is None:
-            break
-        sigma = float(sigma_from_chi2(candidate.dchi2, dataset.n_filters))
-        dra, ddec = candidate.fit.offsets_mas[-1]
-        step(f"  best candidate at dRA={dra:.1f} dDec={ddec:.1f} mas: {sigma:.1f} sigma")
-        if sigma < settings.threshold_sigma:
-            break
-        if iteration == settings.max_companions:
-            notes.append(
-                f"stopped at --max-companions={settings.max_companions}: one more "
-                f"candidate exceeds the threshold ({sigma:.1f} sigma)"
-            )
-            break
-        current = candidate.fit
-        significances.append(sigma)
+    path = _beam_search(dataset, grid, settings, notes)
+    current = path.fit
+    significances = list(path.significances)
+    maps = list(path.maps)
 
     k = 0 if current is None else current.n_companions
     scales_ml = fitting.estimate_scales(
