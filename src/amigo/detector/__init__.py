@@ -1,4 +1,5 @@
-"""Detector models: the linear detector geometry (:mod:`amigo.detector.linear`)."""
+"""Detector models: linear geometry (:mod:`amigo.detector.linear`), the non-linear ramp
+(brighter-fatter) model (:mod:`amigo.detector.ramp`) and the read-out (:mod:`amigo.detector.read`)."""
 
 from amigo.detector.linear import (
     LinearDetector,
