@@ -26,6 +26,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "info": ("amigo.cli.info", "Identify and validate JWST NIRISS AMI files."),
     "process": ("amigo.cli.process", "Raw ramps (uncal) -> slopes and covariances (calslope)."),
     "simulate": ("amigo.cli.simulate", "Simulate raw AMI ramps with physical detector effects."),
+    "train": (
+        "amigo.cli.train",
+        "Train the base model (instrument + BFE network) on calibration data.",
+    ),
 }
 
 
