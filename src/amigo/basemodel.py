@@ -37,6 +37,7 @@ fills in the arrays by path, refusing files whose paths or shapes do not match.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import os
 from dataclasses import dataclass
@@ -262,7 +263,10 @@ class BaseModel(eqx.Module):
         c = self.config.optics_config()
         grid = PupilGrid.for_mask(c.pupil_npix, c.pupil_diameter_m)
         radius = c.zernike_radius_factor * instrument.HOLE_FLAT_TO_FLAT_M / np.sqrt(3.0)
-        basis = zernike_basis(grid, np.asarray(instrument.HOLE_CENTRES_M), radius, c.n_zernike)
+        centres = np.asarray(instrument.HOLE_CENTRES_M)
+        basis = jax.jit(functools.partial(_basis, centres=centres, radius=radius, n=c.n_zernike))(
+            grid
+        )
         return PupilCache(grid=grid, basis=basis)
 
     def optics(self, filter_name: str, cache: PupilCache) -> NRMOptics:
@@ -282,7 +286,7 @@ class BaseModel(eqx.Module):
 
     def spectrum(self, filter_name: str, slope_per_um: float = 0.0) -> LinearSpectrum:
         """The filter's default spectrum at the model's wavelength sampling."""
-        return LinearSpectrum.from_filter(filter_name, self.config.n_wavelengths, slope_per_um)
+        return _filter_spectrum(filter_name, self.config.n_wavelengths, float(slope_per_um))
 
     def illuminance(
         self,
@@ -309,6 +313,21 @@ class BaseModel(eqx.Module):
         plugs in front of the detector."""
         charge = self.ramp(illuminance_e, ngroups)
         return jnp.diff(self.read(charge), axis=0)
+
+
+def _basis(grid: PupilGrid, centres: np.ndarray, radius: float, n: int) -> Array:
+    """The Zernike basis, compiled (evaluated op by op it takes seconds); dLux's Noll
+    index helper needs concrete integers, hence the compile-time evaluation."""
+    with jax.ensure_compile_time_eval():
+        return zernike_basis(grid, centres, radius, n)
+
+
+@functools.lru_cache(maxsize=32)
+def _filter_spectrum(filter_name: str, n_wavelengths: int, slope_per_um: float) -> LinearSpectrum:
+    """Filter spectra are immutable and slow to build (the throughput curves are read
+    from disk): build each once per process."""
+    with jax.ensure_compile_time_eval():  # concrete arrays even when called under jit
+        return LinearSpectrum.from_filter(filter_name, n_wavelengths, slope_per_um)
 
 
 # ---------------------------------------------------------------------------- file I/O

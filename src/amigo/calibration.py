@@ -432,15 +432,16 @@ class Trainer:
         data: TrainingData,
         settings: TrainSettings,
         config: BaseModelConfig | None = None,
+        cache: PupilCache | None = None,
     ) -> None:
         self.data = data
         self.settings = settings
-        config = config or BaseModelConfig(filters=data.filters)
+        config = config or BaseModelConfig(filters=data.filters, shape=data.cal[0].shape)
         missing = [f for f in data.filters if f not in config.filters]
         if missing:
             raise InputError("--cal", f"the model configuration has no optics for {missing}")
         base = BaseModel.create(config, linear=True)
-        self.cache = base.pupil_cache()
+        self.cache = base.pupil_cache() if cache is None else cache
         self.rng = np.random.default_rng(settings.seed)
         self.history = History()
         self.step = 0
@@ -485,26 +486,31 @@ class Trainer:
         )
 
     # -------------------------------------------------------------- warm-up
-    def warm_up(self, iterations: int = 4) -> None:
+    def warm_up(self, iterations: int = 3) -> None:
         """Newton steps on every exposure's own parameters (position and flux, or a
         flat's level) with the instrument fixed: the centroid and total-flux starting
-        values are too rough for the joint fit."""
+        values are too rough for the joint fit. Keeps each exposure's Fisher diagonal
+        for :meth:`compute_fisher`."""
         state, base, cache = self.state, self.state.base, self.cache
         nothing = _false_like(physical_mask(base))
-        groups = []
-        for name in ("cal_params", "flat_params", "val_params"):
-            datasets = {"cal_params": self.data.cal, "flat_params": self.data.flats}.get(
-                name, self.data.val
-            )
-            params = list(getattr(state, name))
+        sets = {
+            "cal_params": self.data.cal,
+            "flat_params": self.data.flats,
+            "val_params": self.data.val,
+        }
+        groups, self._exposure_fisher = [], {}
+        for name, datasets in sets.items():
+            params, fishers = list(getattr(state, name)), []
             for i, d in enumerate(datasets):
                 p = params[i]
+                fisher = fisher_diagonal(base, p, d, cache, nothing)[1]
                 for _ in range(iterations):
-                    fisher = fisher_diagonal(base, p, d, cache, nothing)[1]
                     _, (_, grad) = _loss_and_grad(base, p, d, cache)
                     p = jax.tree.map(lambda x, g, f: x - g / jnp.maximum(f, 1e-30), p, grad, fisher)
                 params[i] = p
+                fishers.append(fisher)
             groups.append(tuple(params))
+            self._exposure_fisher[name] = fishers
         report_step("train: warm-up of positions and fluxes done")
         self.state = eqx.tree_at(
             lambda s: (s.cal_params, s.flat_params, s.val_params), state, tuple(groups)
@@ -529,18 +535,13 @@ class Trainer:
         by_filter: dict[str, list[int]] = {}
         for i, d in enumerate(self.data.cal):
             by_filter.setdefault(d.filter, []).append(i)
-        cal_fisher: list[Any] = [None] * len(self.data.cal)
-        unravel_params = ravel_pytree(state.cal_params[0])[1]
         for filt, indices in by_filter.items():
             report_step(f"train: Fisher matrix of the physical parameters, {filt}")
             i = indices[0]
             mask = physical_mask(base, filt)
-            f_base, f_params = fisher_matrix(
-                base, state.cal_params[i], self.data.cal[i], cache, mask
-            )
+            f_base, _ = fisher_matrix(base, state.cal_params[i], self.data.cal[i], cache, mask)
             columns = np.asarray(ravel_pytree(eqx.filter(index_tree, mask))[0]).astype(int)
             total[np.ix_(columns, columns)] += len(indices) * f_base
-            cal_fisher[i] = unravel_params(jnp.asarray(f_params))
         diagonal = np.diagonal(total).copy()
         unseen = diagonal <= 0  # parameters the data do not see: never move them
         diagonal[unseen] = 1.0
@@ -552,17 +553,20 @@ class Trainer:
         inverse[unseen, :] = 0.0
         inverse[:, unseen] = 0.0
         nothing = _false_like(full)
-        for i, d in enumerate(self.data.cal):
-            if cal_fisher[i] is None:
-                cal_fisher[i] = fisher_diagonal(base, state.cal_params[i], d, cache, nothing)[1]
-        val_fisher = [
-            fisher_diagonal(base, p, d, cache, nothing)[1]
-            for p, d in zip(state.val_params, self.data.val, strict=True)
-        ]
-        flat_fisher = [
-            fisher_diagonal(base, p, d, cache, nothing)[1]
-            for p, d in zip(state.flat_params, self.data.flats, strict=True)
-        ]
+        stored = getattr(self, "_exposure_fisher", {})
+
+        def exposure_fisher(name: str, params, datasets) -> list[Any]:
+            if name in stored:
+                return list(stored[name])
+            return [
+                fisher_diagonal(base, p, d, cache, nothing)[1]
+                for p, d in zip(params, datasets, strict=True)
+            ]
+
+        # Each exposure's own parameters (the warm-up's Fisher when there was one).
+        cal_fisher = exposure_fisher("cal_params", state.cal_params, self.data.cal)
+        val_fisher = exposure_fisher("val_params", state.val_params, self.data.val)
+        flat_fisher = exposure_fisher("flat_params", state.flat_params, self.data.flats)
         pixel = jax.tree.map(jnp.zeros_like, split(base, pixel_mask(base)))
         for p, d in zip(state.flat_params, self.data.flats, strict=True):
             pixel = jax.tree.map(jnp.add, pixel, pixel_fisher(base, p, d))
@@ -968,3 +972,26 @@ def process_flat_field(uncal_path: str | Path, out_dir: str | Path) -> Path:
     out = Path(out_dir) / calslope_name(path)
     write_calslope(out, product, primary, sci, uncal_name=path.name)
     return out
+
+
+def fit_exposure(
+    base: BaseModel,
+    data: SlopeData,
+    cache: PupilCache,
+    iterations: int = 8,
+    params: Any = None,
+) -> tuple[Any, FitStatistics]:
+    """Fit one exposure's own parameters (position and flux of a point source, or a flat's
+    level) with the instrument fixed: Newton steps preconditioned by the Fisher diagonal
+    (recomputed every other step). A stand-in for the fitting engine of ``amigo fit``,
+    used for validation and the acceptance figures (docs/detector.md)."""
+    params = initial_params(base, data) if params is None else params
+    nothing = _false_like(physical_mask(base))
+    fisher = None
+    for k in range(iterations):
+        if k % 2 == 0:
+            fisher = fisher_diagonal(base, params, data, cache, nothing)[1]
+        _, (_, grad) = _loss_and_grad(base, params, data, cache)
+        params = jax.tree.map(lambda x, g, f: x - g / jnp.maximum(f, 1e-30), params, grad, fisher)
+    n_free = len(jax.tree.leaves(params)) + (1 if isinstance(params, PointSourceParams) else 0)
+    return params, fit_statistics(_model(base, params, data, cache), data, n_free)

@@ -17,28 +17,51 @@ from amigo.errors import InputError
 _FILES = click.Path(dir_okay=False, path_type=Path)
 
 
+class _ManyValues(click.Option):
+    """An option that takes every following argument up to the next option, so that
+    ``--cal a.fits b.fits --flats c.fits`` works (shell globs); it can also be repeated."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, multiple=True, **kwargs)
+
+    def add_to_parser(self, parser, ctx) -> None:
+        super().add_to_parser(parser, ctx)
+        for name in self.opts:
+            option = parser._long_opt.get(name) or parser._short_opt.get(name)
+            if option is None:
+                continue
+            previous = option.process
+
+            def process(value, state, _previous=previous) -> None:
+                _previous(value, state)
+                while state.rargs and not state.rargs[0].startswith("-"):
+                    _previous(state.rargs.pop(0), state)
+
+            option.process = process
+
+
 @click.command("train")
 @click.option(
     "--cal",
     "cal",
-    multiple=True,
+    cls=_ManyValues,
     required=True,
     type=_FILES,
-    help="Calibration calslope file (point-source calibrator); repeatable.",
+    help="Calibration calslope file (point-source calibrator); several may follow.",
 )
 @click.option(
     "--flats",
     "flats",
-    multiple=True,
+    cls=_ManyValues,
     type=_FILES,
-    help="Flat-field calslope file (uniform illumination); repeatable.",
+    help="Flat-field calslope file (uniform illumination); several may follow.",
 )
 @click.option(
     "--val",
     "val",
-    multiple=True,
+    cls=_ManyValues,
     type=_FILES,
-    help="Validation calslope file (fitted, never used to calibrate); repeatable.",
+    help="Validation calslope file (fitted, never used to calibrate); several may follow.",
 )
 @click.option("--out", "out", required=True, type=_FILES, help="Base-model file to write (.npz).")
 @click.option(
