@@ -31,6 +31,7 @@ Everything is float32 unless the caller enables 64-bit JAX (the metadata records
 
 from __future__ import annotations
 
+import functools
 import platform
 import sys
 import time
@@ -213,7 +214,9 @@ def fisher_matrix(
     order of ``ravel_pytree(split(base, mask))``, and the diagonal of the per-exposure
     block (float64 NumPy).
     """
-    matrix = np.asarray(_fisher(base, params, data, cache, mask), dtype=np.float64)
+    # The linear view: one compiled function whether or not the network is on.
+    linear = base.with_linear_detector()
+    matrix = np.asarray(_fisher(linear, params, data, cache, mask), dtype=np.float64)
     n_base = ravel_pytree(split(base, mask))[0].size
     return matrix[:n_base, :n_base], np.diagonal(matrix)[n_base:]
 
@@ -580,6 +583,19 @@ class Trainer:
             "flat": tuple(flat_fisher),
         }
 
+    def _fisher_skeleton(self) -> dict[str, Any]:
+        """Arrays shaped like :meth:`compute_fisher`'s (to read a checkpoint into)."""
+        state = self.state
+        n = ravel_pytree(split(state.base, physical_mask(state.base)))[0].size
+        zeros = functools.partial(jax.tree.map, jnp.zeros_like)
+        return {
+            "physical": jnp.zeros((n, n), state.base.hole_centres_m.dtype),
+            "pixel": zeros(split(state.base, pixel_mask(state.base))),
+            "cal": zeros(state.cal_params),
+            "val": zeros(state.val_params),
+            "flat": zeros(state.flat_params),
+        }
+
     # -------------------------------------------------------------- steps
     def _batches(self) -> list[list[int]]:
         order = self.rng.permutation(len(self.data.cal))
@@ -824,8 +840,6 @@ class Trainer:
                 raise InputError(path, "checkpoint was written for other training data")
             if _tuples_to_lists(asdict(self.settings)) != record["settings"]:
                 raise InputError(path, "checkpoint was written with other training settings")
-            if self.fisher is None:
-                self.compute_fisher()
             skeleton = self.state
             if record["network_on"]:
                 skeleton = eqx.tree_at(
@@ -833,7 +847,7 @@ class Trainer:
                     skeleton,
                     skeleton.base.with_network(self._fresh_network(skeleton.base, 1)),
                 )
-            self.state, self.fisher = fill_leaves(path, (skeleton, self.fisher), data)
+            self.state, self.fisher = fill_leaves(path, (skeleton, self._fisher_skeleton()), data)
         self.step = int(record["step"])
         self.seconds = float(record["seconds"])
         self.history = History(**record["history"])
