@@ -110,6 +110,7 @@ def test_linear_detector_slopes_match_a_direct_calculation():
         np.testing.assert_allclose(slopes[k], expected, rtol=2e-4, atol=1e-3)
 
 
+@pytest.mark.slow
 def test_gradients_reach_every_parameter_of_the_base_model():
     model = BaseModel.create(SMALL, jax.random.PRNGKey(5), network_init_scale=1.0)
     model = eqx.tree_at(lambda m: m.ramp.intra_pixel.coefficients, model, jnp.full(5, 0.05))

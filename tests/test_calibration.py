@@ -168,6 +168,7 @@ def test_parameter_groups_are_disjoint_and_cover_the_instrument():
     assert n_pix == 2 * 16 * 16
 
 
+@pytest.mark.slow
 def test_training_decreases_the_loss_on_a_tiny_synthetic_problem(cache):
     """Truth: aberrations, a rotated detector, a non-uniform flat. Start: a nominal model.
     Stage 0 (network off) then one network stage; the calibration, flat and validation

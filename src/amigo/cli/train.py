@@ -8,6 +8,7 @@ never calibrate anything (docs/detector.md, "Training").
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import click
@@ -113,6 +114,14 @@ class _ManyValues(click.Option):
 )
 @click.option("--resume", is_flag=True, help="Continue from MODEL.ckpt.npz if it exists.")
 @click.option("--float64", "float64", is_flag=True, help="Train in float64 (default float32).")
+@click.option(
+    "--provenance",
+    "provenance_file",
+    default=None,
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    help="JSON object merged into the model's metadata (where the data came from: "
+    "'trained_on', 'scenario', 'seed', ...).",
+)
 def command(
     cal: tuple[Path, ...],
     flats: tuple[Path, ...],
@@ -127,6 +136,7 @@ def command(
     time_limit: float | None,
     resume: bool,
     float64: bool,
+    provenance_file: Path | None,
 ) -> None:
     """Train the base model (instrument state and BFE network) on calibration data."""
     import jax
@@ -145,6 +155,17 @@ def command(
             raise click.BadParameter(
                 f"positive steps summing to --steps ({steps})", param_hint="--stages"
             )
+    provenance = {"command": "amigo train", "float": "float64" if float64 else "float32"}
+    if provenance_file is not None:
+        try:
+            extra = json.loads(provenance_file.read_text(encoding="utf-8"))
+        except (OSError, ValueError) as error:
+            fail_input(InputError(provenance_file, f"not a JSON file ({error})"))
+            return
+        if not isinstance(extra, dict):
+            fail_input(InputError(provenance_file, "must hold a JSON object"))
+            return
+        provenance.update(extra)
     with jax.enable_x64(float64):
         import jax.numpy as jnp
 
@@ -171,7 +192,7 @@ def command(
                 settings,
                 resume=resume,
                 time_limit_s=None if time_limit is None else 60.0 * time_limit,
-                provenance={"command": "amigo train", "float": "float64" if float64 else "float32"},
+                provenance=provenance,
             )
         except InputError as error:
             fail_input(error)
