@@ -956,6 +956,14 @@ def machine_description() -> str:
 
     device = jax.devices()[0]
     cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as handle:
+            names = [
+                line.split(":", 1)[1].strip() for line in handle if line.startswith("model name")
+            ]
+        cpu = names[0] if names else cpu
+    except OSError:
+        pass
     return (
         f"{device.platform}:{device.device_kind}; {cpu}; {os.cpu_count()} cores; "
         f"{platform.system()} {platform.release()}"
