@@ -27,6 +27,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "simulate": ("amigo.cli.simulate", "Simulate raw AMI ramps with physical detector effects."),
     "process": ("amigo.cli.process", "Raw ramps (uncal) -> slopes and covariances (calslope)."),
     "detect": ("amigo.cli.detect", "Search calibrated observables for companions; limits."),
+    "train": (
+        "amigo.cli.train",
+        "Train the base model (instrument + BFE network) on calibration data.",
+    ),
 }
 
 

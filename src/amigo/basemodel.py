@@ -1,0 +1,448 @@
+"""The base model: the trained state of the whole instrument, and its file format.
+
+The paper's "Base Model Training and Calibration" produces one object that every fit
+starts from: the optics (per-filter aberrations and defocus, the mask's hole positions),
+the linear detector (jitter, rotation, anisotropy), the non-linear ramp model (the
+charge-migration network, the flat field, the intra-pixel response) and the read model
+(dark current, IPC, per-pixel non-linearity, gain). :class:`BaseModel` is that object, as
+one equinox module whose array leaves are the parameters.
+
+Parameters and what trains them (see :mod:`amigo.calibration`)::
+
+    zernikes_nm[filter]    (7, 10)  per-hole Noll Zernikes, rms OPD nm     physical
+    defocus_nm[filter]     ()       Fresnel defocus, Noll Z4 rms nm        physical
+    hole_centres_m         (7, 2)   hole centres on the mask, m            physical
+    detector               LinearDetector: jitter, rotation, anisotropy   physical
+    ramp.intra_pixel       (5,)     quadratic intra-pixel response         physical
+    read.dark_e_per_group  ()       dark current, e- per group             physical
+    ramp.network           8,640 CNN weights                               network
+    ramp.flat              (80, 80) inter-pixel sensitivity                pixel (flats only)
+    read.nonlinearity      (80, 80) quadratic non-linearity, 1/e-          pixel (flats only)
+    read.ipc_kernel        (5, 5)   CRDS kernel                            fixed
+
+File format (``.npz``, readable with ``numpy.load(path, allow_pickle=False)``)
+------------------------------------------------------------------------------
+* one array per parameter leaf, keyed by its path in the module, e.g.
+  ``.zernikes_nm['F430M']``, ``.ramp.network.layers[2].weight``, ``.read.nonlinearity``,
+  stored in the dtype it was trained in (float32 or float64), so a round trip is exact;
+* ``__metadata__``: a 0-d unicode array holding a JSON record: ``format`` and
+  ``format_version``, ``config`` (everything needed to rebuild the module's skeleton and
+  its static settings), and free-form provenance (training data, scenario, seeds,
+  versions, losses, dtype, date, time and machine of training).
+
+Nothing is pickled: :func:`load_base_model` rebuilds the skeleton from ``config`` and
+fills in the arrays by path, refusing files whose paths or shapes do not match.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import os
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from amigo import instrument
+from amigo.detector.linear import LinearDetector
+from amigo.detector.ramp import (
+    DEFAULT_CHARGE_SCALE_E,
+    DEFAULT_MAX_SHIFT_PIX,
+    ChargeMigrationNetwork,
+    IntraPixelResponse,
+    RampModel,
+)
+from amigo.detector.read import ReadModel, default_ipc_kernel
+from amigo.errors import InputError
+from amigo.io.atomic import atomic_path
+from amigo.optics.aperture import PupilGrid, soft_hexagon, zernike_basis
+from amigo.optics.model import NRMOptics, OpticsConfig
+from amigo.optics.spectrum import LinearSpectrum
+
+FORMAT = "amigo-base-model"
+FORMAT_VERSION = 1
+METADATA_KEY = "__metadata__"
+#: Package-data location of the shipped base model.
+DEFAULT_MODEL_RESOURCE = ("data", "base_model", "amigo_base_model.npz")
+
+
+@dataclass(frozen=True)
+class BaseModelConfig:
+    """Static settings of a base model (stored in the file; hashable).
+
+    Attributes
+    ----------
+    filters
+        Filters with their own optics state.
+    shape
+        Detector pixels (ny, nx).
+    pupil_npix
+        Pupil pixels across the JWST pupil diameter (sampling of the mask).
+    n_wavelengths
+        Wavelength bins per filter.
+    n_zernike
+        Noll Zernikes per hole.
+    n_substeps
+        Recurrent sub-steps of the ramp model.
+    max_shift_pix, charge_scale_e, network_width, network_depth
+        Settings of the charge-migration network (see :mod:`amigo.detector.ramp`).
+    gain_e_per_dn
+        Gain (not trained: it is degenerate with the flux).
+    """
+
+    filters: tuple[str, ...] = instrument.CALIBRATED_FILTERS
+    shape: tuple[int, int] = (instrument.SUBARRAY_SIZE, instrument.SUBARRAY_SIZE)
+    pupil_npix: int = 128
+    n_wavelengths: int = 9
+    n_zernike: int = 10
+    n_substeps: int = 8
+    max_shift_pix: float = DEFAULT_MAX_SHIFT_PIX
+    charge_scale_e: float = DEFAULT_CHARGE_SCALE_E
+    network_width: int = 16
+    network_depth: int = 3
+    gain_e_per_dn: float = instrument.GAIN_E_PER_DN
+
+    def to_json(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_json(cls, record: dict[str, Any]) -> BaseModelConfig:
+        known = {f.name for f in dataclasses.fields(cls)}
+        values = {k: v for k, v in record.items() if k in known}
+        for key in ("filters", "shape"):
+            if key in values:
+                values[key] = tuple(values[key])
+        return cls(**values)
+
+    def optics_config(self) -> OpticsConfig:
+        return OpticsConfig(
+            npix_detector=self.shape[0], pupil_npix=self.pupil_npix, n_zernike=self.n_zernike
+        )
+
+
+class MovableHoles(eqx.Module):
+    """The mask with fittable hole centres and a fixed (precomputed) Zernike basis.
+
+    Implements the aperture interface of :class:`amigo.optics.NRMOptics`
+    (``hole_transmissions``, ``zernike_basis``). The hexagons are drawn at ``centres_m``
+    on every call (soft edges, so the image is differentiable in the centres); the
+    Zernike basis stays on the nominal centres, because the wavefront belongs to the
+    telescope, not to the mask.
+    """
+
+    centres_m: Float[Array, "7 2"]
+    basis: Float[Array, "7 j ny nx"]
+    flat_to_flat_m: float = eqx.field(static=True, default=instrument.HOLE_FLAT_TO_FLAT_M)
+
+    def hole_transmissions(self, grid: PupilGrid, softening_px: float = 1.0) -> Array:
+        x, y = grid.coordinates()
+        edge = softening_px * grid.pixel_m
+        return jnp.stack(
+            [
+                soft_hexagon(x - cx, y - cy, jnp.asarray(self.flat_to_flat_m, x.dtype), edge)
+                for cx, cy in self.centres_m
+            ]
+        )
+
+    def zernike_basis(self, grid: PupilGrid, n_modes: int, radius_factor: float) -> Array:
+        del grid, radius_factor
+        if n_modes != self.basis.shape[1]:
+            raise ValueError(f"basis has {self.basis.shape[1]} modes, not {n_modes}")
+        return self.basis
+
+
+class PupilCache(eqx.Module):
+    """Parameter-free arrays derived from the configuration: the pupil grid and the
+    per-hole Zernike basis (7, n_zernike, ny, nx). Build once with
+    :meth:`BaseModel.pupil_cache` and pass to the forward model (it is far too large to
+    store in the model file, and is recomputed exactly from the config)."""
+
+    grid: PupilGrid
+    basis: Float[Array, "7 j ny nx"]
+
+
+class BaseModel(eqx.Module):
+    """The trained instrument state (see the module docstring for the parameters).
+
+    Build a fresh (untrained) one with :meth:`create`, read one with
+    :func:`load_base_model`, write one with :func:`save_base_model`.
+    """
+
+    zernikes_nm: dict[str, Float[Array, "7 nz"]]
+    defocus_nm: dict[str, Float[Array, ""]]
+    hole_centres_m: Float[Array, "7 2"]
+    detector: LinearDetector
+    ramp: RampModel
+    read: ReadModel
+    config: BaseModelConfig = eqx.field(static=True)
+
+    @classmethod
+    def create(
+        cls,
+        config: BaseModelConfig | None = None,
+        key: jax.Array | None = None,
+        linear: bool = False,
+        network_init_scale: float = 0.1,
+    ) -> BaseModel:
+        """An untrained model: nominal mask, no aberrations, the paper's detector
+        geometry, unit flat, linear read-out, new network weights (``key``)."""
+        config = config or BaseModelConfig()
+        key = jax.random.PRNGKey(0) if key is None else key
+        network = None
+        if not linear:
+            network = ChargeMigrationNetwork(
+                key,
+                width=config.network_width,
+                depth=config.network_depth,
+                charge_scale_e=config.charge_scale_e,
+                init_scale=network_init_scale,
+            )
+        ramp = RampModel(
+            network=network,
+            flat=jnp.ones(config.shape),
+            intra_pixel=IntraPixelResponse(),
+            n_substeps=config.n_substeps,
+            max_shift_pix=config.max_shift_pix,
+        )
+        read = ReadModel(
+            dark_e_per_group=jnp.asarray(0.0),
+            ipc_kernel=jnp.asarray(default_ipc_kernel()),
+            nonlinearity=jnp.zeros(config.shape),
+            gain_e_per_dn=config.gain_e_per_dn,
+        )
+        return cls(
+            zernikes_nm={
+                f: jnp.zeros((instrument.N_HOLES, config.n_zernike)) for f in config.filters
+            },
+            defocus_nm={f: jnp.asarray(0.0) for f in config.filters},
+            hole_centres_m=jnp.asarray(np.asarray(instrument.HOLE_CENTRES_M, dtype=float)),
+            detector=LinearDetector.create(),
+            ramp=ramp,
+            read=read,
+            config=config,
+        )
+
+    # ------------------------------------------------------------------ structure
+    @property
+    def linear(self) -> bool:
+        """True when the charge-migration network is off (linear charge accumulation)."""
+        return self.ramp.network is None
+
+    def with_linear_detector(self) -> BaseModel:
+        """The same instrument with the network switched off (``--detector linear``)."""
+        return eqx.tree_at(lambda m: m.ramp.network, self, None, is_leaf=lambda x: x is None)
+
+    def with_network(self, network: ChargeMigrationNetwork | None) -> BaseModel:
+        """The same instrument with another network (``None``: linear)."""
+        return eqx.tree_at(lambda m: m.ramp.network, self, network, is_leaf=lambda x: x is None)
+
+    @property
+    def n_parameters(self) -> int:
+        """Number of scalar parameters (every array leaf, the fixed IPC kernel included)."""
+        return sum(int(np.size(x)) for x in jax.tree.leaves(eqx.filter(self, eqx.is_array)))
+
+    def check_filter(self, filter_name: str) -> str:
+        if filter_name not in self.zernikes_nm:
+            raise ValueError(
+                f"the base model has no optics state for {filter_name} "
+                f"(it has {', '.join(self.zernikes_nm)})"
+            )
+        return filter_name
+
+    # ------------------------------------------------------------------ optics
+    def pupil_cache(self) -> PupilCache:
+        """The pupil grid and Zernike basis for this configuration (compute once)."""
+        c = self.config.optics_config()
+        grid = PupilGrid.for_mask(c.pupil_npix, c.pupil_diameter_m)
+        radius = c.zernike_radius_factor * instrument.HOLE_FLAT_TO_FLAT_M / np.sqrt(3.0)
+        centres = np.asarray(instrument.HOLE_CENTRES_M)
+        basis = jax.jit(functools.partial(_basis, centres=centres, radius=radius, n=c.n_zernike))(
+            grid
+        )
+        return PupilCache(grid=grid, basis=basis)
+
+    def optics(self, filter_name: str, cache: PupilCache) -> NRMOptics:
+        """The optical model of one filter (an :class:`amigo.optics.NRMOptics`)."""
+        self.check_filter(filter_name)
+        holes = MovableHoles(
+            centres_m=self.hole_centres_m, basis=cache.basis.astype(self.hole_centres_m.dtype)
+        )
+        return NRMOptics(
+            aperture=holes,
+            zernikes_nm=self.zernikes_nm[filter_name],
+            defocus_nm=self.defocus_nm[filter_name],
+            hole_amplitudes=jnp.ones(instrument.N_HOLES, self.hole_centres_m.dtype),
+            grid=cache.grid,
+            config=self.config.optics_config(),
+        )
+
+    def spectrum(self, filter_name: str, slope_per_um: float = 0.0) -> LinearSpectrum:
+        """The filter's default spectrum at the model's wavelength sampling."""
+        return _filter_spectrum(filter_name, self.config.n_wavelengths, float(slope_per_um))
+
+    def illuminance(
+        self,
+        filter_name: str,
+        position_arcsec: Float[Array, " 2"],
+        cache: PupilCache,
+        spectrum: LinearSpectrum | None = None,
+    ) -> Float[Array, "m m"]:
+        """Unit-flux illuminance of a point source on the detector's 3x grid, (240, 240).
+
+        Optics (pupil, aberrations, Fresnel defocus, MFT, pixel integration), then the
+        linear detector's jitter and rotation/anisotropy resampling. Multiply by the
+        flux in electrons per integration to feed :meth:`slopes`.
+        """
+        spectrum = self.spectrum(filter_name) if spectrum is None else spectrum
+        image = self.optics(filter_name, cache).illuminance(spectrum, position_arcsec)
+        return self.detector.illuminance(image)
+
+    # ------------------------------------------------------------------ detector
+    def slopes(self, illuminance_e: Float[Array, "m m"], ngroups: int) -> Float[Array, "g y x"]:
+        """Predicted slopes (ngroups - 1, ny, nx), DN per group, from an illuminance in
+        photo-electrons per integration on the 3x grid: ramp model -> read model ->
+        group differences. This is where a visibility-injected illuminance (issue 4)
+        plugs in front of the detector."""
+        charge = self.ramp(illuminance_e, ngroups)
+        return jnp.diff(self.read(charge), axis=0)
+
+
+def _basis(grid: PupilGrid, centres: np.ndarray, radius: float, n: int) -> Array:
+    """The Zernike basis, compiled (evaluated op by op it takes seconds); dLux's Noll
+    index helper needs concrete integers, hence the compile-time evaluation."""
+    with jax.ensure_compile_time_eval():
+        return zernike_basis(grid, centres, radius, n)
+
+
+@functools.lru_cache(maxsize=32)
+def _filter_spectrum(filter_name: str, n_wavelengths: int, slope_per_um: float) -> LinearSpectrum:
+    """Filter spectra are immutable and slow to build (the throughput curves are read
+    from disk): build each once per process."""
+    with jax.ensure_compile_time_eval():  # concrete arrays even when called under jit
+        return LinearSpectrum.from_filter(filter_name, n_wavelengths, slope_per_um)
+
+
+# ---------------------------------------------------------------------------- file I/O
+
+
+def write_leaves(path: str | os.PathLike[str], tree: Any, record: dict[str, Any]) -> Path:
+    """Write the array leaves of any pytree, keyed by path, plus a JSON record, to one
+    ``.npz`` file (atomically). Used for base models and training checkpoints."""
+    path = Path(path)
+    arrays = {name: np.asarray(leaf) for name, leaf in leaf_paths(tree).items()}
+    arrays[METADATA_KEY] = np.array(json.dumps(record, indent=1, sort_keys=True))
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as handle:  # a file object: numpy would append ".npz" to a name
+            np.savez_compressed(handle, **arrays)
+    return path
+
+
+def leaf_paths(tree: Any) -> dict[str, Array]:
+    """``{path: array}`` for every array leaf of ``tree`` (paths as ``jax.tree_util.keystr``)."""
+    arrays = eqx.filter(tree, eqx.is_array)
+    flat, _ = jax.tree_util.tree_flatten_with_path(arrays)
+    return {jax.tree_util.keystr(path): leaf for path, leaf in flat}
+
+
+def fill_leaves(path: Path, skeleton: Any, data) -> Any:
+    """``skeleton`` with every array leaf replaced by the array stored under its path in
+    ``data`` (an open npz); :class:`InputError` if paths or shapes differ."""
+    expected = leaf_paths(skeleton)
+    stored = set(data.files) - {METADATA_KEY}
+    if stored != set(expected):
+        missing = sorted(set(expected) - stored)[:3]
+        extra = sorted(stored - set(expected))[:3]
+        raise InputError(path, f"parameters do not match: missing {missing}, unexpected {extra}")
+    values = {}
+    for name, leaf in expected.items():
+        array = data[name]
+        if array.shape != tuple(leaf.shape):
+            raise InputError(path, f"{name} has shape {array.shape}, expected {leaf.shape}")
+        values[name] = array
+    arrays, static = eqx.partition(skeleton, eqx.is_array)
+    flat, treedef = jax.tree_util.tree_flatten_with_path(arrays)
+    leaves = [jnp.asarray(values[jax.tree_util.keystr(p)]) for p, _ in flat]
+    return eqx.combine(jax.tree_util.tree_unflatten(treedef, leaves), static)
+
+
+def save_base_model(
+    model: BaseModel, path: str | os.PathLike[str], metadata: dict[str, Any] | None = None
+) -> Path:
+    """Write ``model`` (and a JSON provenance record) to one ``.npz`` file, atomically."""
+    record = {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "config": model.config.to_json(),
+        "network": not model.linear,
+        "dtype": str(np.asarray(model.hole_centres_m).dtype),
+        **(metadata or {}),
+    }
+    return write_leaves(path, model, record)
+
+
+def read_metadata(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """The JSON record of a base-model file (without loading the arrays)."""
+    with open_npz(Path(path)) as data:
+        return _metadata(Path(path), data)
+
+
+def open_npz(path: Path, what: str = "base-model"):
+    """Open an ``.npz`` without pickle support; :class:`InputError` if impossible."""
+    if not path.is_file():
+        raise InputError(path, f"no such {what} file")
+    try:
+        return np.load(path, allow_pickle=False)
+    except Exception as error:  # zip and format errors come in several types
+        raise InputError(path, f"not a {what} file ({error})") from None
+
+
+def _metadata(path: Path, data, fmt: str = FORMAT) -> dict[str, Any]:
+    if METADATA_KEY not in data.files:
+        raise InputError(path, f"not a {fmt} file: no {METADATA_KEY} record")
+    try:
+        record = json.loads(str(data[METADATA_KEY]))
+    except (ValueError, TypeError) as error:
+        raise InputError(path, f"unreadable metadata ({error})") from None
+    if record.get("format") != fmt:
+        raise InputError(path, f"not a {fmt} file (format {record.get('format')!r})")
+    if int(record.get("format_version", 0)) > FORMAT_VERSION:
+        raise InputError(
+            path,
+            f"{fmt} format version {record['format_version']} is newer than this "
+            f"amigo understands ({FORMAT_VERSION}); upgrade amigo",
+        )
+    return record
+
+
+def read_record(path: Path, data, fmt: str) -> dict[str, Any]:
+    """The validated JSON record of an npz written by :func:`write_leaves`."""
+    return _metadata(path, data, fmt)
+
+
+def load_base_model(path: str | os.PathLike[str] | None = None) -> BaseModel:
+    """Read a base model written by :func:`save_base_model` (default: the shipped one).
+
+    Arrays keep the dtype they were stored in (float64 ones need 64-bit JAX enabled to
+    stay float64). Raises :class:`InputError` when the file is not a base model or does
+    not match the skeleton its config describes.
+    """
+    path = default_model_path() if path is None else Path(path)
+    with open_npz(path) as data:
+        record = _metadata(path, data)
+        config = BaseModelConfig.from_json(record["config"])
+        skeleton = BaseModel.create(config, linear=not record.get("network", True))
+        return fill_leaves(path, skeleton, data)
+
+
+def default_model_path() -> Path:
+    """Path of the base model shipped in the package data."""
+    resource = resources.files("amigo").joinpath(*DEFAULT_MODEL_RESOURCE)
+    return Path(str(resource))

@@ -1,0 +1,1019 @@
+"""Base-model training: the whole instrument model, calibrated on calibration exposures.
+
+The paper's "Base Model Training and Calibration", as code:
+
+* **Joint fit.** Every parameter of :class:`~amigo.basemodel.BaseModel` is trained
+  together with the per-exposure source parameters (position, flux) of the calibration
+  exposures, on the slope likelihood (:mod:`amigo.slope_model`).
+* **Three groups of parameters, three data sets.** *Physical* parameters (aberrations,
+  defocus, hole positions, jitter, rotation, anisotropy, intra-pixel response, dark) and
+  the *network* learn from the calibration exposures; the *pixel* parameters (flat field
+  and per-pixel non-linearity) learn only from the flat-field exposures; *validation*
+  exposures get their own positions and fluxes fitted every epoch but never touch the
+  instrument (their loss is only reported, and selects the best network).
+* **Optimisers.** Physical and per-exposure parameters take Fisher-preconditioned
+  Nesterov momentum steps: the gradient of each parameter is divided by its Fisher
+  diagonal ``F_ii = sum (dz/dtheta_i)^2`` (z: whitened residuals), computed from the
+  Jacobian of the linear-detector model by forward-mode autodiff, so that a learning
+  rate of order one is a Newton step per parameter whatever the data's signal level
+  (a diagonal natural gradient). The pixel parameters do the same with a per-pixel
+  Fisher diagonal. The network uses Adam.
+* **Batches and stages.** Calibration exposures are split into batches visited in a
+  random order every epoch. Stage 0 trains the physical parameters with the network
+  off (linear charge accumulation); every later stage restarts the network from new
+  random weights and trains it jointly with the physical parameters, starting from the
+  best physical state found so far (the paper's staged optimisation).
+* **Checkpoints.** The full training state is written after every epoch (atomically);
+  :func:`train` with ``resume=True`` continues from it.
+
+Everything is float32 unless the caller enables 64-bit JAX (the metadata records it).
+"""
+
+from __future__ import annotations
+
+import functools
+import platform
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from jax.flatten_util import ravel_pytree
+
+from amigo._version import __version__
+from amigo.basemodel import (
+    BaseModel,
+    BaseModelConfig,
+    PupilCache,
+    fill_leaves,
+    open_npz,
+    read_record,
+    save_base_model,
+    write_leaves,
+)
+from amigo.detector.ramp import ChargeMigrationNetwork
+from amigo.errors import InputError
+from amigo.progress import step as report_step
+from amigo.slope_model import (
+    FitStatistics,
+    FlatParams,
+    PointSourceParams,
+    SlopeData,
+    fit_statistics,
+    initial_params,
+    model_slopes,
+    whitened_residuals,
+)
+
+# ---------------------------------------------------------------------------- parameter groups
+#
+# Physical and pixel parameters are handled on the *linear* view of the model (network
+# subtree None), so that their trees have one structure whether or not the network is on.
+
+
+def _false_like(tree: Any) -> Any:
+    return jax.tree.map(lambda _: False, tree)
+
+
+def physical_mask(base: BaseModel, filter_name: str | None = None) -> BaseModel:
+    """Boolean pytree over ``base.with_linear_detector()``: True on the physical
+    parameters (trained on calibrators); only one filter's optics if ``filter_name``."""
+    linear = base.with_linear_detector()
+
+    def on(k: str) -> bool:
+        return filter_name is None or k == filter_name
+
+    return eqx.tree_at(
+        lambda m: (
+            m.zernikes_nm,
+            m.defocus_nm,
+            m.hole_centres_m,
+            m.detector.jitter_arcsec,
+            m.detector.rotation_deg,
+            m.detector.anisotropy,
+            m.ramp.intra_pixel.coefficients,
+            m.read.dark_e_per_group,
+        ),
+        _false_like(linear),
+        (
+            {k: on(k) for k in linear.zernikes_nm},
+            {k: on(k) for k in linear.defocus_nm},
+            True,
+            True,
+            True,
+            True,
+            True,
+            True,
+        ),
+    )
+
+
+def physical_step_limits(base: BaseModel) -> BaseModel:
+    """Largest move of each physical parameter in one step (the trust region), shaped
+    like ``split(base, physical_mask(base))``: 2 nm of aberration, 5 nm of defocus, 2 mm
+    of hole position, 1 mas of jitter, 0.05 deg of rotation, 5e-4 of anisotropy, 0.05 of
+    intra-pixel response, 0.2 e- of dark per group."""
+    physical = split(base, physical_mask(base))
+    limits = (
+        {k: jnp.full_like(v, 2.0) for k, v in physical.zernikes_nm.items()},
+        {k: jnp.full_like(v, 5.0) for k, v in physical.defocus_nm.items()},
+        jnp.full_like(physical.hole_centres_m, 2e-3),
+        jnp.full_like(physical.detector.jitter_arcsec, 1e-3),
+        jnp.full_like(physical.detector.rotation_deg, 0.05),
+        jnp.full_like(physical.detector.anisotropy, 5e-4),
+        jnp.full_like(physical.ramp.intra_pixel.coefficients, 0.05),
+        jnp.full_like(physical.read.dark_e_per_group, 0.2),
+    )
+    return eqx.tree_at(
+        lambda m: (
+            m.zernikes_nm,
+            m.defocus_nm,
+            m.hole_centres_m,
+            m.detector.jitter_arcsec,
+            m.detector.rotation_deg,
+            m.detector.anisotropy,
+            m.ramp.intra_pixel.coefficients,
+            m.read.dark_e_per_group,
+        ),
+        physical,
+        limits,
+    )
+
+
+def pixel_mask(base: BaseModel) -> BaseModel:
+    """Boolean pytree over the linear view: True on the flat field and non-linearity
+    (trained on flat fields only)."""
+    linear = base.with_linear_detector()
+    return eqx.tree_at(
+        lambda m: (m.ramp.flat, m.read.nonlinearity), _false_like(linear), (True, True)
+    )
+
+
+def split(tree: BaseModel, mask: BaseModel) -> BaseModel:
+    """The leaves of ``tree`` (a model or a gradient) selected by ``mask`` (None elsewhere)."""
+    return eqx.filter(tree.with_linear_detector(), mask)
+
+
+def merge(base: BaseModel, part: BaseModel, mask: BaseModel) -> BaseModel:
+    """``base`` with the leaves selected by ``mask`` replaced by those of ``part``."""
+    rest = eqx.filter(base.with_linear_detector(), mask, inverse=True)
+    return eqx.combine(part, rest).with_network(base.ramp.network)
+
+
+# ---------------------------------------------------------------------------- compiled pieces
+
+
+@eqx.filter_jit
+def _loss_and_grad(base: BaseModel, params: Any, data: SlopeData, cache: PupilCache):
+    """``(chi2 / 2, (d/dbase, d/dparams))`` of one exposure (compiled once per filter and
+    number of groups)."""
+
+    def loss(bp):
+        b, p = bp
+        return 0.5 * jnp.sum(whitened_residuals(model_slopes(b, cache, p, data), data) ** 2)
+
+    return eqx.filter_value_and_grad(loss)((base, params))
+
+
+@eqx.filter_jit
+def _model(base: BaseModel, params: Any, data: SlopeData, cache: PupilCache):
+    return model_slopes(base, cache, params, data)
+
+
+@eqx.filter_jit
+def _fisher(base: BaseModel, params: Any, data: SlopeData, cache: PupilCache, mask: Any):
+    linear = base.with_linear_detector()
+    diff, static = eqx.partition((linear, params), (mask, jax.tree.map(lambda _: True, params)))
+    vector, unravel = ravel_pytree(diff)
+
+    def residuals(v):
+        b, p = eqx.combine(unravel(v), static)
+        return whitened_residuals(model_slopes(b, cache, p, data), data).ravel()
+
+    jac = jax.jacfwd(residuals)(vector)  # (n_values, n_params)
+    return jac.T @ jac
+
+
+def fisher_matrix(
+    base: BaseModel, params: Any, data: SlopeData, cache: PupilCache, mask: Any
+) -> tuple[np.ndarray, np.ndarray]:
+    """Fisher (Gauss-Newton) matrix ``J^T J`` of the whitened residuals ``z`` of the
+    *linear-detector* model, from the exact Jacobian (forward mode, one column per
+    parameter), for the base-model leaves selected by ``mask`` (a
+    :func:`physical_mask`-like tree) and every per-exposure parameter.
+
+    Returns ``(F_base, F_params)``: the block of the selected base parameters, in the
+    order of ``ravel_pytree(split(base, mask))``, and the diagonal of the per-exposure
+    block (float64 NumPy).
+    """
+    # The linear view: one compiled function whether or not the network is on.
+    linear = base.with_linear_detector()
+    matrix = np.asarray(_fisher(linear, params, data, cache, mask), dtype=np.float64)
+    n_base = ravel_pytree(split(base, mask))[0].size
+    return matrix[:n_base, :n_base], np.diagonal(matrix)[n_base:]
+
+
+def fisher_diagonal(
+    base: BaseModel, params: Any, data: SlopeData, cache: PupilCache, mask: Any
+) -> tuple[Any, Any]:
+    """The diagonals of :func:`fisher_matrix`, shaped like ``split(base, mask)`` and
+    ``params``."""
+    f_base, f_params = fisher_matrix(base, params, data, cache, mask)
+    unravel_base = ravel_pytree(split(base, mask))[1]
+    unravel_params = ravel_pytree(params)[1]
+    return unravel_base(jnp.asarray(np.diagonal(f_base))), unravel_params(jnp.asarray(f_params))
+
+
+@eqx.filter_jit
+def pixel_fisher(base: BaseModel, params: FlatParams, data: SlopeData) -> BaseModel:
+    """Per-pixel Fisher diagonal of the flat field and the non-linearity from one flat
+    field, shaped like ``split(base, pixel_mask(base))``. A pixel's parameters act (IPC
+    aside) on that pixel's slopes only, so one forward-mode pass with a tangent of ones
+    gives every pixel's derivative at once."""
+
+    def slopes(flat, nonlinearity):
+        b = eqx.tree_at(lambda m: (m.ramp.flat, m.read.nonlinearity), base, (flat, nonlinearity))
+        return model_slopes(b, None, params, data)  # type: ignore[arg-type]
+
+    primals = (base.ramp.flat, base.read.nonlinearity)
+    out = []
+    for index in range(2):
+        tangents = tuple(
+            jnp.ones_like(p) if i == index else jnp.zeros_like(p) for i, p in enumerate(primals)
+        )
+        _, dslopes = jax.jvp(slopes, primals, tangents)
+        dz = whitened_residuals(-dslopes, data)  # derivative of W (data - model)
+        out.append(jnp.sum(dz**2, axis=1).reshape(data.shape))
+    mask = pixel_mask(base)
+    return eqx.tree_at(lambda m: (m.ramp.flat, m.read.nonlinearity), split(base, mask), tuple(out))
+
+
+# ---------------------------------------------------------------------------- optimiser
+
+
+class FisherMomentum(eqx.Module):
+    """Nesterov momentum on Fisher-preconditioned gradients (a diagonal natural gradient).
+
+    ``v <- mu v + g / F``; ``theta <- theta - lr (g / F + mu v)``. ``lr = 1`` is a Newton
+    step per parameter for a quadratic loss with a diagonal Hessian.
+    """
+
+    velocity: Any
+    learning_rate: float = eqx.field(static=True, default=0.5)
+    momentum: float = eqx.field(static=True, default=0.6)
+
+    @classmethod
+    def init(cls, params: Any, learning_rate: float = 0.5, momentum: float = 0.6):
+        return cls(jax.tree.map(jnp.zeros_like, params), learning_rate, momentum)
+
+    def update(self, params: Any, grads: Any, fisher: Any, floor: float = 1e-30):
+        """One step; returns ``(new_params, new_optimiser)``."""
+        scaled = jax.tree.map(lambda g, f: g / jnp.maximum(f, floor), grads, fisher)
+        velocity = jax.tree.map(lambda v, s: self.momentum * v + s, self.velocity, scaled)
+        new = jax.tree.map(
+            lambda p, s, v: p - self.learning_rate * (s + self.momentum * v),
+            params,
+            scaled,
+            velocity,
+        )
+        return new, eqx.tree_at(lambda o: o.velocity, self, velocity)
+
+    def update_vector(
+        self,
+        vector: jax.Array,
+        grad: jax.Array,
+        preconditioner: jax.Array,
+        limit: jax.Array | None = None,
+    ):
+        """The same step on a flat parameter vector with a full preconditioning matrix
+        (the inverse of the damped Fisher matrix): a Gauss-Newton direction. ``limit``
+        (same shape) is a trust region: the whole step is shrunk so that no parameter
+        moves by more than its limit (far from the optimum a Gauss-Newton step of the
+        optics can be wildly non-linear)."""
+        scaled = preconditioner @ grad
+        velocity = self.momentum * self.velocity + scaled
+        delta = self.learning_rate * (scaled + self.momentum * velocity)
+        if limit is not None:
+            shrink = jnp.minimum(1.0, jnp.min(limit / jnp.maximum(jnp.abs(delta), 1e-30)))
+            delta, velocity = delta * shrink, velocity * shrink
+        return vector - delta, eqx.tree_at(lambda o: o.velocity, self, velocity)
+
+
+# ---------------------------------------------------------------------------- settings, data
+
+
+@dataclass(frozen=True)
+class TrainSettings:
+    """Hyper-parameters of :func:`train` (all recorded in the model's metadata).
+
+    ``steps`` batch steps in all; ``stage_steps`` the steps of each stage (stage 0 with
+    the network off, then one stage per network restart); by default a fifth of the
+    steps with the network off and the rest split over two network restarts.
+    """
+
+    steps: int = 200
+    n_batches: int = 5
+    stage_steps: tuple[int, ...] = ()
+    physical_lr: float = 0.5
+    pixel_lr: float = 0.8
+    exposure_lr: float = 0.5
+    momentum: float = 0.6
+    network_lr: float = 3e-3
+    network_init_scale: float = 0.01
+    damping: float = 0.1
+    seed: int = 0
+    diagonal: bool = False
+
+    def stages(self) -> list[int]:
+        if self.stage_steps:
+            return list(self.stage_steps)
+        first = max(1, self.steps // 5)
+        rest = self.steps - first
+        if rest <= 1:
+            return [first, rest] if rest else [first]
+        return [first, rest - rest // 2, rest // 2]
+
+    def stage_of(self, step: int) -> int:
+        return int(np.searchsorted(np.cumsum(self.stages()), step, side="right"))
+
+
+@dataclass
+class TrainingData:
+    """Calibration, flat-field and validation exposures (:class:`SlopeData`)."""
+
+    cal: list[SlopeData]
+    flats: list[SlopeData]
+    val: list[SlopeData]
+
+    @classmethod
+    def read(
+        cls,
+        cal: Sequence[str | Path],
+        flats: Sequence[str | Path] = (),
+        val: Sequence[str | Path] = (),
+        diagonal: bool = False,
+        dtype=jnp.float32,
+    ) -> TrainingData:
+        if not cal:
+            raise InputError("--cal", "at least one calibration exposure is needed")
+        read = SlopeData.read
+        return cls(
+            cal=[read(p, "calibrator", diagonal, dtype) for p in cal],
+            flats=[read(p, "flat", diagonal, dtype) for p in flats],
+            val=[read(p, "validation", diagonal, dtype) for p in val],
+        )
+
+    @property
+    def filters(self) -> tuple[str, ...]:
+        return tuple(sorted({d.filter for d in self.cal + self.val}))
+
+    def describe(self) -> dict[str, Any]:
+        def one(d: SlopeData) -> dict[str, Any]:
+            return {"name": d.name, "filter": d.filter, "ngroups": d.ngroups, "values": d.n_values}
+
+        return {
+            "calibration": [one(d) for d in self.cal],
+            "flats": [one(d) for d in self.flats],
+            "validation": [one(d) for d in self.val],
+        }
+
+
+class TrainState(eqx.Module):
+    """Everything that changes during training (what a checkpoint holds)."""
+
+    base: BaseModel
+    cal_params: tuple[PointSourceParams, ...]
+    flat_params: tuple[FlatParams, ...]
+    val_params: tuple[PointSourceParams, ...]
+    physical_opt: FisherMomentum
+    pixel_opt: FisherMomentum
+    cal_opt: FisherMomentum
+    flat_opt: FisherMomentum
+    val_opt: FisherMomentum
+    adam_state: Any
+    best_base: BaseModel
+    best_loss: jax.Array
+
+
+@dataclass
+class History:
+    """Losses: per step (calibration batch, chi2/2 per slope value) and per epoch."""
+
+    step: list[int] = field(default_factory=list)
+    stage: list[int] = field(default_factory=list)
+    loss: list[float] = field(default_factory=list)
+    epoch_step: list[int] = field(default_factory=list)
+    cal_loss: list[float] = field(default_factory=list)
+    flat_loss: list[float] = field(default_factory=list)
+    val_loss: list[float] = field(default_factory=list)
+
+
+CHECKPOINT_FORMAT = "amigo-train-checkpoint"
+
+
+# ---------------------------------------------------------------------------- the trainer
+
+
+class Trainer:
+    """The staged optimisation of the module docstring, one epoch at a time.
+
+    ``Trainer(data, settings)`` starts from an untrained model; :meth:`run` trains
+    ``settings.steps`` steps (checkpointing after each epoch when given a path);
+    :meth:`result` is the best model. :func:`train` wraps it for the CLI.
+    """
+
+    def __init__(
+        self,
+        data: TrainingData,
+        settings: TrainSettings,
+        config: BaseModelConfig | None = None,
+        cache: PupilCache | None = None,
+    ) -> None:
+        self.data = data
+        self.settings = settings
+        config = config or BaseModelConfig(filters=data.filters, shape=data.cal[0].shape)
+        missing = [f for f in data.filters if f not in config.filters]
+        if missing:
+            raise InputError("--cal", f"the model configuration has no optics for {missing}")
+        base = BaseModel.create(config, linear=True)
+        self.cache = base.pupil_cache() if cache is None else cache
+        self.rng = np.random.default_rng(settings.seed)
+        self.history = History()
+        self.step = 0
+        self.seconds = 0.0
+        self.state = self._initial_state(base)
+        self.fisher: dict[str, Any] | None = None
+        self.stopped_early = False
+
+    # -------------------------------------------------------------- state
+    def _initial_state(self, base: BaseModel) -> TrainState:
+        s = self.settings
+        cal = tuple(initial_params(base, d) for d in self.data.cal)
+        flats = tuple(initial_params(base, d) for d in self.data.flats)
+        val = tuple(initial_params(base, d) for d in self.data.val)
+        network = self._fresh_network(base, 1)
+        return TrainState(
+            base=base,
+            cal_params=cal,
+            flat_params=flats,
+            val_params=val,
+            physical_opt=FisherMomentum.init(
+                ravel_pytree(split(base, physical_mask(base)))[0], s.physical_lr, s.momentum
+            ),
+            pixel_opt=FisherMomentum.init(split(base, pixel_mask(base)), s.pixel_lr, s.momentum),
+            cal_opt=FisherMomentum.init(cal, s.exposure_lr, s.momentum),
+            flat_opt=FisherMomentum.init(flats, s.exposure_lr, s.momentum),
+            val_opt=FisherMomentum.init(val, s.exposure_lr, s.momentum),
+            adam_state=optax.adam(s.network_lr).init(eqx.filter(network, eqx.is_array)),
+            best_base=base.with_network(network),
+            best_loss=jnp.asarray(np.inf),
+        )
+
+    def _fresh_network(self, base: BaseModel, stage: int) -> ChargeMigrationNetwork:
+        c = base.config
+        key = jax.random.fold_in(jax.random.PRNGKey(self.settings.seed), stage)
+        return ChargeMigrationNetwork(
+            key,
+            width=c.network_width,
+            depth=c.network_depth,
+            charge_scale_e=c.charge_scale_e,
+            init_scale=self.settings.network_init_scale,
+        )
+
+    # -------------------------------------------------------------- warm-up
+    def warm_up(self, iterations: int = 3) -> None:
+        """Newton steps on every exposure's own parameters (position and flux, or a
+        flat's level) with the instrument fixed: the centroid and total-flux starting
+        values are too rough for the joint fit. Keeps each exposure's Fisher diagonal
+        for :meth:`compute_fisher`."""
+        state, base, cache = self.state, self.state.base, self.cache
+        nothing = _false_like(physical_mask(base))
+        sets = {
+            "cal_params": self.data.cal,
+            "flat_params": self.data.flats,
+            "val_params": self.data.val,
+        }
+        groups, self._exposure_fisher = [], {}
+        for name, datasets in sets.items():
+            params, fishers = list(getattr(state, name)), []
+            for i, d in enumerate(datasets):
+                p = params[i]
+                fisher = fisher_diagonal(base, p, d, cache, nothing)[1]
+                for _ in range(iterations):
+                    _, (_, grad) = _loss_and_grad(base, p, d, cache)
+                    p = jax.tree.map(lambda x, g, f: x - g / jnp.maximum(f, 1e-30), p, grad, fisher)
+                params[i] = p
+                fishers.append(fisher)
+            groups.append(tuple(params))
+            self._exposure_fisher[name] = fishers
+        report_step("train: warm-up of positions and fluxes done")
+        self.state = eqx.tree_at(
+            lambda s: (s.cal_params, s.flat_params, s.val_params), state, tuple(groups)
+        )
+
+    # -------------------------------------------------------------- Fisher diagonals
+    def compute_fisher(self) -> None:
+        """Fisher matrices of every Fisher-preconditioned parameter at the current state.
+
+        The shared physical parameters use the full Fisher matrix: for each filter, the
+        Jacobian of its first calibration exposure times the number of its exposures (the
+        dithers of one star differ only by sub-pixel offsets), summed over filters, then
+        damped (``F + damping * diag F``) and inverted once. Every exposure gets the
+        Fisher diagonal of its own position and flux; the pixel parameters sum the
+        per-pixel Fisher diagonals of the flats.
+        """
+        state, base, cache = self.state, self.state.base, self.cache
+        full = physical_mask(base)
+        vector, unravel = ravel_pytree(split(base, full))
+        index_tree = unravel(jnp.arange(vector.size, dtype=jnp.float32))
+        total = np.zeros((vector.size, vector.size))
+        by_filter: dict[str, list[int]] = {}
+        for i, d in enumerate(self.data.cal):
+            by_filter.setdefault(d.filter, []).append(i)
+        for filt, indices in by_filter.items():
+            report_step(f"train: Fisher matrix of the physical parameters, {filt}")
+            i = indices[0]
+            mask = physical_mask(base, filt)
+            f_base, _ = fisher_matrix(base, state.cal_params[i], self.data.cal[i], cache, mask)
+            columns = np.asarray(ravel_pytree(eqx.filter(index_tree, mask))[0]).astype(int)
+            total[np.ix_(columns, columns)] += len(indices) * f_base
+        diagonal = np.diagonal(total).copy()
+        unseen = diagonal <= 0  # parameters the data do not see: never move them
+        diagonal[unseen] = 1.0
+        damped = total + self.settings.damping * np.diag(diagonal)
+        damped[unseen, :] = 0.0
+        damped[:, unseen] = 0.0
+        damped[unseen, unseen] = np.inf
+        inverse = np.linalg.pinv(np.where(np.isinf(damped), 0.0, damped), hermitian=True)
+        inverse[unseen, :] = 0.0
+        inverse[:, unseen] = 0.0
+        nothing = _false_like(full)
+        stored = getattr(self, "_exposure_fisher", {})
+
+        def exposure_fisher(name: str, params, datasets) -> list[Any]:
+            if name in stored:
+                return list(stored[name])
+            return [
+                fisher_diagonal(base, p, d, cache, nothing)[1]
+                for p, d in zip(params, datasets, strict=True)
+            ]
+
+        # Each exposure's own parameters (the warm-up's Fisher when there was one).
+        cal_fisher = exposure_fisher("cal_params", state.cal_params, self.data.cal)
+        val_fisher = exposure_fisher("val_params", state.val_params, self.data.val)
+        flat_fisher = exposure_fisher("flat_params", state.flat_params, self.data.flats)
+        pixel = jax.tree.map(jnp.zeros_like, split(base, pixel_mask(base)))
+        for p, d in zip(state.flat_params, self.data.flats, strict=True):
+            pixel = jax.tree.map(jnp.add, pixel, pixel_fisher(base, p, d))
+        # A pixel no flat constrains keeps its value (infinite Fisher: no step).
+        pixel = jax.tree.map(lambda f: jnp.where(f > 0, f, jnp.inf), pixel)
+        self.fisher = {
+            "physical": jnp.asarray(inverse, vector.dtype),
+            "pixel": pixel,
+            "cal": tuple(cal_fisher),
+            "val": tuple(val_fisher),
+            "flat": tuple(flat_fisher),
+        }
+
+    def _fisher_skeleton(self) -> dict[str, Any]:
+        """Arrays shaped like :meth:`compute_fisher`'s (to read a checkpoint into)."""
+        state = self.state
+        n = ravel_pytree(split(state.base, physical_mask(state.base)))[0].size
+        zeros = functools.partial(jax.tree.map, jnp.zeros_like)
+        return {
+            "physical": jnp.zeros((n, n), state.base.hole_centres_m.dtype),
+            "pixel": zeros(split(state.base, pixel_mask(state.base))),
+            "cal": zeros(state.cal_params),
+            "val": zeros(state.val_params),
+            "flat": zeros(state.flat_params),
+        }
+
+    # -------------------------------------------------------------- steps
+    def _batches(self) -> list[list[int]]:
+        order = self.rng.permutation(len(self.data.cal))
+        n = max(1, min(self.settings.n_batches, len(order)))
+        return [list(map(int, b)) for b in np.array_split(order, n)]
+
+    def train_step(self, batch: list[int], use_network: bool) -> float:
+        """Update the physical parameters, the network (if on) and the batch's source
+        parameters from the calibration exposures in ``batch``; returns the batch's chi2/2
+        per slope value before the step."""
+        state, base = self.state, self.state.base
+        n_cal = len(self.data.cal)
+        grad_base, loss, values = None, 0.0, 0
+        grads = [jax.tree.map(jnp.zeros_like, p) for p in state.cal_params]
+        for i in batch:
+            d = self.data.cal[i]
+            value, (gb, gp) = _loss_and_grad(base, state.cal_params[i], d, self.cache)
+            loss, values = loss + float(value), values + d.n_values
+            grad_base = gb if grad_base is None else jax.tree.map(jnp.add, grad_base, gb)
+            grads[i] = gp
+        # Source parameters of the exposures in the batch (the others keep their state).
+        moved, moved_opt = state.cal_opt.update(state.cal_params, tuple(grads), self.fisher["cal"])
+        inside = set(batch)
+        cal_params = tuple(moved[i] if i in inside else state.cal_params[i] for i in range(n_cal))
+        velocity = tuple(
+            moved_opt.velocity[i] if i in inside else state.cal_opt.velocity[i]
+            for i in range(n_cal)
+        )
+        cal_opt = eqx.tree_at(lambda o: o.velocity, moved_opt, velocity)
+        # Physical parameters: the batch gradient stands for the whole set.
+        mask = physical_mask(base)
+        scale = n_cal / len(batch)
+        g_phys = jax.tree.map(lambda g: g * scale, split(grad_base, mask))
+        vector, unravel = ravel_pytree(split(base, mask))
+        moved_vector, physical_opt = state.physical_opt.update_vector(
+            vector,
+            ravel_pytree(g_phys)[0],
+            self.fisher["physical"],
+            ravel_pytree(physical_step_limits(base))[0],
+        )
+        base = merge(base, unravel(moved_vector), mask)
+        adam_state = state.adam_state
+        if use_network and base.ramp.network is not None:
+            weights = eqx.filter(base.ramp.network, eqx.is_array)
+            g_net = eqx.filter(grad_base.ramp.network, eqx.is_array)
+            updates, adam_state = optax.adam(self.settings.network_lr).update(
+                g_net, adam_state, weights
+            )
+            base = base.with_network(eqx.apply_updates(base.ramp.network, updates))
+        base = eqx.tree_at(
+            lambda m: m.detector.jitter_arcsec, base, jnp.abs(base.detector.jitter_arcsec)
+        )
+        self.state = eqx.tree_at(
+            lambda s: (s.base, s.cal_params, s.cal_opt, s.physical_opt, s.adam_state),
+            state,
+            (base, cal_params, cal_opt, physical_opt, adam_state),
+        )
+        return loss / max(values, 1)
+
+    def flat_step(self) -> float:
+        """Update the flat field, the non-linearity and the flats' levels from the
+        flat-field exposures; returns their chi2/2 per value before the step."""
+        state, base = self.state, self.state.base
+        if not self.data.flats:
+            return float("nan")
+        grad_base, grads, loss, values = None, [], 0.0, 0
+        for p, d in zip(state.flat_params, self.data.flats, strict=True):
+            value, (gb, gp) = _loss_and_grad(base, p, d, self.cache)
+            loss, values = loss + float(value), values + d.n_values
+            grad_base = gb if grad_base is None else jax.tree.map(jnp.add, grad_base, gb)
+            grads.append(gp)
+        flat_params, flat_opt = state.flat_opt.update(
+            state.flat_params, tuple(grads), self.fisher["flat"]
+        )
+        mask = pixel_mask(base)
+        pixel, pixel_opt = state.pixel_opt.update(
+            split(base, mask), split(grad_base, mask), self.fisher["pixel"]
+        )
+        base = merge(base, pixel, mask)
+        # The flat's mean is degenerate with every flux: pin it to one.
+        used = np.zeros(base.ramp.flat.shape, bool)
+        for d in self.data.flats:
+            used |= np.asarray(d.used) > 0
+        base = eqx.tree_at(
+            lambda m: m.ramp.flat, base, base.ramp.flat / jnp.mean(base.ramp.flat[used])
+        )
+        self.state = eqx.tree_at(
+            lambda s: (s.base, s.flat_params, s.flat_opt, s.pixel_opt),
+            state,
+            (base, flat_params, flat_opt, pixel_opt),
+        )
+        return loss / max(values, 1)
+
+    def validation_step(self) -> float:
+        """Fit the validation exposures' own positions and fluxes one step (the
+        instrument is untouched); returns their chi2/2 per value before the step."""
+        state = self.state
+        if not self.data.val:
+            return float("nan")
+        grads, loss, values = [], 0.0, 0
+        for p, d in zip(state.val_params, self.data.val, strict=True):
+            value, (_, gp) = _loss_and_grad(state.base, p, d, self.cache)
+            loss, values = loss + float(value), values + d.n_values
+            grads.append(gp)
+        val_params, val_opt = state.val_opt.update(
+            state.val_params, tuple(grads), self.fisher["val"]
+        )
+        self.state = eqx.tree_at(lambda s: (s.val_params, s.val_opt), state, (val_params, val_opt))
+        return loss / max(values, 1)
+
+    # -------------------------------------------------------------- stages, epochs
+    def start_stage(self, stage: int) -> None:
+        """Stage >= 1: a new network from new random weights (and a fresh Adam state) on
+        the best physical state so far (stage 1: the end of the network-off stage)."""
+        if stage == 0:
+            return
+        state = self.state
+        source = (
+            state.best_base if stage > 1 and bool(jnp.isfinite(state.best_loss)) else state.base
+        )
+        mask = physical_mask(source)
+        base = merge(state.base, split(source, mask), mask)
+        network = self._fresh_network(base, stage)
+        s = self.settings
+        self.state = eqx.tree_at(
+            lambda st: (st.base, st.adam_state, st.physical_opt),
+            state,
+            (
+                base.with_network(network),
+                optax.adam(s.network_lr).init(eqx.filter(network, eqx.is_array)),
+                FisherMomentum.init(ravel_pytree(split(base, mask))[0], s.physical_lr, s.momentum),
+            ),
+        )
+        report_step(f"train: stage {stage}: network restarted from new weights (seed {stage})")
+
+    def epoch(self) -> dict[str, float]:
+        """One pass over the calibration batches (stopping at ``settings.steps``), then
+        one flat-field step and one validation step; returns the epoch's losses."""
+        if self.fisher is None:
+            self.warm_up()
+            self.compute_fisher()
+        losses = []
+        for batch in self._batches():
+            if self.step >= self.settings.steps:
+                break
+            stage = self.settings.stage_of(self.step)
+            if self.step == 0 or stage != self.settings.stage_of(self.step - 1):
+                self.start_stage(stage)
+            losses.append(self.train_step(batch, use_network=stage > 0))
+            self.history.step.append(self.step)
+            self.history.stage.append(stage)
+            self.history.loss.append(losses[-1])
+            self.step += 1
+        flat = self.flat_step()
+        val = self.validation_step()
+        cal = float(np.mean(losses)) if losses else float("nan")
+        h = self.history
+        h.epoch_step.append(self.step)
+        h.cal_loss.append(cal)
+        h.flat_loss.append(flat)
+        h.val_loss.append(val)
+        # The best network-on state, judged on validation data when there are any.
+        score = val if np.isfinite(val) else cal
+        if self.state.base.ramp.network is not None and score < float(self.state.best_loss):
+            self.state = eqx.tree_at(
+                lambda s: (s.best_base, s.best_loss),
+                self.state,
+                (self.state.base, jnp.asarray(score, self.state.best_loss.dtype)),
+            )
+        return {"cal": cal, "flat": flat, "val": val}
+
+    def run(
+        self,
+        checkpoint: Path | None = None,
+        progress: bool = True,
+        time_limit_s: float | None = None,
+    ) -> None:
+        """Train until ``settings.steps`` (or, with ``time_limit_s``, until the end of
+        the first epoch past that many seconds of training), checkpointing after every
+        epoch."""
+        reporter = _Reporter(self.settings.steps, self.step, progress)
+        try:
+            while self.step < self.settings.steps:
+                if time_limit_s is not None and self.seconds > time_limit_s:
+                    report_step(f"train: time limit reached at step {self.step}")
+                    self.stopped_early = True
+                    break
+                start = time.perf_counter()
+                losses = self.epoch()
+                self.seconds += time.perf_counter() - start
+                if checkpoint is not None:
+                    self.save_checkpoint(checkpoint)
+                reporter.update(self.step, self.settings.stage_of(max(self.step - 1, 0)), losses)
+        finally:
+            reporter.close()
+
+    def result(self) -> BaseModel:
+        """The trained model: the best network-on state (the current one if none)."""
+        state = self.state
+        if bool(jnp.isfinite(state.best_loss)):
+            return state.best_base
+        return state.base
+
+    def statistics(self, base: BaseModel | None = None) -> list[FitStatistics]:
+        """Fit statistics of every exposure under ``base`` (default: :meth:`result`),
+        with the current source parameters."""
+        base = self.result() if base is None else base
+        out = []
+        sets = (
+            (self.data.cal, self.state.cal_params, 3),
+            (self.data.flats, self.state.flat_params, 1),
+            (self.data.val, self.state.val_params, 3),
+        )
+        for datasets, params, n_free in sets:
+            for p, d in zip(params, datasets, strict=True):
+                out.append(fit_statistics(_model(base, p, d, self.cache), d, n_free))
+        return out
+
+    # -------------------------------------------------------------- checkpoints
+    def save_checkpoint(self, path: Path) -> None:
+        """Write the whole training state (atomically) to ``path``."""
+        record = {
+            "format": CHECKPOINT_FORMAT,
+            "format_version": 1,
+            "step": self.step,
+            "seconds": self.seconds,
+            "settings": asdict(self.settings),
+            "config": self.state.base.config.to_json(),
+            "data": self.data.describe(),
+            "network_on": self.state.base.ramp.network is not None,
+            "history": asdict(self.history),
+            "rng": self.rng.bit_generator.state,
+        }
+        write_leaves(path, (self.state, self.fisher), record)
+
+    def load_checkpoint(self, path: Path) -> None:
+        """Continue from a checkpoint written by :meth:`save_checkpoint` for the same
+        data and settings (:class:`InputError` otherwise)."""
+        with open_npz(path, "checkpoint") as data:
+            record = read_record(path, data, CHECKPOINT_FORMAT)
+            if record["data"] != self.data.describe():
+                raise InputError(path, "checkpoint was written for other training data")
+            if _tuples_to_lists(asdict(self.settings)) != record["settings"]:
+                raise InputError(path, "checkpoint was written with other training settings")
+            skeleton = self.state
+            if record["network_on"]:
+                skeleton = eqx.tree_at(
+                    lambda s: s.base,
+                    skeleton,
+                    skeleton.base.with_network(self._fresh_network(skeleton.base, 1)),
+                )
+            self.state, self.fisher = fill_leaves(path, (skeleton, self._fisher_skeleton()), data)
+        self.step = int(record["step"])
+        self.seconds = float(record["seconds"])
+        self.history = History(**record["history"])
+        self.rng.bit_generator.state = record["rng"]
+
+
+def _tuples_to_lists(value: Any) -> Any:
+    """JSON turns tuples into lists: compare settings in that form."""
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in value.items()}
+
+
+class _Reporter:
+    """Progress with the latest losses: a rich bar on a terminal, one line per epoch
+    elsewhere."""
+
+    def __init__(self, total: int, done: int, enabled: bool) -> None:
+        self.enabled = enabled
+        self.progress = None
+        if enabled and sys.stderr.isatty():
+            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
+
+            self.progress = Progress(
+                TextColumn("train"),
+                BarColumn(),
+                MofNCompleteColumn(),
+                TextColumn("{task.description}"),
+            )
+            self.progress.start()
+            self.task = self.progress.add_task("", total=total, completed=done)
+
+    def update(self, step: int, stage: int, losses: dict[str, float]) -> None:
+        text = (
+            f"stage {stage} loss {losses['cal']:.4g} flat {losses['flat']:.4g} "
+            f"val {losses['val']:.4g} (chi2/2 per value)"
+        )
+        if self.progress is not None:
+            self.progress.update(self.task, completed=step, description=text)
+        elif self.enabled:
+            report_step(f"train: step {step}: {text}")
+
+    def close(self) -> None:
+        if self.progress is not None:
+            self.progress.stop()
+
+
+# ---------------------------------------------------------------------------- entry point
+
+
+def train(
+    data: TrainingData,
+    out: Path,
+    settings: TrainSettings,
+    config: BaseModelConfig | None = None,
+    resume: bool = False,
+    provenance: dict[str, Any] | None = None,
+    progress: bool = True,
+    time_limit_s: float | None = None,
+) -> tuple[BaseModel, dict[str, Any]]:
+    """Train a base model and write it to ``out`` (checkpoint: ``out`` + ``.ckpt.npz``).
+
+    Returns the model and the metadata written with it.
+    """
+    out = Path(out)
+    checkpoint = checkpoint_path(out)
+    trainer = Trainer(data, settings, config)
+    if resume and checkpoint.is_file():
+        trainer.load_checkpoint(checkpoint)
+        report_step(f"train: resumed from {checkpoint} at step {trainer.step}")
+    elif resume:
+        report_step(f"train: no checkpoint at {checkpoint}; starting afresh")
+    trainer.run(checkpoint, progress, time_limit_s)
+    model = trainer.result()
+    stats = trainer.statistics(model)
+    dtype = str(np.asarray(model.hole_centres_m).dtype)
+    metadata = {
+        "trained_on": "simulated or real calibration exposures listed in 'data'",
+        **(provenance or {}),
+        "data": data.describe(),
+        "settings": asdict(settings),
+        "history": asdict(trainer.history),
+        "statistics": [s.to_json() for s in stats],
+        "dtype": dtype,
+        "amigo_version": __version__,
+        "jax_version": jax.__version__,
+        "equinox_version": eqx.__version__,
+        "numpy_version": np.__version__,
+        "date": datetime.now(UTC).isoformat(timespec="seconds"),
+        "training_seconds": round(trainer.seconds, 1),
+        "steps_done": trainer.step,
+        "stopped_by_time_limit": trainer.stopped_early,
+        "machine": machine_description(),
+        "n_parameters": model.n_parameters,
+    }
+    save_base_model(model, out, metadata)
+    return model, metadata
+
+
+def checkpoint_path(out: Path) -> Path:
+    """Where :func:`train` keeps its checkpoint for the model file ``out``."""
+    return out.with_name(out.name + ".ckpt.npz")
+
+
+def machine_description() -> str:
+    """CPU/GPU, core count and platform, for the metadata."""
+    import os
+
+    device = jax.devices()[0]
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as handle:
+            names = [
+                line.split(":", 1)[1].strip() for line in handle if line.startswith("model name")
+            ]
+        cpu = names[0] if names else cpu
+    except OSError:
+        pass
+    return (
+        f"{device.platform}:{device.device_kind}; {cpu}; {os.cpu_count()} cores; "
+        f"{platform.system()} {platform.release()}"
+    )
+
+
+def process_flat_field(uncal_path: str | Path, out_dir: str | Path) -> Path:
+    """Process a flat-field (uniformly illuminated, ``PUPIL`` CLEARP / ``EXP_TYPE``
+    NIS_LAMP) raw-ramp file into a calslope file, exactly as ``amigo process`` does for
+    AMI exposures (which it refuses: flats are not AMI data, but training needs them).
+    """
+    from astropy.io import fits
+
+    from amigo.io.calslope import calslope_name, write_calslope
+    from amigo.process import ArraySource, check_usable, process_ramps
+
+    path = Path(uncal_path)
+    try:
+        with fits.open(path, memmap=False) as hdul:
+            primary, sci = hdul[0].header.copy(), hdul["SCI"].header.copy()
+            raw = np.asarray(hdul["SCI"].data, dtype=np.float64)
+    except Exception as error:  # astropy raises several types for damaged files
+        raise InputError(path, f"cannot be read as a raw-ramp file ({error})") from None
+    if raw.ndim != 4:
+        raise InputError(path, f"SCI has shape {raw.shape}, expected (nints, ngroups, ny, nx)")
+    product = process_ramps(ArraySource(raw))
+    check_usable(path, product)
+    out = Path(out_dir) / calslope_name(path)
+    write_calslope(out, product, primary, sci, uncal_name=path.name)
+    return out
+
+
+def fit_exposure(
+    base: BaseModel,
+    data: SlopeData,
+    cache: PupilCache,
+    iterations: int = 8,
+    params: Any = None,
+) -> tuple[Any, FitStatistics]:
+    """Fit one exposure's own parameters (position and flux of a point source, or a flat's
+    level) with the instrument fixed: Newton steps preconditioned by the Fisher diagonal
+    (recomputed every other step). A stand-in for the fitting engine of ``amigo fit``,
+    used for validation and the acceptance figures (docs/detector.md)."""
+    params = initial_params(base, data) if params is None else params
+    nothing = _false_like(physical_mask(base))
+    fisher = None
+    for k in range(iterations):
+        if k % 2 == 0:
+            fisher = fisher_diagonal(base, params, data, cache, nothing)[1]
+        _, (_, grad) = _loss_and_grad(base, params, data, cache)
+        params = jax.tree.map(lambda x, g, f: x - g / jnp.maximum(f, 1e-30), params, grad, fisher)
+    n_free = len(jax.tree.leaves(params)) + (1 if isinstance(params, PointSourceParams) else 0)
+    return params, fit_statistics(_model(base, params, data, cache), data, n_free)

@@ -1,0 +1,205 @@
+"""``amigo train --cal ... --flats ... --val ... --out MODEL``: train a base model.
+
+All instrument parameters and the charge-migration network are fitted jointly to the
+calibration exposures; the flat field and per-pixel non-linearity to the flat-field
+exposures only; the validation exposures are fitted (their own positions and fluxes) but
+never calibrate anything (docs/detector.md, "Training").
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import click
+
+from amigo.errors import InputError
+
+_FILES = click.Path(dir_okay=False, path_type=Path)
+
+
+class _ManyValues(click.Option):
+    """An option that takes every following argument up to the next option, so that
+    ``--cal a.fits b.fits --flats c.fits`` works (shell globs); it can also be repeated."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, multiple=True, **kwargs)
+
+    def add_to_parser(self, parser, ctx) -> None:
+        super().add_to_parser(parser, ctx)
+        for name in self.opts:
+            option = parser._long_opt.get(name) or parser._short_opt.get(name)
+            if option is None:
+                continue
+            previous = option.process
+
+            def process(value, state, _previous=previous) -> None:
+                _previous(value, state)
+                while state.rargs and not state.rargs[0].startswith("-"):
+                    _previous(state.rargs.pop(0), state)
+
+            option.process = process
+
+
+@click.command("train")
+@click.option(
+    "--cal",
+    "cal",
+    cls=_ManyValues,
+    required=True,
+    type=_FILES,
+    help="Calibration calslope file (point-source calibrator); several may follow.",
+)
+@click.option(
+    "--flats",
+    "flats",
+    cls=_ManyValues,
+    type=_FILES,
+    help="Flat-field calslope file (uniform illumination); several may follow.",
+)
+@click.option(
+    "--val",
+    "val",
+    cls=_ManyValues,
+    type=_FILES,
+    help="Validation calslope file (fitted, never used to calibrate); several may follow.",
+)
+@click.option("--out", "out", required=True, type=_FILES, help="Base-model file to write (.npz).")
+@click.option(
+    "--steps",
+    default=200,
+    show_default=True,
+    type=click.IntRange(min=1),
+    help="Optimisation steps (one calibration batch each).",
+)
+@click.option(
+    "--batches",
+    default=5,
+    show_default=True,
+    type=click.IntRange(min=1),
+    help="Calibration batches per epoch.",
+)
+@click.option(
+    "--stages",
+    default=None,
+    help="Steps per stage, comma separated: stage 0 with the network off, then one "
+    "stage per network restart [default: 1/5 off, the rest over two restarts].",
+)
+@click.option(
+    "--network-lr",
+    default=3e-3,
+    show_default=True,
+    type=float,
+    help="Adam learning rate of the network.",
+)
+@click.option(
+    "--seed",
+    default=0,
+    show_default=True,
+    type=click.IntRange(min=0),
+    help="Seed of the network weights and the batch order.",
+)
+@click.option(
+    "--diagonal",
+    is_flag=True,
+    help="Ignore the covariances between a pixel's slopes (use when the files have "
+    "few integrations compared with their groups).",
+)
+@click.option(
+    "--time-limit",
+    "time_limit",
+    default=None,
+    type=click.FloatRange(min=0),
+    help="Stop after this many minutes of training (at the end of an epoch).",
+)
+@click.option("--resume", is_flag=True, help="Continue from MODEL.ckpt.npz if it exists.")
+@click.option("--float64", "float64", is_flag=True, help="Train in float64 (default float32).")
+@click.option(
+    "--provenance",
+    "provenance_file",
+    default=None,
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    help="JSON object merged into the model's metadata (where the data came from: "
+    "'trained_on', 'scenario', 'seed', ...).",
+)
+def command(
+    cal: tuple[Path, ...],
+    flats: tuple[Path, ...],
+    val: tuple[Path, ...],
+    out: Path,
+    steps: int,
+    batches: int,
+    stages: str | None,
+    network_lr: float,
+    seed: int,
+    diagonal: bool,
+    time_limit: float | None,
+    resume: bool,
+    float64: bool,
+    provenance_file: Path | None,
+) -> None:
+    """Train the base model (instrument state and BFE network) on calibration data."""
+    import jax
+
+    from amigo.cli import fail_input
+
+    stage_steps: tuple[int, ...] = ()
+    if stages:
+        try:
+            stage_steps = tuple(int(x) for x in stages.split(","))
+        except ValueError:
+            raise click.BadParameter(
+                "a comma-separated list of integers", param_hint="--stages"
+            ) from None
+        if sum(stage_steps) != steps or min(stage_steps) < 1:
+            raise click.BadParameter(
+                f"positive steps summing to --steps ({steps})", param_hint="--stages"
+            )
+    provenance = {"command": "amigo train", "float": "float64" if float64 else "float32"}
+    if provenance_file is not None:
+        try:
+            extra = json.loads(provenance_file.read_text(encoding="utf-8"))
+        except (OSError, ValueError) as error:
+            fail_input(InputError(provenance_file, f"not a JSON file ({error})"))
+            return
+        if not isinstance(extra, dict):
+            fail_input(InputError(provenance_file, "must hold a JSON object"))
+            return
+        provenance.update(extra)
+    with jax.enable_x64(float64):
+        import jax.numpy as jnp
+
+        from amigo.calibration import TrainingData, TrainSettings, train
+
+        dtype = jnp.float64 if float64 else jnp.float32
+        try:
+            data = TrainingData.read(cal, flats, val, diagonal=diagonal, dtype=dtype)
+        except InputError as error:
+            fail_input(error)
+            return
+        settings = TrainSettings(
+            steps=steps,
+            n_batches=batches,
+            stage_steps=stage_steps,
+            network_lr=network_lr,
+            seed=seed,
+            diagonal=diagonal,
+        )
+        try:
+            _, metadata = train(
+                data,
+                out,
+                settings,
+                resume=resume,
+                time_limit_s=None if time_limit is None else 60.0 * time_limit,
+                provenance=provenance,
+            )
+        except InputError as error:
+            fail_input(error)
+            return
+    final = metadata["history"]
+    click.echo(
+        f"{out}: {metadata['steps_done']} steps in {metadata['training_seconds']:.0f} s; "
+        f"last losses (chi2/2 per value): cal {final['cal_loss'][-1]:.4g}, "
+        f"val {final['val_loss'][-1]:.4g}"
+    )

@@ -1,0 +1,264 @@
+"""Ramp-level forward model of a calslope exposure, and its slope likelihood.
+
+::
+
+    base model optics (filter)  --  source position, flux
+        -> unit illuminance on the detector's 3x grid       BaseModel.illuminance
+        -> x flux (electrons per integration)                [visibilities: issue 4]
+        -> ramp model (BFE network, flat, intra-pixel)       BaseModel.slopes
+        -> read model (dark, IPC, non-linearity, gain)
+        -> slopes (ngroups - 1, 80, 80), DN per group
+    whitened residuals z = W (data - model), W = L^-1, SLOPE_COV = L L^T per pixel
+
+:func:`predict_slopes` is the detector half on its own: give it any illuminance (a
+visibility-injected one from the fitting engine, a uniform one for flat fields) and it
+returns the slopes. :class:`SlopeData` holds one exposure's data and whitening as JAX
+arrays of fixed shape (every pixel present, unused ones with a zero whitening matrix), so
+that one compiled function serves every exposure with the same number of groups.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from amigo import instrument
+from amigo.basemodel import BaseModel, PupilCache
+from amigo.errors import InputError
+from amigo.io.calslope import CalSlope, read_calslope
+from amigo.likelihood import SlopeNoise
+
+ROLES = ("calibrator", "flat", "validation")
+
+
+class SlopeData(eqx.Module):
+    """One calslope exposure, ready for the likelihood.
+
+    Attributes
+    ----------
+    slopes_dn
+        (m, ny, nx) mean slopes, DN per group (0 where unused).
+    whitening
+        (ny * nx, m, m) per-pixel ``L^-1`` (zero for unused pixels), same dtype as slopes.
+    used
+        (ny, nx) 1.0 where the pixel enters the likelihood.
+    name, filter, ngroups, role, n_values
+        Static description: file stem, filter, groups, role in training, and the number
+        of slope values in the likelihood.
+    """
+
+    slopes_dn: Float[Array, "m ny nx"]
+    whitening: Float[Array, "n m m"]
+    used: Float[Array, "ny nx"]
+    name: str = eqx.field(static=True)
+    filter: str = eqx.field(static=True)
+    ngroups: int = eqx.field(static=True)
+    role: str = eqx.field(static=True)
+    n_values: int = eqx.field(static=True)
+
+    @classmethod
+    def from_calslope(
+        cls, product: CalSlope, role: str, diagonal: bool = False, dtype=jnp.float32
+    ) -> SlopeData:
+        """Build from a :class:`~amigo.io.calslope.CalSlope` (``diagonal=True`` ignores
+        the covariances between a pixel's slopes)."""
+        if role not in ROLES:
+            raise ValueError(f"role {role!r} not in {ROLES}")
+        path = product.path or "<calslope>"
+        m, ny, nx = product.slope_dn.shape
+        if m < 1:
+            raise InputError(path, "needs at least 2 groups")
+        bad = product.badpix | ~np.all(np.isfinite(product.slope_dn), axis=0)
+        noise = SlopeNoise.from_covariance(product.slope_cov_dn2, bad=bad, diagonal=diagonal)
+        if noise.pixels.size == 0:
+            raise InputError(path, "no usable pixel")
+        whitening = np.zeros((ny * nx, m, m))
+        whitening[noise.pixels] = noise.whitening
+        used = np.zeros(ny * nx)
+        used[noise.pixels] = 1.0
+        slopes = np.where(used.reshape(ny, nx)[None] > 0, product.slope_dn, 0.0)
+        header = product.primary_header
+        filter_name = str(header.get("FILTER", "")).strip().upper()
+        if role == "flat":
+            # A flat field does not go through the optics: one compiled model serves all.
+            filter_name = ""
+        name = _stem(path)
+        return cls(
+            slopes_dn=jnp.asarray(slopes, dtype),
+            whitening=jnp.asarray(whitening, dtype),
+            used=jnp.asarray(used.reshape(ny, nx), dtype),
+            name=name,
+            filter=filter_name,
+            ngroups=m + 1,
+            role=role,
+            n_values=int(noise.pixels.size * m),
+        )
+
+    @classmethod
+    def read(cls, path, role: str, diagonal: bool = False, dtype=jnp.float32) -> SlopeData:
+        """Read a calslope file (raises :class:`~amigo.errors.InputError` if it is not one)."""
+        product = read_calslope(path)
+        data = cls.from_calslope(product, role, diagonal, dtype)
+        if role != "flat" and data.filter not in instrument.CALIBRATED_FILTERS:
+            raise InputError(path, f"FILTER {data.filter!r} is not a calibrated AMI filter")
+        return data
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return tuple(self.slopes_dn.shape[1:])  # type: ignore[return-value]
+
+
+def _stem(path) -> str:
+    """File name without ``_calslope.fits``."""
+    name = Path(str(path)).name
+    for suffix in ("_calslope.fits", ".fits"):
+        if name.endswith(suffix):
+            return name[: -len(suffix)]
+    return name
+
+
+# ---------------------------------------------------------------------------- sources
+
+
+class PointSourceParams(eqx.Module):
+    """Per-exposure parameters of a point source.
+
+    Attributes
+    ----------
+    position_arcsec
+        (2,) offset (x, y) in the optical frame from the centre of the field.
+    flux_e
+        Photo-electrons per integration (the whole ramp) entering the model.
+    """
+
+    position_arcsec: Float[Array, " 2"]
+    flux_e: Float[Array, ""]
+
+
+class FlatParams(eqx.Module):
+    """Per-exposure parameter of a flat field: electrons per pixel per integration."""
+
+    level_e: Float[Array, ""]
+
+
+def predict_slopes(
+    base: BaseModel, illuminance_e: Float[Array, "m m"], ngroups: int
+) -> Float[Array, "g ny nx"]:
+    """Slopes (ngroups - 1, ny, nx) in DN per group from an illuminance in photo-electrons
+    per integration on the detector's 3x grid (the detector half of the model)."""
+    return base.slopes(illuminance_e, ngroups)
+
+
+def point_source_slopes(
+    base: BaseModel, cache: PupilCache, params: PointSourceParams, data: SlopeData
+) -> Array:
+    """Model slopes of a point source for the exposure ``data`` (its filter and groups)."""
+    unit = base.illuminance(data.filter, params.position_arcsec, cache)
+    return predict_slopes(base, params.flux_e * unit, data.ngroups)
+
+
+def flat_slopes(base: BaseModel, params: FlatParams, data: SlopeData) -> Array:
+    """Model slopes of a uniformly illuminated (flat-field) exposure."""
+    ny, nx = data.shape
+    dtype = data.slopes_dn.dtype
+    uniform = jnp.full((3 * ny, 3 * nx), params.level_e / 9.0, dtype)
+    return predict_slopes(base, uniform, data.ngroups)
+
+
+def model_slopes(base: BaseModel, cache: PupilCache, params, data: SlopeData) -> Array:
+    """Model slopes of any exposure (point source or flat field)."""
+    if isinstance(params, FlatParams):
+        return flat_slopes(base, params, data)
+    return point_source_slopes(base, cache, params, data)
+
+
+# ---------------------------------------------------------------------------- likelihood
+
+
+def whitened_residuals(model_dn: Float[Array, "m ny nx"], data: SlopeData) -> Array:
+    """(ny * nx, m) ``W (data - model)`` per pixel; zero rows for unused pixels."""
+    m = data.slopes_dn.shape[0]
+    residual = (data.slopes_dn - model_dn).reshape(m, -1).T  # (n, m)
+    return jnp.einsum("nij,nj->ni", data.whitening, residual)
+
+
+def chi2(model_dn: Array, data: SlopeData) -> Array:
+    """Chi-square of the slopes (the log-likelihood is ``-chi2 / 2`` + a constant)."""
+    return jnp.sum(whitened_residuals(model_dn, data) ** 2)
+
+
+@dataclass(frozen=True)
+class FitStatistics:
+    """Summary of a fit, as in ``fit_summary.json``."""
+
+    name: str
+    filter: str
+    role: str
+    ngroups: int
+    npix: int
+    chi2: float
+    dof: int
+    zscore_std: float
+
+    def to_json(self) -> dict:
+        return dict(self.__dict__)
+
+
+def fit_statistics(
+    model_dn: Array, data: SlopeData, n_free: int = 0, role: str | None = None
+) -> FitStatistics:
+    """Chi-square, degrees of freedom and z-score standard deviation (over used values)."""
+    z = np.asarray(whitened_residuals(model_dn, data), dtype=np.float64)
+    used = np.asarray(data.used).reshape(-1) > 0
+    values = z[used].ravel()
+    return FitStatistics(
+        name=data.name,
+        filter=data.filter,
+        role=role or data.role,
+        ngroups=data.ngroups,
+        npix=int(used.sum()),
+        chi2=float(np.sum(values**2)),
+        dof=int(values.size - n_free),
+        zscore_std=float(np.std(values)),
+    )
+
+
+# ---------------------------------------------------------------------------- starting values
+
+
+def initial_point_source(
+    base: BaseModel, data: SlopeData, fraction_in_field: float = 0.9
+) -> PointSourceParams:
+    """Starting position (centroid of the summed slopes) and flux (their total)."""
+    image = np.asarray(data.slopes_dn).sum(axis=0) * np.asarray(data.used)
+    image = np.clip(image, 0.0, None)
+    ny, nx = image.shape
+    yy, xx = np.mgrid[:ny, :nx]
+    # Centroid of the bright core only: the AMI envelope is symmetric about the source.
+    core = image * (image > 0.05 * image.max())
+    cx = float((core * xx).sum() / core.sum()) - 0.5 * (nx - 1)
+    cy = float((core * yy).sum() / core.sum()) - 0.5 * (ny - 1)
+    position = base.detector.detector_to_optical(jnp.array([cx, cy]))
+    total_dn = image.sum() * data.ngroups / (data.ngroups - 1)
+    flux = total_dn * base.read.gain_e_per_dn / fraction_in_field
+    dtype = data.slopes_dn.dtype
+    return PointSourceParams(jnp.asarray(position, dtype), jnp.asarray(flux, dtype))
+
+
+def initial_flat(base: BaseModel, data: SlopeData) -> FlatParams:
+    """Starting level: the median slope per group times the groups, in electrons."""
+    slopes = np.asarray(data.slopes_dn).sum(axis=0)[np.asarray(data.used) > 0]
+    level = np.median(slopes) * data.ngroups / (data.ngroups - 1) * base.read.gain_e_per_dn
+    return FlatParams(jnp.asarray(level, data.slopes_dn.dtype))
+
+
+def initial_params(base: BaseModel, data: SlopeData):
+    """Starting parameters for any exposure."""
+    if data.role == "flat":
+        return initial_flat(base, data)
+    return initial_point_source(base, data)

@@ -1,0 +1,156 @@
+"""The base model: structure, parameter count, gradients, file round trip, shipped file."""
+
+from __future__ import annotations
+
+import json
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.signal import convolve2d
+
+from amigo.basemodel import (
+    BaseModel,
+    BaseModelConfig,
+    default_model_path,
+    load_base_model,
+    read_metadata,
+    save_base_model,
+)
+from amigo.detector.read import default_ipc_kernel
+from amigo.errors import InputError
+from amigo.slope_model import predict_slopes
+
+SMALL = BaseModelConfig(filters=("F430M",), shape=(24, 24), pupil_npix=64, n_wavelengths=3)
+
+
+def _perturbed(model: BaseModel, seed: int = 1) -> BaseModel:
+    """Every array leaf replaced by random values (so a round trip checks every one)."""
+    arrays, static = eqx.partition(model, eqx.is_array)
+    leaves, treedef = jax.tree.flatten(arrays)
+    rng = np.random.default_rng(seed)
+    leaves = [jnp.asarray(rng.normal(size=x.shape), x.dtype) for x in leaves]
+    return eqx.combine(jax.tree.unflatten(treedef, leaves), static)
+
+
+def test_parameter_count_of_the_full_model():
+    model = BaseModel.create()
+    per_filter = 7 * 10 + 1  # Zernikes and defocus
+    expected = (
+        3 * per_filter
+        + 7 * 2  # hole centres
+        + 3  # jitter, rotation, anisotropy
+        + 8640  # network (tests/test_ramp.py checks the architecture)
+        + 80 * 80  # flat
+        + 5  # intra-pixel
+        + 1  # dark
+        + 25  # IPC kernel (fixed)
+        + 80 * 80  # non-linearity
+    )
+    assert model.n_parameters == expected
+    assert model.with_linear_detector().n_parameters == expected - 8640
+    assert model.with_linear_detector().linear and not model.linear
+
+
+def test_save_load_round_trip_is_bit_exact(tmp_path):
+    model = _perturbed(BaseModel.create(SMALL, jax.random.PRNGKey(3)))
+    path = save_base_model(model, tmp_path / "m.npz", {"note": "test", "losses": [1.0, 0.5]})
+    loaded = load_base_model(path)
+    assert loaded.config == model.config
+    for a, b in zip(
+        jax.tree.leaves(eqx.filter(model, eqx.is_array)),
+        jax.tree.leaves(eqx.filter(loaded, eqx.is_array)),
+        strict=True,
+    ):
+        assert a.dtype == b.dtype and a.shape == b.shape
+        assert np.array_equal(np.asarray(a), np.asarray(b))
+    record = read_metadata(path)
+    assert record["note"] == "test" and record["losses"] == [1.0, 0.5]
+    assert record["network"] is True and record["dtype"] == "float32"
+    # The file is a plain npz: no pickle needed to read it.
+    with np.load(path, allow_pickle=False) as data:
+        assert json.loads(str(data["__metadata__"]))["format"] == "amigo-base-model"
+    linear = save_base_model(model.with_linear_detector(), tmp_path / "lin.npz")
+    assert load_base_model(linear).linear
+
+
+def test_load_rejects_bad_files(tmp_path):
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(b"not a zip")
+    with pytest.raises(InputError, match="not a base-model file"):
+        load_base_model(bad)
+    np.savez(tmp_path / "other.npz", x=np.zeros(3))
+    with pytest.raises(InputError, match="no __metadata__"):
+        load_base_model(tmp_path / "other.npz")
+    with pytest.raises(InputError, match="no such"):
+        load_base_model(tmp_path / "missing.npz")
+    # A file whose arrays do not match its config.
+    path = save_base_model(BaseModel.create(SMALL), tmp_path / "m.npz")
+    with np.load(path) as data:
+        arrays = dict(data)
+    arrays.pop(".read.nonlinearity")
+    np.savez(tmp_path / "cut.npz", **arrays)
+    with pytest.raises(InputError, match="do not match"):
+        load_base_model(tmp_path / "cut.npz")
+
+
+def test_linear_detector_slopes_match_a_direct_calculation():
+    """Network off, unit flat, no non-linearity: slopes are the IPC-convolved binned
+    illuminance per group over the gain (NumPy/SciPy reference), plus nothing else."""
+    model = BaseModel.create(SMALL, linear=True)
+    rng = np.random.default_rng(2)
+    illuminance = rng.uniform(0, 300, (72, 72))
+    slopes = np.asarray(predict_slopes(model, jnp.asarray(illuminance, jnp.float32), 5))
+    binned = illuminance.reshape(24, 3, 24, 3).sum(axis=(1, 3))
+    expected = convolve2d(binned, default_ipc_kernel(), mode="same") / 5 / model.read.gain_e_per_dn
+    assert slopes.shape == (4, 24, 24)
+    for k in range(4):
+        np.testing.assert_allclose(slopes[k], expected, rtol=2e-4, atol=1e-3)
+
+
+@pytest.mark.slow
+def test_gradients_reach_every_parameter_of_the_base_model():
+    model = BaseModel.create(SMALL, jax.random.PRNGKey(5), network_init_scale=1.0)
+    model = eqx.tree_at(lambda m: m.ramp.intra_pixel.coefficients, model, jnp.full(5, 0.05))
+    model = eqx.tree_at(lambda m: m.read.nonlinearity, model, jnp.full((24, 24), -1e-6))
+    cache = model.pupil_cache()
+    target = jnp.asarray(np.random.default_rng(0).normal(0, 1, (3, 24, 24)), jnp.float32)
+
+    @eqx.filter_jit
+    @eqx.filter_grad
+    def grad(m):
+        image = m.illuminance("F430M", jnp.array([0.02, -0.01]), cache) * 4e5
+        return jnp.sum((m.slopes(image, 4) / 100.0 - target) ** 2)
+
+    g = grad(model)
+    flat, _ = jax.tree_util.tree_flatten_with_path(eqx.filter(g, eqx.is_array))
+    for path, leaf in flat:
+        name = jax.tree_util.keystr(path)
+        assert bool(jnp.all(jnp.isfinite(leaf))), name
+        assert float(jnp.abs(leaf).max()) > 0, name
+
+
+def test_shipped_model_loads_and_says_what_it_was_trained_on():
+    path = default_model_path()
+    if not path.is_file():
+        pytest.fail(f"no shipped base model at {path}")
+    model = load_base_model()
+    assert not model.linear and model.ramp.network.n_parameters == 8640
+    assert model.config.filters == ("F380M", "F430M", "F480M")
+    record = read_metadata(path)
+    assert "simulated" in record["trained_on"].lower()
+    for key in (
+        "scenario",
+        "seed",
+        "amigo_version",
+        "jax_version",
+        "training_seconds",
+        "machine",
+        "history",
+        "dtype",
+        "date",
+    ):
+        assert key in record, key
+    assert path.stat().st_size < 2_000_000

@@ -1,0 +1,213 @@
+"""Training: slope likelihood, Fisher matrices, the optimiser, and the training loop on a
+tiny synthetic problem."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from astropy.io import fits
+
+from amigo.basemodel import BaseModel, BaseModelConfig
+from amigo.calibration import (
+    FisherMomentum,
+    Trainer,
+    TrainingData,
+    TrainSettings,
+    fisher_diagonal,
+    physical_mask,
+    pixel_mask,
+    split,
+)
+from amigo.io.calslope import CalSlope
+from amigo.slope_model import (
+    FlatParams,
+    PointSourceParams,
+    SlopeData,
+    chi2,
+    flat_slopes,
+    point_source_slopes,
+)
+
+SMALL = BaseModelConfig(
+    filters=("F430M",), shape=(16, 16), pupil_npix=48, n_wavelengths=2, n_substeps=4
+)
+
+
+@pytest.fixture(scope="module")
+def cache():
+    """The pupil grid and Zernike basis of SMALL (slow to build: once per module)."""
+    return BaseModel.create(SMALL, linear=True).pupil_cache()
+
+
+def _calslope(slopes: np.ndarray, cov: np.ndarray, filter_name: str = "F430M") -> CalSlope:
+    m, ny, nx = slopes.shape
+    header = fits.Header()
+    header["FILTER"] = filter_name
+    return CalSlope(
+        slope_dn=slopes,
+        slope_cov_dn2=cov,
+        slope_support=np.full(slopes.shape, 10.0),
+        ramp_dn=np.zeros((m + 1, ny, nx)),
+        ramp_cov_dn2=np.zeros((m + 1, m + 1, ny, nx)),
+        ramp_support=np.full((m + 1, ny, nx), 10.0),
+        badpix=np.zeros((ny, nx), bool),
+        badpix_reason=None,
+        primary_header=header,
+        slope_header=fits.Header(),
+    )
+
+
+def test_slope_chi2_matches_a_direct_per_pixel_solve():
+    rng = np.random.default_rng(0)
+    m, ny, nx = 4, 3, 5
+    a = rng.normal(size=(ny * nx, m, m))
+    cov = np.einsum("pij,pkj->pik", a, a) + m * np.eye(m)  # positive definite per pixel
+    cov4 = cov.transpose(1, 2, 0).reshape(m, m, ny, nx)
+    data = rng.normal(size=(m, ny, nx))
+    model = rng.normal(size=(m, ny, nx))
+    product = _calslope(data, cov4)
+    product.badpix[1, 2] = True
+    slope_data = SlopeData.from_calslope(product, "calibrator", dtype=jnp.float64)
+    with jax.enable_x64(True):
+        ours = float(chi2(jnp.asarray(model), slope_data))
+    expected = 0.0
+    for p in range(ny * nx):
+        y, x = divmod(p, nx)
+        if (y, x) == (1, 2):
+            continue
+        r = data[:, y, x] - model[:, y, x]
+        expected += r @ np.linalg.solve(cov[p], r)
+    assert ours == pytest.approx(expected, rel=1e-6)
+    assert slope_data.n_values == (ny * nx - 1) * m
+    diagonal = SlopeData.from_calslope(product, "calibrator", diagonal=True, dtype=jnp.float64)
+    with jax.enable_x64(True):
+        ours_diag = float(chi2(jnp.asarray(model), diagonal))
+    var = np.einsum("pii->pi", cov).T.reshape(m, ny, nx)
+    keep = np.ones((ny, nx), bool)
+    keep[1, 2] = False
+    assert ours_diag == pytest.approx(float((((data - model) ** 2 / var)[:, keep]).sum()), rel=1e-6)
+
+
+def _synthetic(base, params, ngroups: int, sigma_dn: float, seed: int, cache, flat=False):
+    """Noisy slopes of ``base`` and their (diagonal) covariance, as SlopeData."""
+    model = (
+        flat_slopes(base, params, _dummy(ngroups))
+        if flat
+        else point_source_slopes(base, cache, params, _dummy(ngroups))
+    )
+    model = np.asarray(model, np.float64)
+    rng = np.random.default_rng(seed)
+    var = sigma_dn**2 + np.abs(model) / 50.0
+    data = model + rng.normal(size=model.shape) * np.sqrt(var)
+    m = ngroups - 1
+    cov = np.zeros((m, m, *model.shape[1:]))
+    for g in range(m):
+        cov[g, g] = var[g]
+    product = _calslope(data, cov)
+    return SlopeData.from_calslope(product, "flat" if flat else "calibrator")
+
+
+def _dummy(ngroups: int) -> SlopeData:
+    return SlopeData(
+        slopes_dn=jnp.zeros((ngroups - 1, 16, 16)),
+        whitening=jnp.zeros((16 * 16, ngroups - 1, ngroups - 1)),
+        used=jnp.ones((16, 16)),
+        name="x",
+        filter="F430M",
+        ngroups=ngroups,
+        role="calibrator",
+        n_values=1,
+    )
+
+
+def test_fisher_of_the_flux_matches_the_analytic_value(cache):
+    base = BaseModel.create(SMALL, linear=True)
+    params = PointSourceParams(jnp.array([0.01, 0.02]), jnp.asarray(3e5))
+    data = _synthetic(base, params, 4, 5.0, 0, cache)
+    nothing = jax.tree.map(lambda _: False, physical_mask(base))
+    _, fisher = fisher_diagonal(base, params, data, cache, nothing)
+    # d model / d flux = model / flux, whitened with the data's (diagonal) errors.
+    model = np.asarray(point_source_slopes(base, cache, params, data), np.float64)
+    sigma = 1.0 / np.asarray(data.whitening)[:, np.arange(3), np.arange(3)].T.reshape(3, 16, 16)
+    expected = float(np.sum((model / 3e5 / sigma) ** 2))
+    assert float(fisher.flux_e) == pytest.approx(expected, rel=1e-3)
+
+
+def test_fisher_momentum_on_a_quadratic():
+    """With lr = 1 and no momentum, one preconditioned step lands on the minimum of a
+    separable quadratic; with the full matrix, on the minimum of a correlated one."""
+    hessian = np.array([[4.0, 0.0], [0.0, 0.25]])
+    target = np.array([1.0, -2.0])
+    x = jnp.zeros(2)
+    grad = hessian @ (np.asarray(x) - target)
+    opt = FisherMomentum.init(x, learning_rate=1.0, momentum=0.0)
+    new, _ = opt.update(x, jnp.asarray(grad), jnp.asarray(np.diagonal(hessian)))
+    np.testing.assert_allclose(new, target, rtol=1e-6)
+    correlated = np.array([[2.0, 0.9], [0.9, 1.0]])
+    grad = correlated @ (np.asarray(x) - target)
+    new, _ = opt.update_vector(x, jnp.asarray(grad), jnp.asarray(np.linalg.inv(correlated)))
+    np.testing.assert_allclose(new, target, rtol=1e-5)
+    # The trust region shrinks the whole step, keeping its direction.
+    new, _ = opt.update_vector(
+        x, jnp.asarray(grad), jnp.asarray(np.linalg.inv(correlated)), jnp.array([0.1, 10.0])
+    )
+    np.testing.assert_allclose(new, 0.1 * target, rtol=1e-5)
+
+
+def test_parameter_groups_are_disjoint_and_cover_the_instrument():
+    base = BaseModel.create(SMALL)
+    phys = jax.tree.leaves(physical_mask(base))
+    pix = jax.tree.leaves(pixel_mask(base))
+    assert not any(a and b for a, b in zip(phys, pix, strict=True))
+    n_phys = sum(x.size for x in jax.tree.leaves(split(base, physical_mask(base))))
+    assert n_phys == 71 + 14 + 3 + 5 + 1
+    n_pix = sum(x.size for x in jax.tree.leaves(split(base, pixel_mask(base))))
+    assert n_pix == 2 * 16 * 16
+
+
+@pytest.mark.slow
+def test_training_decreases_the_loss_on_a_tiny_synthetic_problem(cache):
+    """Truth: aberrations, a rotated detector, a non-uniform flat. Start: a nominal model.
+    Stage 0 (network off) then one network stage; the calibration, flat and validation
+    losses all fall, and validation never changes the instrument."""
+    truth = BaseModel.create(SMALL, linear=True)
+    rng = np.random.default_rng(4)
+    truth = eqx.tree_at(
+        lambda m: (m.zernikes_nm["F430M"], m.detector.rotation_deg, m.ramp.flat),
+        truth,
+        (
+            jnp.asarray(rng.normal(0, 15.0, (7, 10)), jnp.float32),
+            jnp.asarray(0.3),
+            jnp.asarray(1 + 0.03 * rng.normal(size=(16, 16)), jnp.float32),
+        ),
+    )
+    cal = [
+        _synthetic(truth, PointSourceParams(jnp.array(p), jnp.asarray(4e5)), 4, 4.0, i, cache)
+        for i, p in enumerate([[0.02, 0.0], [-0.01, 0.02]])
+    ]
+    flats = [_synthetic(truth, FlatParams(jnp.asarray(3e4)), 4, 4.0, 9, cache, flat=True)]
+    val = [
+        _synthetic(
+            truth, PointSourceParams(jnp.array([0.0, -0.02]), jnp.asarray(3e5)), 4, 4.0, 7, cache
+        )
+    ]
+    data = TrainingData(cal, flats, val)
+    settings = TrainSettings(steps=8, n_batches=1, stage_steps=(6, 2))
+    trainer = Trainer(data, settings, SMALL, cache)
+    first = trainer.epoch()
+    for _ in range(5):
+        losses = trainer.epoch()
+    assert losses["cal"] < 0.5 * first["cal"]
+    assert losses["flat"] < first["flat"]
+    assert losses["val"] < first["val"]
+    before = trainer.state.base
+    trainer.validation_step()
+    assert eqx.tree_equal(before, trainer.state.base)
+    trainer.epoch()
+    trainer.epoch()
+    assert trainer.state.base.ramp.network is not None
+    assert trainer.history.stage[-1] == 1
+    assert not trainer.result().linear

@@ -1,0 +1,111 @@
+"""``amigo train`` through the command line, on small calslope files written here."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from astropy.io import fits
+
+from amigo.basemodel import BaseModel, BaseModelConfig, load_base_model, read_metadata
+from amigo.io.calslope import write_calslope
+from amigo.process import ProcessSettings, SlopeProduct
+from amigo.slope_model import FlatParams, PointSourceParams, predict_slopes
+
+SRC = str(Path(__file__).resolve().parents[1] / "src")
+SHAPE = (16, 16)
+
+
+def run_amigo(*args: str) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "PYTHONPATH": SRC, "JAX_PLATFORMS": "cpu"}
+    env.pop("AMIGO_DEBUG", None)
+    return subprocess.run(
+        [sys.executable, "-m", "amigo", *args], capture_output=True, text=True, env=env, check=False
+    )
+
+
+def _write(path: Path, model_dn: np.ndarray, filter_name: str, seed: int) -> Path:
+    """A calslope file holding noisy ``model_dn`` slopes with diagonal covariances."""
+    rng = np.random.default_rng(seed)
+    m, ny, nx = model_dn.shape
+    var = 25.0 + np.abs(model_dn) / 20.0
+    slopes = model_dn + rng.normal(size=model_dn.shape) * np.sqrt(var)
+    cov = np.zeros((m, m, ny, nx))
+    for g in range(m):
+        cov[g, g] = var[g]
+    product = SlopeProduct(
+        slope_dn=slopes, slope_cov_dn2=cov, slope_support=np.full(slopes.shape, 20.0),
+        ramp_dn=np.zeros((m + 1, ny, nx)), ramp_cov_dn2=np.zeros((m + 1, m + 1, ny, nx)),
+        ramp_support=np.full((m + 1, ny, nx), 20.0), badpix=np.zeros((ny, nx), bool),
+        badpix_reason=np.zeros((ny, nx), np.uint8), settings=ProcessSettings(), nints=20,
+        n_sample=20, n_rejected_ramp=0, n_rejected_slope=0,
+    )  # fmt: skip
+    primary = fits.Header()
+    primary["FILTER"] = filter_name
+    primary["PUPIL"] = "NRM"
+    return write_calslope(path, product, primary, fits.Header())
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory) -> dict[str, Path]:
+    folder = tmp_path_factory.mktemp("train")
+    config = BaseModelConfig(filters=("F430M",), shape=SHAPE, n_wavelengths=9)
+    truth = BaseModel.create(config, linear=True)
+    cache = truth.pupil_cache()
+    source = PointSourceParams(jnp.array([0.03, -0.02]), jnp.asarray(5e5))
+    unit = truth.illuminance("F430M", source.position_arcsec, cache)
+    star = np.asarray(predict_slopes(truth, source.flux_e * unit, 4), np.float64)
+    flat = np.asarray(
+        predict_slopes(truth, jnp.full((48, 48), FlatParams(jnp.asarray(2e4)).level_e / 9), 4)
+    )
+    return {
+        "cal": _write(folder / "cal_calslope.fits", star, "F430M", 1),
+        "flat": _write(folder / "flat_calslope.fits", flat.astype(np.float64), "CLEAR", 2),
+        "val": _write(folder / "val_calslope.fits", star, "F430M", 3),
+        "folder": folder,
+    }
+
+
+@pytest.mark.slow
+def test_train_writes_a_model_with_its_record_and_resumes(files):
+    out = files["folder"] / "model.npz"
+    args = ["train", "--cal", str(files["cal"]), "--flats", str(files["flat"]),
+            "--val", str(files["val"]), "--out", str(out), "--steps", "2", "--stages", "1,1",
+            "--batches", "1"]  # fmt: skip
+    result = run_amigo(*args)
+    assert result.returncode == 0, result.stderr
+    assert "Traceback" not in result.stderr
+    model = load_base_model(out)
+    assert not model.linear and model.config.shape == SHAPE
+    record = read_metadata(out)
+    assert record["data"]["calibration"][0]["name"] == "cal"
+    assert record["data"]["flats"][0]["name"] == "flat"
+    assert record["data"]["validation"][0]["name"] == "val"
+    assert record["steps_done"] == 2 and record["dtype"] == "float32"
+    assert len(record["history"]["loss"]) == 2
+    checkpoint = out.with_name(out.name + ".ckpt.npz")
+    assert checkpoint.is_file()
+    again = run_amigo(*args, "--resume")
+    assert again.returncode == 0, again.stderr
+    assert "resumed" in again.stderr
+    assert read_metadata(out)["history"] == record["history"]
+
+
+def test_bad_inputs_exit_2_with_one_line(tmp_path, files):
+    missing = run_amigo(
+        "train", "--cal", str(tmp_path / "nope.fits"), "--out", str(tmp_path / "m.npz")
+    )
+    assert missing.returncode == 2
+    assert "nope.fits" in missing.stderr and "Traceback" not in missing.stderr
+    not_fits = tmp_path / "x_calslope.fits"
+    not_fits.write_text("hello")
+    bad = run_amigo("train", "--cal", str(not_fits), "--out", str(tmp_path / "m.npz"))
+    assert bad.returncode == 2 and "x_calslope.fits" in bad.stderr
+    stages = run_amigo("train", "--cal", str(files["cal"]), "--out", str(tmp_path / "m.npz"),
+                       "--steps", "3", "--stages", "1,1")  # fmt: skip
+    assert stages.returncode == 2 and "--stages" in stages.stderr
