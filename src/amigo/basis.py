@@ -33,19 +33,18 @@ from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from amigo._version import __version__
-import equinox as eqx
-
 from amigo.model import FilterSetup, Instrument, OpticsParams, filter_psfs, unit_image
 from amigo.progress import step, track
 from amigo.visibility import LatentBasis, UVGrid
 
 #: Version of the basis algorithm and file layout (part of the cache key).
-BASIS_FORMAT = 1
+BASIS_FORMAT = 2
 #: MTF level that bounds the OTF support (see module notes).
 SUPPORT_MTF = 1e-3
 #: A mode is kept while at least this fraction of its energy lies inside the support.
@@ -146,7 +145,9 @@ def _touched_knots(setup: FilterSetup, psfs: jax.Array) -> np.ndarray:
     otf = np.abs(np.asarray(inj.otf(psfs)))[:, np.asarray(inj.rows), : inj.nx_band]
     reach = np.einsum(
         "lyi,lyx,lxj->ij", np.abs(np.asarray(inj.w_y)), otf, np.abs(np.asarray(inj.w_x))
-    ).ravel()
+    )
+    # The rfft holds only u >= 0; |OTF| is point-symmetric, so mirror the reach.
+    reach = (reach + reach[::-1, ::-1]).ravel()
     half = setup.grid.half_indices()
     return np.nonzero(reach[half] > TOUCH_FRACTION * reach.max())[0]
 

@@ -121,6 +121,9 @@ class FitConfig:
         ... and the Newton decrement ``g^T F^-1 g`` is below this, per exposure.
     polish_steps
         Maximum BFGS steps after the gradient descent (0: no polish).
+    vis_preconditioner
+        ``"block"`` (full Fisher block of each target's latent visibilities) or
+        ``"diagonal"`` (its diagonal only).
     """
 
     max_iterations: int = 300
@@ -133,6 +136,7 @@ class FitConfig:
     loss_tolerance: float = 0.05
     decrement_tolerance: float = 1.0
     polish_steps: int = 0
+    vis_preconditioner: str = "block"
 
 
 class FitParams(eqx.Module):
@@ -359,14 +363,16 @@ class FilterFit:
         )
 
     # ------------------------------------------------------------------ Fisher
-    def preconditioner(self, params: FitParams) -> Preconditioner:
+    def preconditioner(self, params: FitParams, vis_mode: str = "block") -> Preconditioner:
         """Fisher information used to precondition the gradient (see module notes).
 
         The few "small" parameters (positions, fluxes, slopes, Zernikes, defocus) get
         their full Fisher block from forward-mode Jacobians: it captures their strong
         correlations (the mean of the holes' tilts *is* a position shift), which a
         diagonal would turn into oscillations. The latent visibilities get their exact
-        Fisher diagonal (:meth:`fisher_vis_diagonal`).
+        Fisher matrix per target (:meth:`fisher_vis`): inverted as a block
+        (``vis_mode="block"``, default: a Gauss-Newton step, the log-visibility model
+        being nearly linear) or only its diagonal (``"diagonal"``: slower).
         """
         w = self.pixels.inverse_sigma**2
         blocks = []
@@ -384,9 +390,17 @@ class FilterFit:
         if not self.is_calibrator.any():  # optics: no information, never moves
             n_opt = _pack_sizes(params)[3]
             fisher = np.pad(fisher, ((0, n_opt), (0, n_opt)))
+        vis = self.fisher_vis(params)
+        if vis_mode == "diagonal":
+            inverse = np.stack([np.diag(1.0 / np.diag(f)) for f in vis])
+        elif vis_mode == "block":
+            inverse = np.stack([_pinv(f, PINV_RCOND) for f in vis])
+        else:
+            raise ValueError(f"vis_mode must be 'block' or 'diagonal', got {vis_mode!r}")
         return Preconditioner(
             small=jnp.asarray(fisher, dtype=jnp.float32),
-            vis=self.fisher_vis_diagonal(params),
+            vis_inverse=jnp.asarray(inverse, dtype=jnp.float32),
+            vis_diagonal=jnp.asarray(np.stack([np.diag(f) for f in vis]), dtype=jnp.float32),
             groups=_small_groups(params),
         )
 
@@ -411,21 +425,19 @@ class FilterFit:
             out.append(columns(params, flat, block)[: chunk - pad])
         return jnp.concatenate(out)
 
-    def fisher_vis_diagonal(self, params: FitParams) -> SourceParams:
-        """Exact Fisher diagonal of the latent visibilities, per target.
+    def fisher_vis(self, params: FitParams) -> np.ndarray:
+        """(S, m, m) Fisher matrices of the latent visibilities ``[amp, phase]``, per target.
 
-        ``F_kk = sum_e sum_p (d m_e,p / d x_k)^2 / sigma_e,p^2`` over the target's
-        exposures, from :meth:`latent_jacobian` (float32).
+        ``F = sum_e J_e^T W_e J_e`` over the target's exposures, with the exact
+        Jacobians of :meth:`latent_jacobian` (float32 images, float64 sums).
         """
-        n_amp = params.sources.amp.shape[1]
-        n_phase = params.sources.phase.shape[1]
-        diag = np.zeros((len(self.targets), n_amp + n_phase))
-        w = np.asarray(self.pixels.inverse_sigma) ** 2
+        n = params.sources.amp.shape[1] + params.sources.phase.shape[1]
+        fisher = np.zeros((len(self.targets), n, n))
+        w = np.asarray(self.pixels.inverse_sigma, dtype=np.float64) ** 2
         for e in range(self.n_exposures):
-            jac = np.asarray(self.latent_jacobian(params, e), dtype=np.float64)
-            diag[self.source_index[e]] += np.einsum("kyx,yx->k", jac * jac, w[e])
-        diag = jnp.asarray(diag, jnp.float32)
-        return SourceParams(diag[:, :n_amp], diag[:, n_amp:], jnp.ones(len(self.targets)))
+            jac = np.asarray(self.latent_jacobian(params, e), dtype=np.float64).reshape(n, -1)
+            fisher[self.source_index[e]] += (jac * w[e].ravel()) @ jac.T
+        return fisher
 
     # ------------------------------------------------------------------ optimise
     def fit(
@@ -438,7 +450,7 @@ class FilterFit:
         config = FitConfig() if config is None else config
         start = time.perf_counter()
         params = self.initial_params() if params is None else params
-        precond = self.preconditioner(params)
+        precond = self.preconditioner(params, config.vis_preconditioner)
         step(f"{label}: Fisher information computed ({time.perf_counter() - start:.0f} s)")
         starts = jnp.array([config.starts[g] for g in _GROUP_NAMES])
         momentum = optax.trace(decay=config.momentum, nesterov=True)
@@ -579,6 +591,16 @@ def _unpack(params: FitParams, vector: Array) -> FitParams:
     return params
 
 
+def _pinv(matrix: np.ndarray, rcond: float) -> np.ndarray:
+    """Pseudo-inverse of a symmetric PSD matrix after Jacobi scaling (see natural())."""
+    diag = np.diag(matrix)
+    root = np.where(diag > 0, np.sqrt(np.where(diag > 0, diag, 1.0)), 1.0)
+    evals, evecs = np.linalg.eigh(matrix / np.outer(root, root))
+    keep = evals > rcond * evals.max()
+    inv = np.where(keep, 1.0 / np.where(keep, evals, 1.0), 0.0)
+    return (evecs * inv) @ evecs.T / np.outer(root, root)
+
+
 class Preconditioner(eqx.Module):
     """Inverse Fisher information applied to gradients (block-diagonal approximation).
 
@@ -586,15 +608,18 @@ class Preconditioner(eqx.Module):
     ----------
     small
         (n, n) Fisher block of the small parameters (packing order of :data:`_SMALL`).
-    vis
-        :class:`~amigo.model.SourceParams` holding the Fisher diagonal of the latent
-        visibilities (its ``slope_per_um`` entry is unused).
+    vis_inverse
+        (S, m, m) inverse Fisher block (or inverse diagonal) of each target's latent
+        visibilities ``[amp, phase]``.
+    vis_diagonal
+        (S, m) Fisher diagonal of the latent visibilities (for whitening).
     groups
         (n,) group index of each small parameter.
     """
 
     small: Array
-    vis: SourceParams
+    vis_inverse: Array
+    vis_diagonal: Array
     groups: tuple[int, ...] = eqx.field(static=True)
 
     def natural(self, grad: FitParams, active: Array) -> FitParams:
@@ -613,9 +638,12 @@ class Preconditioner(eqx.Module):
         inv = jnp.where(keep, 1.0 / jnp.where(keep, evals, 1.0), 0.0)
         small = (evecs * inv) @ (evecs.T @ (g * mask / root)) / root * mask
         vis_on = active[_GROUP_NAMES.index("vis")]
-        amp = jnp.where(vis_on, grad.sources.amp / self.vis.amp, 0.0)
-        phase = jnp.where(vis_on, grad.sources.phase / self.vis.phase, 0.0)
-        out = eqx.tree_at(lambda p: (p.sources.amp, p.sources.phase), grad, (amp, phase))
+        n_amp = grad.sources.amp.shape[1]
+        latent = jnp.concatenate([grad.sources.amp, grad.sources.phase], axis=1)
+        step = jnp.where(vis_on, jnp.einsum("sij,sj->si", self.vis_inverse, latent), 0.0)
+        out = eqx.tree_at(
+            lambda p: (p.sources.amp, p.sources.phase), grad, (step[:, :n_amp], step[:, n_amp:])
+        )
         return _unpack(out, small.astype(grad.sources.amp.dtype))
 
     def whitening(self, params: FitParams) -> FitParams:
@@ -623,15 +651,16 @@ class Preconditioner(eqx.Module):
         diag = jnp.diag(self.small)
         small = jnp.where(diag > 0, 1.0 / jnp.sqrt(jnp.where(diag > 0, diag, 1.0)), 0.0)
         out = _unpack(params, small.astype(params.sources.amp.dtype))
+        n_amp = params.sources.amp.shape[1]
+        vis = 1.0 / jnp.sqrt(self.vis_diagonal)
         return eqx.tree_at(
-            lambda p: (p.sources.amp, p.sources.phase),
-            out,
-            (1.0 / jnp.sqrt(self.vis.amp), 1.0 / jnp.sqrt(self.vis.phase)),
+            lambda p: (p.sources.amp, p.sources.phase), out, (vis[:, :n_amp], vis[:, n_amp:])
         )
 
 
 # ------------------------------------------------------------------------------ helpers
 def _flatten(tree):
+    """Concatenate a pytree's leaves into a vector; return it and the inverse map."""
     leaves, treedef = jax.tree.flatten(tree)
     shapes = [leaf.shape for leaf in leaves]
     sizes = [int(np.prod(s)) for s in shapes]

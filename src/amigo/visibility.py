@@ -310,7 +310,7 @@ class Injector(eqx.Module):
         psfs: Float[Array, "l n n"],
         log_amp: Float[Array, "k k"] | None = None,
         phase: Float[Array, "k k"] | None = None,
-        shift_pix: Float[Array, "2"] | None = None,
+        shift_pix: Float[Array, 2] | None = None,
     ) -> Float[Array, "l n n"]:
         """Monochromatic images of the source: PSFs convolved with the visibility's scene.
 
