@@ -362,6 +362,72 @@ class FilterFit:
             optics=jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), optics),
         )
 
+    def nuisance_jacobian(
+        self,
+        params: FitParams,
+        e: int,
+        instrument: Instrument | None = None,
+        setup: FilterSetup | None = None,
+    ) -> Float[Array, "n 80 80"]:
+        """(73, 80, 80) Jacobian of exposure ``e``'s image w.r.t. the nuisances of
+        :func:`nuisance_names`: 70 Zernikes (nm), log-flux, SED slope (per um), defocus
+        (nm). The wavefront is differentiated whatever the exposure's role."""
+        instrument = self.instrument if instrument is None else instrument
+        setup = self.setup if setup is None else setup
+        s = int(self.source_index[e])
+
+        def pack(p: FitParams) -> Array:
+            return jnp.concatenate(
+                [
+                    jnp.ravel(p.optics.zernikes_nm),
+                    p.exposures.log_flux[e][None],
+                    p.sources.slope_per_um[s][None],
+                    p.optics.defocus_nm[None],
+                ]
+            )
+
+        nz = params.optics.zernikes_nm.size
+        shape = params.optics.zernikes_nm.shape
+
+        @eqx.filter_jit
+        def columns(params, instrument, setup, tangents):
+            def image_of(theta):
+                p = eqx.tree_at(
+                    lambda q: (
+                        q.optics.zernikes_nm,
+                        q.optics.defocus_nm,
+                        q.exposures.log_flux,
+                        q.sources.slope_per_um,
+                    ),
+                    params,
+                    (
+                        theta[:nz].reshape(shape),
+                        theta[nz + 2],
+                        params.exposures.log_flux.at[e].set(theta[nz]),
+                        params.sources.slope_per_um.at[s].set(theta[nz + 1]),
+                    ),
+                )
+                anchor = self.anchor.astype(setup.wavelengths_m.dtype)
+                psfs = filter_psfs(instrument, setup, p.optics, anchor)
+                return self._image(p, e, psfs, instrument, setup)
+
+            theta = pack(params)
+            return jax.vmap(lambda t: jax.jvp(image_of, (theta,), (t,))[1])(tangents)
+
+        n = nz + 3
+        eye = jnp.eye(n, dtype=params.sources.amp.dtype)
+        chunk = 8
+        out = []
+        for i in range(0, n, chunk):
+            block = eye[i : i + chunk]
+            pad = chunk - block.shape[0]
+            out.append(
+                columns(params, instrument, setup, jnp.pad(block, ((0, pad), (0, 0))))[
+                    : chunk - pad
+                ]
+            )
+        return jnp.concatenate(out)
+
     # ------------------------------------------------------------------ Fisher
     def preconditioner(self, params: FitParams, vis_mode: str = "block") -> Preconditioner:
         """Fisher information used to precondition the gradient (see module notes).
@@ -678,3 +744,74 @@ def _flatten(tree):
 
 def _tree_dot(a, b) -> Array:
     return sum(jnp.sum(x * y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True))
+
+
+# ------------------------------------------------------------------------------ information
+#: Names of the nuisance parameters nulled by the kernel projection, in column order.
+def nuisance_names(n_zernike_rows: int = 7, n_zernike: int = 10) -> list[str]:
+    """``z<hole>_<noll>`` for the Zernikes, then ``log_flux``, ``slope``, ``defocus``."""
+    names = [f"z{h}_{j + 1}" for h in range(n_zernike_rows) for j in range(n_zernike)]
+    return [*names, "log_flux", "slope", "defocus"]
+
+
+@dataclass
+class LatentInformation:
+    """Fisher information of one filter's latent visibilities at the optimum (float64).
+
+    Attributes
+    ----------
+    hessian
+        (S, m, m) ``sum_e J_e^T W_e J_e`` per target (``J_e``: exposure image w.r.t. the
+        target's latent ``[amp, phase]``).
+    cross
+        (m, n_nuisance) ``sum_e J_e^T W_e J_theta,e`` over calibrator exposures, with
+        ``theta`` the nuisances of :func:`nuisance_names`.
+    cal_hessian
+        (m, m) ``sum_e J_e^T W_e J_e`` over calibrator exposures (the state at which the
+        kernel is defined).
+    seconds
+        Time taken.
+    """
+
+    hessian: np.ndarray
+    cross: np.ndarray
+    cal_hessian: np.ndarray
+    seconds: float
+
+
+def _cast64(tree):
+    return jax.tree.map(
+        lambda x: (
+            jnp.asarray(x, jnp.float64)
+            if isinstance(x, jax.Array | np.ndarray) and jnp.issubdtype(x.dtype, jnp.floating)
+            else x
+        ),
+        tree,
+    )
+
+
+def latent_information(fit: FilterFit, params: FitParams, label: str = "fit") -> LatentInformation:
+    """Hessians of ``-log L`` w.r.t. the latent visibilities and the nuisance cross terms.
+
+    Everything is evaluated in float64 (``jax.enable_x64``): the model, its Jacobians
+    (forward mode, exact) and the sums.
+    """
+    start = time.perf_counter()
+    n = params.sources.amp.shape[1] + params.sources.phase.shape[1]
+    names = nuisance_names()
+    hessian = np.zeros((len(fit.targets), n, n))
+    cross = np.zeros((n, len(names)))
+    cal_hessian = np.zeros((n, n))
+    w = np.asarray(fit.pixels.inverse_sigma, dtype=np.float64) ** 2
+    with jax.enable_x64(True):
+        instrument, setup, params64 = _cast64((fit.instrument, fit.setup, params))
+        for e in range(fit.n_exposures):
+            step(f"{label}: Hessian of {fit.exposures[e].name} ({n} latent visibilities)")
+            jac = np.asarray(fit.latent_jacobian(params64, e, instrument, setup)).reshape(n, -1)
+            h = (jac * w[e].ravel()) @ jac.T
+            hessian[fit.source_index[e]] += h
+            if fit.is_calibrator[e]:
+                nuis = np.asarray(fit.nuisance_jacobian(params64, e, instrument, setup))
+                cross += (jac * w[e].ravel()) @ nuis.reshape(len(names), -1).T
+                cal_hessian += h
+    return LatentInformation(hessian, cross, cal_hessian, time.perf_counter() - start)

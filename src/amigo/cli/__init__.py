@@ -24,6 +24,7 @@ from amigo.errors import InputError
 #: command name -> (module under amigo.cli, one-line help shown in ``amigo --help``)
 COMMANDS: dict[str, tuple[str, str]] = {
     "info": ("amigo.cli.info", "Identify and validate JWST NIRISS AMI files."),
+    "fit": ("amigo.cli.fit", "Fit exposures and extract calibrated observables (DISCOs)."),
     "detect": ("amigo.cli.detect", "Search calibrated observables for companions; limits."),
 }
 
