@@ -27,6 +27,7 @@ from amigo.basis import BasisInfo, load_basis
 from amigo.fitting import FilterFit, FitConfig, FitExposure, FitResult, latent_information
 from amigo.model import FilterSetup, Instrument
 from amigo.progress import step
+from amigo.visibility import UVGrid
 
 
 @dataclass
@@ -145,10 +146,14 @@ def extract_filter(
     filter_name: str,
     exposures: list[FitExposure],
     config: FitConfig | None = None,
+    grid: UVGrid | None = None,
 ) -> FilterProduct:
-    """Fit the exposures of one filter and extract every science target's DISCOs."""
+    """Fit the exposures of one filter and extract every science target's DISCOs.
+
+    ``grid`` is the knot grid of the latent basis (default :class:`UVGrid`'s 51 x 51).
+    """
     start = time.perf_counter()
-    basis, basis_info = load_basis(instrument, filter_name)
+    basis, basis_info = load_basis(instrument, filter_name, grid)
     setup = FilterSetup.create(filter_name, instrument, basis)
     fit = FilterFit(instrument, setup, exposures)
     if not fit.is_calibrator.any():

@@ -25,6 +25,7 @@ from amigo.errors import InputError
 COMMANDS: dict[str, tuple[str, str]] = {
     "info": ("amigo.cli.info", "Identify and validate JWST NIRISS AMI files."),
     "fit": ("amigo.cli.fit", "Fit exposures and extract calibrated observables (DISCOs)."),
+    "basis": ("amigo.cli.basis", "Build and cache the latent visibility bases."),
     "detect": ("amigo.cli.detect", "Search calibrated observables for companions; limits."),
 }
 
