@@ -319,14 +319,31 @@ class FilterFit:
             )
         return jnp.concatenate(out)
 
-    def chi2(self, params: FitParams) -> Float[Array, " e"]:
-        """(E,) chi-squared of each exposure."""
-        r = (self.pixels.data - self.models(params)) * self.pixels.inverse_sigma
+    def chi2(
+        self,
+        params: FitParams,
+        instrument: Instrument | None = None,
+        setup: FilterSetup | None = None,
+        pixels: PixelData | None = None,
+    ) -> Float[Array, " e"]:
+        """(E,) chi-squared of each exposure.
+
+        The arrays (instrument, setup, pixels) can be passed explicitly so that jitted
+        callers trace them as arguments instead of folding them in as constants.
+        """
+        pixels = self.pixels if pixels is None else pixels
+        r = (pixels.data - self.models(params, instrument, setup)) * pixels.inverse_sigma
         return jnp.sum(r * r, axis=(-2, -1))
 
-    def loss(self, params: FitParams) -> Float[Array, ""]:
+    def loss(
+        self,
+        params: FitParams,
+        instrument: Instrument | None = None,
+        setup: FilterSetup | None = None,
+        pixels: PixelData | None = None,
+    ) -> Float[Array, ""]:
         """``L = sum_e chi2_e / 2`` (the negative log-likelihood up to a constant)."""
-        return 0.5 * jnp.sum(self.chi2(params))
+        return 0.5 * jnp.sum(self.chi2(params, instrument, setup, pixels))
 
     # ------------------------------------------------------------------ start
     def initial_params(self) -> FitParams:
@@ -475,9 +492,11 @@ class FilterFit:
         flat, unflatten = _flatten(select(params))
 
         @eqx.filter_jit
-        def columns(params, flat, tangents):
+        def columns(params, flat, tangents, instrument, setup):
             def image_of(vector):
-                return self.models(eqx.tree_at(select, params, unflatten(vector)))
+                return self.models(
+                    eqx.tree_at(select, params, unflatten(vector)), instrument, setup
+                )
 
             return jax.vmap(lambda t: jax.jvp(image_of, (flat,), (t,))[1])(tangents)
 
@@ -488,7 +507,7 @@ class FilterFit:
             block = eye[i : i + chunk]
             pad = chunk - block.shape[0]
             block = jnp.pad(block, ((0, pad), (0, 0)))
-            out.append(columns(params, flat, block)[: chunk - pad])
+            out.append(columns(params, flat, block, self.instrument, self.setup)[: chunk - pad])
         return jnp.concatenate(out)
 
     def fisher_vis(self, params: FitParams) -> np.ndarray:
@@ -523,8 +542,8 @@ class FilterFit:
         state = momentum.init(params)
 
         @eqx.filter_jit
-        def iterate(params, state, count, rate):
-            loss, grad = eqx.filter_value_and_grad(self.loss)(params)
+        def iterate(params, state, count, rate, instrument, setup, pixels, precond):
+            loss, grad = eqx.filter_value_and_grad(self.loss)(params, instrument, setup, pixels)
             natural = precond.natural(grad, count >= starts)
             decrement = _tree_dot(grad, natural)
             updates, state = momentum.update(natural, state, params)
@@ -540,7 +559,14 @@ class FilterFit:
         rate = config.learning_rate
         for iteration in range(1, config.max_iterations + 1):
             new_params, state, loss, decrement = iterate(
-                params, state, jnp.asarray(iteration - 1), jnp.asarray(rate, jnp.float32)
+                params,
+                state,
+                jnp.asarray(iteration - 1),
+                jnp.asarray(rate, jnp.float32),
+                self.instrument,
+                self.setup,
+                self.pixels,
+                precond,
             )
             loss = float(loss)
             if not np.isfinite(loss) or loss > best_loss + DIVERGENCE * max(best_loss, 1.0):
@@ -569,7 +595,9 @@ class FilterFit:
         if config.polish_steps > 0:
             best, n_polish = self.polish(best, precond, config.polish_steps)
             iteration += n_polish
-        final_loss, final_grad = eqx.filter_value_and_grad(self.loss)(best)
+        final_loss, final_grad = eqx.filter_jit(eqx.filter_value_and_grad(self.loss))(
+            best, self.instrument, self.setup, self.pixels
+        )
         all_active = jnp.ones(len(_GROUP_NAMES), bool)
         final_decrement = float(_tree_dot(final_grad, precond.natural(final_grad, all_active)))
         window = min(config.window, len(history) - 1)
@@ -592,13 +620,18 @@ class FilterFit:
 
         scale = precond.whitening(params)
 
-        def objective(u, _):
+        def objective(u, args):
             theta = jax.tree.map(lambda p, s, x: p + s * x, params, scale, u)
-            return self.loss(theta)
+            return self.loss(theta, *args)
 
         u0 = jax.tree.map(jnp.zeros_like, params)
         solution = optx.minimise(
-            objective, optx.BFGS(rtol=1e-6, atol=1e-3), u0, max_steps=max_steps, throw=False
+            objective,
+            optx.BFGS(rtol=1e-6, atol=1e-3),
+            u0,
+            args=(self.instrument, self.setup, self.pixels),
+            max_steps=max_steps,
+            throw=False,
         )
         polished = jax.tree.map(lambda p, s, x: p + s * x, params, scale, solution.value)
         steps = int(solution.stats["num_steps"])
