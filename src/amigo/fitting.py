@@ -118,7 +118,9 @@ class FitConfig:
         Converged when ``L`` fell by less than this over ``window`` iterations, per
         exposure (``L = chi2 / 2``) ...
     decrement_tolerance
-        ... and the Newton decrement ``g^T F^-1 g`` is below this, per exposure.
+        ... and the Newton decrement ``g^T F^-1 g`` is below this, per exposure. Both
+        are multiplied by the reduced chi2 when it exceeds 1 (a model that does not fit
+        to the noise has proportionally larger parameter errors).
     polish_steps
         Maximum BFGS steps after the gradient descent (0: no polish).
     vis_preconditioner
@@ -555,6 +557,7 @@ class FilterFit:
         last_start = max(config.starts.values())
         converged = False
         per_exposure = float(self.n_exposures)
+        n_pixels = float(np.sum(np.asarray(self.pixels.inverse_sigma) > 0))
         iteration = 0
         rate = config.learning_rate
         for iteration in range(1, config.max_iterations + 1):
@@ -586,9 +589,12 @@ class FilterFit:
                 step(f"{label}: iteration {iteration}, chi2 {2 * loss:.1f}")
             if iteration > last_start + config.window:
                 change = (history[-config.window - 1] - history[-1]) / per_exposure
+                # Tolerances are in units of the reduced chi2: when the model cannot fit
+                # the data to the noise (chi2/dof > 1), parameter errors grow by that factor.
+                scale = max(1.0, 2.0 * loss / n_pixels)
                 if (
-                    0 <= change < config.loss_tolerance
-                    and decrements[-1] / per_exposure < config.decrement_tolerance
+                    0 <= change < config.loss_tolerance * scale
+                    and decrements[-1] / per_exposure < config.decrement_tolerance * scale
                 ):
                     converged = True
                     break
