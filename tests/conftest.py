@@ -39,3 +39,15 @@ def mirage_uncal() -> Path:
 def oifits_dir() -> Path:
     """OIFITS files written by other pipelines."""
     return _require(SHARED_DATA / "oifits")
+
+
+@pytest.fixture
+def x64():
+    """Run a test with 64-bit JAX (gradients vs finite differences, Hessians, HMC).
+
+    A context, not a global switch, so that test order never changes precision.
+    """
+    import jax
+
+    with jax.enable_x64(True):
+        yield

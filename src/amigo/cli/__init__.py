@@ -24,6 +24,8 @@ from amigo.errors import InputError
 #: command name -> (module under amigo.cli, one-line help shown in ``amigo --help``)
 COMMANDS: dict[str, tuple[str, str]] = {
     "info": ("amigo.cli.info", "Identify and validate JWST NIRISS AMI files."),
+    "simulate": ("amigo.cli.simulate", "Simulate raw AMI ramps with physical detector effects."),
+    "process": ("amigo.cli.process", "Raw ramps (uncal) -> slopes and covariances (calslope)."),
     "fit": ("amigo.cli.fit", "Fit exposures and extract calibrated observables (DISCOs)."),
     "basis": ("amigo.cli.basis", "Build and cache the latent visibility bases."),
     "detect": ("amigo.cli.detect", "Search calibrated observables for companions; limits."),

@@ -1,9 +1,11 @@
-"""Detector models: the linear detector geometry (:mod:`amigo.detector.linear`)."""
+"""Detector models: linear geometry (:mod:`amigo.detector.linear`), the non-linear ramp
+(brighter-fatter) model (:mod:`amigo.detector.ramp`) and the read-out (:mod:`amigo.detector.read`)."""
 
 from amigo.detector.linear import (
     LinearDetector,
     bin_pixels,
     cubic_resample,
+    displacement_reach,
     gaussian_blur,
     geometry_matrix,
     sky_to_optical_matrix,
@@ -13,6 +15,7 @@ __all__ = [
     "LinearDetector",
     "bin_pixels",
     "cubic_resample",
+    "displacement_reach",
     "gaussian_blur",
     "geometry_matrix",
     "sky_to_optical_matrix",

@@ -1,0 +1,95 @@
+"""``amigo process UNCAL... --out DIR``: raw ramps -> ``DIR/<stem>_calslope.fits``.
+
+Each file is processed on its own: a bad input prints one line naming it and the others
+are still processed; the exit status is 2 at the end if any file failed.
+"""
+
+from __future__ import annotations
+
+import sys
+import warnings
+from collections.abc import Iterable
+from pathlib import Path
+
+import click
+
+from amigo.errors import InputError
+
+
+@click.command("process")
+@click.argument("uncal", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option(
+    "--out",
+    "out_dir",
+    required=True,
+    type=click.Path(file_okay=False, path_type=Path),
+    help="Folder for the calslope files (created if needed).",
+)
+@click.option(
+    "--sigma",
+    default=3.0,
+    show_default=True,
+    type=click.FloatRange(min=0, min_open=True),
+    help="Outlier clipping threshold, in robust standard deviations.",
+)
+@click.option(
+    "--no-adc",
+    is_flag=True,
+    help="Do not correct the ADC integral non-linearity (always correct it for science).",
+)
+@click.option(
+    "--saturation-dn",
+    default=None,
+    type=click.FloatRange(min=0, min_open=True),
+    help="Raw count at which a group is saturated [default: 65535, the ADC full scale].",
+)
+def command(
+    uncal: tuple[Path, ...], out_dir: Path, sigma: float, no_adc: bool, saturation_dn: float | None
+) -> None:
+    """Reduce raw ramps (uncal files) to mean slopes and their covariance (calslope files).
+
+    Corrects the ADC non-linearity, rejects outliers (cosmic rays) at SIGMA along the
+    integrations, first on the ramps then on the slopes, and writes means, covariances of
+    the means, supports and a bad-pixel map (docs/process.md).
+    """
+    from amigo.io.calslope import calslope_name
+    from amigo.process import SATURATION_DN, ProcessSettings, process_file
+    from amigo.progress import track
+
+    settings = ProcessSettings(
+        nsigma=sigma,
+        adc_correction=not no_adc,
+        saturation_dn=SATURATION_DN if saturation_dn is None else saturation_dn,
+    )
+    failed = 0
+    claimed: dict[str, Path] = {}
+    for path in uncal:
+        name = calslope_name(path)
+
+        def progress(
+            items: Iterable[object], total: int, stage: str, _label: str = path.name
+        ) -> Iterable[object]:
+            return track(items, f"process {_label}: {stage}", total=total)
+
+        try:
+            if name in claimed:
+                raise InputError(path, f"writes the same {name} as {claimed[name]}")
+            claimed[name] = path
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                out, product = process_file(path, out_dir, settings, progress=progress)
+            # The reader validates the file on each pass: say each note once.
+            for message in dict.fromkeys(str(warning.message) for warning in caught):
+                click.echo(f"amigo: note: {message}", err=True)
+        except InputError as error:
+            click.echo(f"amigo: error: {error}", err=True)
+            failed += 1
+            continue
+        nbad = int(product.badpix.sum())
+        click.echo(
+            f"{out}: {product.nints} integrations x {product.ramp_dn.shape[0]} groups, "
+            f"{nbad} bad pixels"
+        )
+    if failed:
+        click.echo(f"amigo: {failed} of {len(uncal)} file(s) failed", err=True)
+        sys.exit(2)

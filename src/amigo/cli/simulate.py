@@ -1,0 +1,59 @@
+"""``amigo simulate SCENARIO --out DIR [--seed N] [--full]``: simulated raw AMI ramps."""
+
+from __future__ import annotations
+
+import click
+
+from amigo.errors import InputError
+
+
+@click.command("simulate")
+@click.argument("scenario")
+@click.option(
+    "--out", "out_dir", required=True, type=click.Path(file_okay=False),
+    help="Output folder (created): DIR/<stem>_uncal.fits and DIR/<stem>_truth.json.",
+)  # fmt: skip
+@click.option(
+    "--seed",
+    default=0,
+    show_default=True,
+    type=click.IntRange(min=0),
+    help="Master random seed: the same seed gives identical files.",
+)
+@click.option(
+    "--full",
+    is_flag=True,
+    help="Simulate the program's numbers of integrations (the paper's photon "
+    "counts) instead of the quick defaults.",
+)
+@click.option(
+    "--only",
+    "only",
+    multiple=True,
+    metavar="STEM",
+    help="Simulate only the exposure(s) whose file stem starts with STEM "
+    "(repeatable); the others' random streams are still reserved.",
+)
+def command(scenario: str, out_dir: str, seed: int, full: bool, only: tuple[str, ...]) -> None:
+    """Simulate raw ramps of SCENARIO (a built-in name or a TOML file).
+
+    Built-in scenarios: cal4481, com1093, go1843 (copy their TOML from amigo/data/scenarios
+    to make your own; see docs/simulate.md).
+    """
+    from amigo.simulate.run import simulate_scenario
+    from amigo.simulate.scenarios import load_scenario
+
+    loaded = load_scenario(scenario)
+    select = None
+    if only:
+        stems = [e.stem(loaded.program) for e in loaded.exposures]
+        for prefix in only:
+            if not any(s.startswith(prefix) for s in stems):
+                raise InputError(None, f"--only {prefix!r} matches no exposure of {loaded.name}")
+
+        def select(spec):  # type: ignore[no-untyped-def]
+            return any(spec.stem(loaded.program).startswith(p) for p in only)
+
+    written = simulate_scenario(loaded, out_dir, seed=seed, full=full, select=select)
+    for item in written:
+        click.echo(f"{item.uncal}\t{item.truth}")

@@ -1,0 +1,250 @@
+"""The ``*_calslope.fits`` product: raw ramps reduced to mean slopes and their covariance.
+
+Layout (the public contract of docs/interfaces; ``ng`` groups, ``(ny, nx)`` = (80, 80))::
+
+    PRIMARY    the uncal primary header + AMIGOVER, ADC_CORR (T/F), NSIGCLIP, and the
+               processing record (SATLEVEL, MINSUP, CLIPSAMP, NREJRAMP, NREJSLOP, NBADPIX,
+               UNCALFIL)
+    SLOPE      float32 (ng-1, ny, nx)        mean group differences, DN per group; its
+               header is the uncal SCI header (WCS and orientation keywords included)
+    SLOPE_COV  float32 (ng-1, ng-1, ny, nx)  covariance of SLOPE, DN^2
+    SLOPE_SUP  float32 (ng-1, ny, nx)        integrations used for each slope
+    RAMP       float32 (ng, ny, nx)          mean ADC-corrected ramp, DN (bias included)
+    RAMP_COV   float32 (ng, ng, ny, nx)      covariance of RAMP, DN^2
+    RAMP_SUP   float32 (ng, ny, nx)          integrations used for each group
+    BADPIX     uint8   (ny, nx)              1 = do not use
+    BADPIX_WHY uint8   (ny, nx)              why (bit mask, see amigo.process.BAD_REASONS);
+                                             an amigo extension beyond the contract
+
+Undefined values (no integration kept) are NaN, and their pixels are flagged in BADPIX.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from astropy.io import fits
+
+from amigo._version import __version__
+from amigo.errors import InputError
+from amigo.io.atomic import atomic_path
+from amigo.io.jwst import open_fits
+from amigo.process import BAD_REASONS, SlopeProduct
+
+#: Extensions every calslope file has, in order.
+EXTENSIONS: tuple[str, ...] = (
+    "SLOPE",
+    "SLOPE_COV",
+    "SLOPE_SUP",
+    "RAMP",
+    "RAMP_COV",
+    "RAMP_SUP",
+    "BADPIX",
+)
+
+#: Keywords describing an HDU's data, never copied from one file's SCI header to another.
+_STRUCTURAL = {
+    "XTENSION",
+    "BITPIX",
+    "NAXIS",
+    "PCOUNT",
+    "GCOUNT",
+    "BSCALE",
+    "BZERO",
+    "BLANK",
+    "EXTNAME",
+    "EXTVER",
+    "CHECKSUM",
+    "DATASUM",
+    "SIMPLE",
+    "EXTEND",
+}
+
+
+def calslope_name(uncal_path: str | os.PathLike[str]) -> str:
+    """``<stem>_calslope.fits`` for an input ``<stem>_uncal.fits`` (or ``<stem>.fits``)."""
+    name = Path(uncal_path).name
+    for suffix in ("_uncal.fits.gz", "_uncal.fits", ".fits.gz", ".fits", ".fit"):
+        if name.lower().endswith(suffix):
+            return name[: -len(suffix)] + "_calslope.fits"
+    return name + "_calslope.fits"
+
+
+def _data_header(header: fits.Header) -> fits.Header:
+    """A copy of ``header`` without the keywords that describe the data layout."""
+    out = fits.Header()
+    for card in header.cards:
+        key = card.keyword
+        if key in _STRUCTURAL or (key.startswith("NAXIS") and key[5:].isdigit()):
+            continue
+        out.append(card, end=True)
+    return out
+
+
+@dataclass(frozen=True)
+class CalSlope:
+    """The content of a calslope file (shapes as in the module docstring; float64 arrays).
+
+    Attributes
+    ----------
+    slope_dn, slope_cov_dn2, slope_support, ramp_dn, ramp_cov_dn2, ramp_support
+        Means (DN), covariances of the means (DN^2) and integration counts.
+    badpix
+        (ny, nx) bool, True = do not use.
+    badpix_reason
+        (ny, nx) uint8 bit mask, or ``None`` for files written without it.
+    primary_header, slope_header
+        The PRIMARY header and the SLOPE header (the uncal SCI header).
+    path
+        Where it was read from (``None`` for a product built in memory).
+    """
+
+    slope_dn: np.ndarray
+    slope_cov_dn2: np.ndarray
+    slope_support: np.ndarray
+    ramp_dn: np.ndarray
+    ramp_cov_dn2: np.ndarray
+    ramp_support: np.ndarray
+    badpix: np.ndarray
+    badpix_reason: np.ndarray | None
+    primary_header: fits.Header = field(repr=False)
+    slope_header: fits.Header = field(repr=False)
+    path: Path | None = None
+
+    @property
+    def ngroups(self) -> int:
+        return int(self.ramp_dn.shape[0])
+
+    @property
+    def adc_corrected(self) -> bool:
+        return bool(self.primary_header.get("ADC_CORR", False))
+
+    @property
+    def nsigma(self) -> float:
+        return float(self.primary_header["NSIGCLIP"])
+
+
+def write_calslope(
+    path: str | os.PathLike[str],
+    product: SlopeProduct,
+    primary_header: fits.Header,
+    sci_header: fits.Header,
+    *,
+    uncal_name: str | None = None,
+) -> Path:
+    """Write ``product`` to ``path`` atomically; return the path.
+
+    Parameters
+    ----------
+    path
+        Output file (``<stem>_calslope.fits``).
+    product
+        The result of :func:`amigo.process.process_ramps`.
+    primary_header, sci_header
+        The uncal file's PRIMARY and SCI headers (copied, never modified).
+    uncal_name
+        Name of the input file, recorded as UNCALFIL.
+    """
+    path = Path(path)
+    settings = product.settings
+    primary = _data_header(primary_header)
+    # Values that describe this file rather than the exposure: the file name and type, and
+    # no stdatamodels class (a RampModel label would make stdatamodels misread it).
+    primary["FILENAME"] = path.name
+    primary["FILETYPE"] = "calslope"
+    primary.remove("DATAMODL", ignore_missing=True)
+    primary["AMIGOVER"] = (__version__, "amigo version that wrote this file")
+    primary["ADC_CORR"] = (bool(settings.adc_correction), "ADC integral non-linearity corrected")
+    primary["NSIGCLIP"] = (float(settings.nsigma), "outlier clipping threshold (robust sigma)")
+    primary["SATLEVEL"] = (float(settings.saturation_dn), "[DN] raw saturation level")
+    primary["MINSUP"] = (settings.required_support(product.nints), "minimum slope support")
+    primary["CLIPSAMP"] = (product.n_sample, "integrations used to set clipping bands")
+    primary["NREJRAMP"] = (product.n_rejected_ramp, "ramp values dropped by ramp clipping")
+    primary["NREJSLOP"] = (product.n_rejected_slope, "ramp values dropped by slope clipping")
+    primary["NBADPIX"] = (int(np.count_nonzero(product.badpix)), "pixels flagged in BADPIX")
+    if uncal_name is not None:
+        primary["UNCALFIL"] = (uncal_name, "raw-ramp file processed")
+
+    slope_header = _data_header(sci_header)
+    slope_header["BUNIT"] = ("DN", "per group")
+
+    def image(
+        data: np.ndarray,
+        name: str,
+        header: fits.Header | None = None,
+        bunit: str | None = None,
+        dtype: type = np.float32,
+    ) -> fits.ImageHDU:
+        hdu = fits.ImageHDU(np.asarray(data, dtype=dtype), header=header, name=name)
+        if bunit is not None:
+            hdu.header["BUNIT"] = bunit
+        return hdu
+
+    reason_header = fits.Header()
+    for bit, why in BAD_REASONS.items():
+        reason_header[f"BIT{bit.bit_length() - 1}"] = (why, f"value {bit}")
+    hdul = fits.HDUList(
+        [
+            fits.PrimaryHDU(header=primary),
+            image(product.slope_dn, "SLOPE", slope_header),
+            image(product.slope_cov_dn2, "SLOPE_COV", bunit="DN2"),
+            image(product.slope_support, "SLOPE_SUP"),
+            image(product.ramp_dn, "RAMP", bunit="DN"),
+            image(product.ramp_cov_dn2, "RAMP_COV", bunit="DN2"),
+            image(product.ramp_support, "RAMP_SUP"),
+            image(product.badpix, "BADPIX", dtype=np.uint8),
+            image(product.badpix_reason, "BADPIX_WHY", reason_header, dtype=np.uint8),
+        ]
+    )
+    with atomic_path(path) as tmp:
+        hdul.writeto(tmp)
+    return path
+
+
+def read_calslope(path: str | os.PathLike[str]) -> CalSlope:
+    """Read and validate a calslope file; raise :class:`InputError` if it is not one."""
+    path = Path(path)
+    with open_fits(path) as hdul:
+        missing = [name for name in EXTENSIONS if name not in hdul]
+        if missing:
+            raise InputError(path, f"not a calslope file: no {', '.join(missing)} extension")
+        if "NSIGCLIP" not in hdul[0].header:
+            raise InputError(path, "not a calslope file: no NSIGCLIP keyword")
+        try:
+            arrays = {name: np.array(hdul[name].data, dtype=np.float64) for name in EXTENSIONS}
+        except Exception as error:
+            raise InputError(path, f"data cannot be read ({error})") from None
+        reason = np.array(hdul["BADPIX_WHY"].data, dtype=np.uint8) if "BADPIX_WHY" in hdul else None
+        primary, slope_header = hdul[0].header.copy(), hdul["SLOPE"].header.copy()
+
+    ramp = arrays["RAMP"]
+    if ramp.ndim != 3 or ramp.shape[0] < 2:
+        raise InputError(path, f"RAMP has shape {ramp.shape}, expected (ngroups >= 2, ny, nx)")
+    ng, ny, nx = ramp.shape
+    expected = {
+        "SLOPE": (ng - 1, ny, nx),
+        "SLOPE_COV": (ng - 1, ng - 1, ny, nx),
+        "SLOPE_SUP": (ng - 1, ny, nx),
+        "RAMP_COV": (ng, ng, ny, nx),
+        "RAMP_SUP": (ng, ny, nx),
+        "BADPIX": (ny, nx),
+    }
+    for name, shape in expected.items():
+        if arrays[name].shape != shape:
+            raise InputError(path, f"{name} has shape {arrays[name].shape}, expected {shape}")
+    return CalSlope(
+        slope_dn=arrays["SLOPE"],
+        slope_cov_dn2=arrays["SLOPE_COV"],
+        slope_support=arrays["SLOPE_SUP"],
+        ramp_dn=ramp,
+        ramp_cov_dn2=arrays["RAMP_COV"],
+        ramp_support=arrays["RAMP_SUP"],
+        badpix=arrays["BADPIX"] != 0,
+        badpix_reason=reason,
+        primary_header=primary,
+        slope_header=slope_header,
+        path=path,
+    )

@@ -1,0 +1,55 @@
+"""Truth simulator of raw NIRISS AMI ramps with physical detector effects.
+
+``amigo simulate SCENARIO --out DIR`` writes level-1b ``_uncal.fits`` files and their
+``_truth.json``. The pieces, each usable on its own:
+
+* :mod:`~amigo.simulate.scene`: targets and companions on the sky, their detector
+  positions (through :mod:`amigo.orientation`), dither patterns.
+* :mod:`~amigo.simulate.state`: the random optical state (aberrations, defocus, pupil
+  distortion, jitter) recorded as truth.
+* :mod:`~amigo.simulate.illumination`: pluggable optical models returning the
+  oversampled photon-rate image (an analytic NRM image; a flat field).
+* :mod:`~amigo.simulate.detector`: the detector's own physics, integration by
+  integration (brighter-fatter boundary shifts, IPC, non-linearity, noise, ADC...),
+  independent of the fitting model's detector.
+* :mod:`~amigo.simulate.scenarios`: scenario TOML files (built-ins in
+  ``amigo/data/scenarios``).
+* :mod:`~amigo.simulate.writer` and :mod:`~amigo.simulate.run`: streamed files.
+
+See docs/simulate.md.
+"""
+
+from amigo.simulate.detector import (
+    DetectorConfig,
+    DetectorRealisation,
+    RampSimulator,
+    draw_detector,
+)
+from amigo.simulate.illumination import AnalyticNRM, Illumination, UniformIllumination
+from amigo.simulate.run import simulate_scenario
+from amigo.simulate.scenarios import Scenario, builtin_names, load_scenario, parse_scenario
+from amigo.simulate.scene import Companion, DetectorScene, PointSource, Target, detector_scene
+from amigo.simulate.state import InstrumentState, StateSpread, draw_instrument_state
+
+__all__ = [
+    "AnalyticNRM",
+    "Companion",
+    "DetectorConfig",
+    "DetectorRealisation",
+    "DetectorScene",
+    "Illumination",
+    "InstrumentState",
+    "PointSource",
+    "RampSimulator",
+    "Scenario",
+    "StateSpread",
+    "Target",
+    "UniformIllumination",
+    "builtin_names",
+    "detector_scene",
+    "draw_detector",
+    "draw_instrument_state",
+    "load_scenario",
+    "parse_scenario",
+    "simulate_scenario",
+]
