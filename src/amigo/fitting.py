@@ -115,8 +115,8 @@ class FitConfig:
     window
         Iterations over which the loss change is measured.
     loss_tolerance
-        Converged when ``L`` fell by less than this over ``window`` iterations, per
-        exposure (``L = chi2 / 2``) ...
+        Converged when the best ``L`` fell by less than this over the last ``window``
+        iterations, per exposure (``L = chi2 / 2``) ...
     decrement_tolerance
         ... and the Newton decrement ``g^T F^-1 g`` is below this, per exposure. Both
         are multiplied by the reduced chi2 when it exceeds 1 (a model that does not fit
@@ -174,7 +174,7 @@ class FitResult:
     loss_history
         ``L = chi2 / 2`` per iteration.
     loss_change
-        Fall of ``L`` over the last window (per exposure).
+        Fall of the best ``L`` over the last window (per exposure).
     newton_decrement
         ``g^T F^-1 g`` at the end (per exposure).
     seconds
@@ -553,7 +553,7 @@ class FilterFit:
             return eqx.apply_updates(params, updates), state, loss, decrement
 
         history, decrements = [], []
-        best, best_loss = params, np.inf
+        best, best_loss, best_iteration = params, np.inf, 0
         last_start = max(config.starts.values())
         converged = False
         per_exposure = float(self.n_exposures)
@@ -583,12 +583,26 @@ class FilterFit:
             history.append(loss)
             decrements.append(float(decrement))
             if loss < best_loss:  # the loss belongs to `params`, before this update
-                best, best_loss = params, loss
+                best, best_loss, best_iteration = params, loss, iteration
+            elif iteration - best_iteration > config.window and iteration > last_start:
+                # No progress for a whole window (momentum circling a shallow valley,
+                # e.g. wavefront against calibrator visibilities): back to the best
+                # point with a smaller step.
+                rate *= 0.5
+                params, state = best, momentum.init(best)
+                best_iteration = iteration
+                step(
+                    f"{label}: no progress since iteration {iteration - config.window}; "
+                    f"step scale now {rate:.3g}"
+                )
+                continue
             params = new_params
             if iteration % 25 == 0:
                 step(f"{label}: iteration {iteration}, chi2 {2 * loss:.1f}")
             if iteration > last_start + config.window:
-                change = (history[-config.window - 1] - history[-1]) / per_exposure
+                # Progress of the best loss over the window (a loss that wanders without
+                # improving has converged as far as this optimiser can take it).
+                change = (min(history[: -config.window]) - best_loss) / per_exposure
                 # Tolerances are in units of the reduced chi2: when the model cannot fit
                 # the data to the noise (chi2/dof > 1), parameter errors grow by that factor.
                 scale = max(1.0, 2.0 * loss / n_pixels)
@@ -607,7 +621,7 @@ class FilterFit:
         all_active = jnp.ones(len(_GROUP_NAMES), bool)
         final_decrement = float(_tree_dot(final_grad, precond.natural(final_grad, all_active)))
         window = min(config.window, len(history) - 1)
-        change = (history[-window - 1] - history[-1]) / per_exposure if window > 0 else np.inf
+        change = (min(history[:-window]) - min(history)) / per_exposure if window > 0 else np.inf
         return FitResult(
             params=best,
             converged=converged,
