@@ -89,7 +89,7 @@ def test_reader_rejects_other_files(tmp_path):
         read_calslope(uncal)
     junk = tmp_path / "junk_calslope.fits"
     junk.write_text("hello")
-    with pytest.raises(InputError, match="cannot be read"):
+    with pytest.raises(InputError, match="not a FITS file"):
         read_calslope(junk)
 
 

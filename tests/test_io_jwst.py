@@ -195,3 +195,17 @@ def test_reference_rows_consistent_across_kinds(tmp_path, com1093_dir):
     assert not level2.usable[reference].any() and not raw.usable[reference].any()
     # The pipeline flags the same rows as reference pixels.
     assert np.all(level2.dq[reference] & jwst.DQ_REFERENCE_PIXEL)
+
+
+def test_flat_field_lamp_exposures_are_accepted_with_any_pupil(tmp_path):
+    path = write_uncal(
+        tmp_path / "flat_uncal.fits", ramps(), {"EXP_TYPE": "NIS_LAMP", "PUPIL": "CLEARP"}
+    )
+    with pytest.warns(jwst.AmiWarning, match="flat-field"):
+        meta = jwst.read_header(path, need_slopes=True)
+    assert meta.is_flat and meta.pupil == "CLEARP"
+    # Only lamp exposures: a sky image through the clear pupil is still not AMI.
+    image = write_uncal(
+        tmp_path / "img_uncal.fits", ramps(), {"EXP_TYPE": "NIS_IMAGE", "PUPIL": "CLEARP"}
+    )
+    expect_error(image, "PUPIL")

@@ -111,6 +111,13 @@ def test_ideal_detector_group_differences_equal_flux_times_group_time():
     )
     np.testing.assert_allclose(ramp[0], flux * TG / GAIN, rtol=1e-12)
     assert truth.photons == pytest.approx(flux.sum() * 6 * TG, rel=1e-12)
+    # Reference pixels (bottom 4 rows) collect nothing when modelled.
+    config = DetectorConfig.ideal(reference_pixels=True)
+    ramp, truth = RampSimulator(rate, k, _realisation(), config, ngroups=2).integration(
+        np.random.default_rng(0)
+    )
+    assert np.all(ramp[:, :4] == 0.0) and np.all(ramp[:, 4:] > 0.0)
+    assert truth.photons == pytest.approx(flux[4:].sum() * 2 * TG, rel=1e-12)
 
 
 def test_poisson_arrivals_have_poisson_variance():

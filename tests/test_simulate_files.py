@@ -147,6 +147,7 @@ def _last_group(folder):
     return fits.getdata(folder / f"{STEM}_uncal.fits", "SCI")[0, -1].astype(float)
 
 
+@pytest.mark.filterwarnings("ignore::astropy.wcs.FITSFixedWarning")  # 4-D SCI: wcslib pads CD
 def test_companion_at_pa_90_lands_east_per_header_and_wcs(tmp_path):
     """Simulate with and without the companion (noiseless, linear detector), find it in the
     difference image, and map its pixel position to the sky with the file's own header

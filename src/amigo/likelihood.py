@@ -50,19 +50,40 @@ class SlopeNoise:
         slope_cov: np.ndarray,
         bad: np.ndarray | None = None,
         diagonal: bool = False,
+        structure: str = "full",
     ) -> SlopeNoise:
         """Build from ``SLOPE_COV`` (m, m, ny, nx) and an optional bad-pixel map (ny, nx).
 
         Pixels whose covariance is not finite or not positive definite are dropped.
-        ``diagonal=True`` ignores the correlations between slopes (the paper's option).
+
+        ``structure`` says how much of the sample covariance to trust:
+
+        * ``"full"``: as is (the paper's choice, right for thousands of integrations);
+        * ``"diagonal"`` (or ``diagonal=True``): ignore correlations between slopes;
+        * ``"pooled"``: a structured estimate for few integrations. A sample covariance
+          from n integrations of m slopes is singular for n <= m and its inverse is biased
+          high by (n - 1) / (n - m - 2) (Wishart). Here each pixel keeps one variance (the
+          mean of its diagonal) and every pixel shares one adjacent-slope covariance (read
+          noise makes it ``-sigma_read^2 / n``; the median over pixels), zero beyond.
         """
+        if diagonal:
+            structure = "diagonal"
+        if structure not in ("full", "diagonal", "pooled"):
+            raise ValueError(f"unknown covariance structure {structure!r}")
         cov = np.asarray(slope_cov, dtype=np.float64)
         m, m2, ny, nx = cov.shape
         if m != m2:
             raise ValueError(f"SLOPE_COV must be (m, m, ny, nx), got {cov.shape}")
         per_pixel = cov.reshape(m, m, ny * nx).transpose(2, 0, 1)  # (npix, m, m)
-        if diagonal:
+        if structure == "diagonal":
             per_pixel = per_pixel * np.eye(m)[None]
+        elif structure == "pooled":
+            variance = np.diagonal(per_pixel, axis1=1, axis2=2).mean(axis=1)  # (npix,)
+            adjacent = np.diagonal(per_pixel, offset=1, axis1=1, axis2=2).mean(axis=1)
+            usable = np.isfinite(adjacent) if bad is None else np.isfinite(adjacent) & ~bad.ravel()
+            shared = float(np.median(adjacent[usable])) if m > 1 and usable.any() else 0.0
+            band = np.eye(m, k=1) + np.eye(m, k=-1)
+            per_pixel = variance[:, None, None] * np.eye(m)[None] + shared * band[None]
         keep = np.all(np.isfinite(per_pixel), axis=(1, 2))
         if bad is not None:
             keep &= ~np.asarray(bad, dtype=bool).reshape(-1)

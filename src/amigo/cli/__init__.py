@@ -24,8 +24,9 @@ from amigo.errors import InputError
 #: command name -> (module under amigo.cli, one-line help shown in ``amigo --help``)
 COMMANDS: dict[str, tuple[str, str]] = {
     "info": ("amigo.cli.info", "Identify and validate JWST NIRISS AMI files."),
-    "process": ("amigo.cli.process", "Raw ramps (uncal) -> slopes and covariances (calslope)."),
     "simulate": ("amigo.cli.simulate", "Simulate raw AMI ramps with physical detector effects."),
+    "process": ("amigo.cli.process", "Raw ramps (uncal) -> slopes and covariances (calslope)."),
+    "detect": ("amigo.cli.detect", "Search calibrated observables for companions; limits."),
     "train": (
         "amigo.cli.train",
         "Train the base model (instrument + BFE network) on calibration data.",

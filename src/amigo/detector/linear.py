@@ -31,6 +31,7 @@ y). ``det G = 1``: the resampling conserves flux. The paper's values are ~0.56 d
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
@@ -64,34 +65,66 @@ def gaussian_blur(image: Float[Array, "n m"], sigma_px: Array | float, radius: i
     return sum(taps[i] * rows[..., i : i + n, :] for i in range(2 * radius + 1))
 
 
-def cubic_resample(image: Float[Array, "n m"], matrix: Float[Array, "2 2"]) -> Float[Array, "n m"]:
+def displacement_reach(matrix: np.ndarray, shape: tuple[int, int]) -> int:
+    """Smallest stencil reach (samples) that :func:`cubic_resample` needs for ``matrix``.
+
+    The largest displacement ``|G^-1 d - d|`` over the array (at its corners) plus the
+    two samples of the cubic kernel's support.
+    """
+    n, m = shape
+    corners = np.array(
+        [[sx * 0.5 * (m - 1), sy * 0.5 * (n - 1)] for sx in (-1, 1) for sy in (-1, 1)]
+    )
+    shift = corners @ (np.linalg.inv(np.asarray(matrix)) - np.eye(2)).T
+    return int(np.floor(np.abs(shift).max())) + 2
+
+
+def _shift_along(image: Array, u: Array, axis: int, reach: int) -> Array:
+    """``out[k] = image(k + u[k])`` along ``axis`` (-1 or -2), Keys cubic, zero outside.
+
+    A fixed stencil of ``2 reach + 1`` shifted copies weighted by the cubic kernel of the
+    per-sample displacement ``u``: slices and element-wise products only (gathering at
+    data-dependent indices would make the gradient a slow scatter on CPUs).
+    """
+    n = image.shape[axis]
+    pad = [(0, 0)] * image.ndim
+    pad[axis] = (reach, reach)
+    padded = jnp.pad(image, pad)
+    out = jnp.zeros_like(image)
+    for k in range(-reach, reach + 1):
+        shifted = jax.lax.slice_in_dim(padded, reach + k, reach + k + n, axis=axis)
+        out = out + keys_cubic(u - k) * shifted
+    return out
+
+
+def cubic_resample(
+    image: Float[Array, "n m"], matrix: Float[Array, "2 2"], reach: int = 3
+) -> Float[Array, "n m"]:
     """Resample ``image`` through the linear map ``matrix`` about the array centre.
 
     The output sample at offset ``d`` (in samples, from the centre) takes the value of
-    the input at ``matrix^-1 d``, by Keys cubic interpolation (zero outside the input).
-    For ``det(matrix) = 1`` this moves the image by ``matrix`` while conserving its sum
-    (for a well-sampled image away from the edges).
+    the input at ``p = A d`` with ``A = matrix^-1``, by cubic (Keys) interpolation, zero
+    outside the input. For ``det(matrix) = 1`` this moves the image by ``matrix`` while
+    conserving its sum (to the interpolation error, for a well-sampled image).
+
+    Done in two one-dimensional passes (the classic separable decomposition of an affine
+    resampling): along x, every input row ``y'`` is sampled at
+    ``x' = (a11 - a12 a21 / a22) x + (a12 / a22) y'``; then along y, every column at
+    ``y' = a21 x + a22 y``; composed, ``(x', y') = A (x, y)``. The map is close to the
+    identity, so each pass reads a fixed stencil of ``2 reach + 1`` shifted copies
+    (:func:`_shift_along`); displacements must stay below ``reach - 1`` samples (checked
+    at run time; :func:`displacement_reach` gives the reach a matrix needs).
     """
     n, m = image.shape[-2:]
-    inverse = jnp.linalg.inv(matrix)
-    dy, dx = jnp.meshgrid(
-        jnp.arange(n, dtype=image.dtype) - 0.5 * (n - 1),
-        jnp.arange(m, dtype=image.dtype) - 0.5 * (m - 1),
-        indexing="ij",
-    )
-    sx = inverse[0, 0] * dx + inverse[0, 1] * dy + 0.5 * (m - 1)
-    sy = inverse[1, 0] * dx + inverse[1, 1] * dy + 0.5 * (n - 1)
-    x0, y0 = jnp.floor(sx), jnp.floor(sy)
-    padded = jnp.pad(image, 2)  # zero outside; indices shift by 2
-    out = jnp.zeros_like(sx)
-    for j in range(-1, 3):
-        wy = keys_cubic(sy - (y0 + j))
-        iy = jnp.clip(y0.astype(int) + j + 2, 0, n + 3)
-        for i in range(-1, 3):
-            wx = keys_cubic(sx - (x0 + i))
-            ix = jnp.clip(x0.astype(int) + i + 2, 0, m + 3)
-            out = out + wy * wx * padded[iy, ix]
-    return out
+    a = jnp.linalg.inv(matrix)
+    y = jnp.arange(n, dtype=image.dtype)[:, None] - 0.5 * (n - 1)
+    x = jnp.arange(m, dtype=image.dtype)[None, :] - 0.5 * (m - 1)
+    # Displacements (target minus own coordinate) of the two passes, each (n, m).
+    ux = (a[0, 0] - a[0, 1] * a[1, 0] / a[1, 1] - 1) * x + (a[0, 1] / a[1, 1]) * y
+    uy = a[1, 0] * x + (a[1, 1] - 1) * y
+    too_far = jnp.maximum(jnp.abs(ux).max(), jnp.abs(uy).max()) >= reach - 1
+    image = eqx.error_if(image, too_far, "detector geometry exceeds the resampling reach")
+    return _shift_along(_shift_along(image, ux, -1, reach), uy, -2, reach)
 
 
 def bin_pixels(image: Float[Array, "... n m"], factor: int) -> Float[Array, "... n/f m/f"]:
@@ -118,6 +151,8 @@ class LinearDetector(eqx.Module):
         Mean pixel scale (the optical grid's unit).
     jitter_radius
         Half width of the jitter kernel in sub-pixels (static; keep it >= 4 sigma).
+    resample_reach
+        Stencil reach of the resampling (static; see :func:`cubic_resample`).
     """
 
     jitter_arcsec: Float[Array, ""]
@@ -126,6 +161,7 @@ class LinearDetector(eqx.Module):
     oversample: int = eqx.field(static=True, default=3)
     pixel_scale_arcsec: float = eqx.field(static=True, default=instrument.PIXEL_SCALE_ARCSEC)
     jitter_radius: int = eqx.field(static=True, default=6)
+    resample_reach: int = eqx.field(static=True, default=3)
 
     @classmethod
     def create(
@@ -135,13 +171,20 @@ class LinearDetector(eqx.Module):
         anisotropy: float = instrument.DETECTOR_ANISOTROPY,
         oversample: int = 3,
         jitter_radius: int = 6,
+        npix: int = instrument.SUBARRAY_SIZE,
     ) -> LinearDetector:
+        """Detector with the given geometry; the resampling reach is sized for twice the
+        rotation and anisotropy given (so that a fit can move them), at least 3."""
+        with jax.ensure_compile_time_eval():  # a constant, even when built under jit
+            doubled = np.asarray(geometry_matrix(2 * rotation_deg, anisotropy**2))
+        n = npix * oversample
         return cls(
             jnp.asarray(float(jitter_arcsec)),
             jnp.asarray(float(rotation_deg)),
             jnp.asarray(float(anisotropy)),
             oversample=oversample,
             jitter_radius=jitter_radius,
+            resample_reach=max(3, displacement_reach(np.asarray(doubled), (n, n))),
         )
 
     # ------------------------------------------------------------------ geometry
@@ -165,6 +208,12 @@ class LinearDetector(eqx.Module):
         scales = jnp.array([instrument.PIXEL_SCALE_X_ARCSEC, instrument.PIXEL_SCALE_Y_ARCSEC])
         return self.detector_to_optical(jnp.asarray(offset_arcsec) / scales)
 
+    def optical_to_detector_arcsec(self, position_arcsec: Float[Array, "... 2"]) -> Array:
+        """Optical-frame offset (arcsec) -> detector offset in arcsec along x and y
+        (inverse of :meth:`detector_arcsec_to_optical`)."""
+        scales = jnp.array([instrument.PIXEL_SCALE_X_ARCSEC, instrument.PIXEL_SCALE_Y_ARCSEC])
+        return self.optical_to_detector(position_arcsec) * scales
+
     # ------------------------------------------------------------------ image
     def jitter(self, image: Float[Array, "n m"]) -> Float[Array, "n m"]:
         """Gaussian jitter blur on the oversampled optical grid."""
@@ -173,7 +222,7 @@ class LinearDetector(eqx.Module):
 
     def resample(self, image: Float[Array, "n m"]) -> Float[Array, "n m"]:
         """Optical oversampled grid -> detector oversampled grid (cubic, flux conserving)."""
-        return cubic_resample(image, self.matrix())
+        return cubic_resample(image, self.matrix(), self.resample_reach)
 
     def illuminance(self, image: Float[Array, "n m"]) -> Float[Array, "n m"]:
         """Jittered, resampled illuminance on the detector's oversampled grid (unit flux).

@@ -22,7 +22,6 @@ Undefined values (no integration kept) are NaN, and their pixels are flagged in 
 from __future__ import annotations
 
 import os
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -32,6 +31,7 @@ from astropy.io import fits
 from amigo._version import __version__
 from amigo.errors import InputError
 from amigo.io.atomic import atomic_path
+from amigo.io.jwst import open_fits
 from amigo.process import BAD_REASONS, SlopeProduct
 
 #: Extensions every calslope file has, in order.
@@ -207,15 +207,7 @@ def write_calslope(
 def read_calslope(path: str | os.PathLike[str]) -> CalSlope:
     """Read and validate a calslope file; raise :class:`InputError` if it is not one."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "no such file")
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            hdul = fits.open(path, memmap=False, lazy_load_hdus=False)
-    except Exception as error:  # astropy raises several types for damaged files
-        raise InputError(path, f"cannot be read as FITS ({error})") from None
-    with hdul:
+    with open_fits(path) as hdul:
         missing = [name for name in EXTENSIONS if name not in hdul]
         if missing:
             raise InputError(path, f"not a calslope file: no {', '.join(missing)} extension")

@@ -168,7 +168,7 @@ def summarise(path: str | os.PathLike[str]) -> FileSummary:
     """Identify and validate one file; never raises for a bad file (the row says why)."""
     path = Path(path)
     try:
-        hdul = jwst._open(path)
+        hdul = jwst.open_fits(path)
         with hdul:
             names = _hdu_names(hdul)
             if "SLOPE" in names:

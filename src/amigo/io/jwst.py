@@ -45,6 +45,10 @@ IMAGE_KINDS = ("cal", "rate")
 CUBE_KINDS = ("calints", "rateints")
 KINDS = RAMP_KINDS + IMAGE_KINDS + CUBE_KINDS
 
+#: Exposure types of flat-field (lamp) exposures: accepted with any pupil, because they
+#: calibrate the pixels (flat field, non-linearity), not the optics.
+FLAT_EXP_TYPES = ("NIS_LAMP", "NIS_FLAT")
+
 #: Keywords every AMI exposure must carry (primary header).
 REQUIRED_KEYWORDS = ("INSTRUME", "FILTER", "PUPIL", "EXP_TYPE", "SUBARRAY", "NGROUPS", "NINTS")
 
@@ -120,6 +124,11 @@ class ExposureMeta:
     def is_ramp(self) -> bool:
         return self.kind in RAMP_KINDS
 
+    @property
+    def is_flat(self) -> bool:
+        """A flat-field (lamp) exposure, used only to calibrate per-pixel response."""
+        return self.exp_type in FLAT_EXP_TYPES
+
 
 @dataclass(frozen=True)
 class Exposure:
@@ -150,8 +159,13 @@ class Exposure:
 
 
 # ------------------------------------------------------------------------------ helpers
-def _open(path: Path) -> fits.HDUList:
-    """Open a FITS file lazily, turning every failure into one InputError."""
+def open_fits(path: str | os.PathLike[str]) -> fits.HDUList:
+    """Open a FITS file lazily, turning every failure into one InputError.
+
+    Checks that the file exists, starts like a FITS file, parses, and is as long as its
+    headers say (a truncated download). Used by every FITS reader of amigo.
+    """
+    path = Path(path)
     if not path.exists():
         raise InputError(path, "no such file")
     if path.is_dir():
@@ -234,7 +248,7 @@ def read_header(path: str | os.PathLike[str], *, need_slopes: bool = False) -> E
         missing keywords, wrong dimensionality, one group when slopes are needed.
     """
     path = Path(path)
-    hdul = _open(path)
+    hdul = open_fits(path)
     try:
         return _validate(path, hdul, need_slopes=need_slopes)
     finally:
@@ -263,11 +277,13 @@ def _validate(path: Path, hdul: fits.HDUList, *, need_slopes: bool) -> ExposureM
         raise InputError(path, f"missing required keyword(s) {', '.join(missing)}")
 
     pupil = str(_get(headers, "PUPIL")).strip().upper()
-    if pupil != "NRM":
-        raise InputError(path, f"PUPIL is {pupil!r}, expected 'NRM' (not an AMI exposure)")
-    notes: list[str] = []
     exp_type = str(_get(headers, "EXP_TYPE")).strip().upper()
-    if exp_type != "NIS_AMI":
+    notes: list[str] = []
+    if exp_type in FLAT_EXP_TYPES:
+        notes.append(f"flat-field exposure ({exp_type}, PUPIL {pupil!r})")
+    elif pupil != "NRM":
+        raise InputError(path, f"PUPIL is {pupil!r}, expected 'NRM' (not an AMI exposure)")
+    elif exp_type != "NIS_AMI":
         if exp_type in ("NIS_IMAGE", "NIS_TACQ", "NIS_TACONFIRM", "NIS_FOCUS"):
             notes.append(f"EXP_TYPE is {exp_type!r} with PUPIL 'NRM': treated as AMI")
         else:
@@ -353,7 +369,7 @@ def read_exposure(path: str | os.PathLike[str], *, need_slopes: bool = False) ->
     For large raw-ramp files prefer :func:`iter_ramps`, which streams integrations.
     """
     path = Path(path)
-    hdul = _open(path)
+    hdul = open_fits(path)
     try:
         meta = _validate(path, hdul, need_slopes=need_slopes)
         with warnings.catch_warnings():
@@ -417,7 +433,7 @@ def iter_ramps(
     path = Path(path)
     if chunk < 1:
         raise ValueError(f"chunk must be >= 1, got {chunk}")
-    hdul = _open(path)
+    hdul = open_fits(path)
     try:
         meta = _validate(path, hdul, need_slopes=True)
         if meta.kind != "uncal":
@@ -441,7 +457,7 @@ def iter_ramps(
 
 def read_pixel_dq(path: str | os.PathLike[str]) -> np.ndarray | None:
     """The PIXELDQ (80, 80) uint32 flags of a ramp file, or ``None`` when it has none."""
-    hdul = _open(Path(path))
+    hdul = open_fits(Path(path))
     try:
         hdu = _ext(hdul, "PIXELDQ")
         return None if hdu is None else np.asarray(hdu.data, dtype=np.uint32)

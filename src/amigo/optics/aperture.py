@@ -18,12 +18,16 @@ Conventions
   distorts each hexagon's shape).
 * Zernikes: Noll-ordered, unit-rms on a disc of ``zernike_radius_factor`` times the hole
   circumradius centred on each hole's nominal centre (the wavefront belongs to the
-  telescope, so it does not follow the mask distortions).
+  telescope, so it does not follow the mask distortions), and extended (same
+  polynomials) to half the closest hole spacing.
 """
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from dLux import utils as dlu
@@ -53,7 +57,13 @@ def polynomial_displacement(
     x: Array, y: Array, coefficients: Float[Array, "2 k"], powers: np.ndarray
 ) -> tuple[Array, Array]:
     """Displacement ``(dx, dy) = sum_k c[:, k] x**i_k y**j_k`` (same shape as ``x``)."""
-    terms = jnp.stack([x**i * y**j for i, j in powers])  # (k, ...)
+    # Powers by repeated products: ``x**0`` would differentiate to 0 * x**-1 = nan at 0.
+    top = int(np.max(powers))
+    xp, yp = [jnp.ones_like(x), x], [jnp.ones_like(y), y]
+    for _ in range(2, top + 1):
+        xp.append(xp[-1] * x)
+        yp.append(yp[-1] * y)
+    terms = jnp.stack([xp[i] * yp[j] for i, j in powers])  # (k, ...)
     return jnp.tensordot(coefficients[0], terms, 1), jnp.tensordot(coefficients[1], terms, 1)
 
 
@@ -66,10 +76,11 @@ def soft_hexagon(x: Array, y: Array, flat_to_flat_m: Array, edge_m: float) -> Ar
     drawn that much smaller so that the soft hole has the area of the true one.
     """
     half = 0.5 * jnp.sqrt(flat_to_flat_m**2 - edge_m**2 / 3.0)
-    distance = jnp.max(
-        jnp.stack([jnp.abs(np.cos(a) * x + np.sin(a) * y) for a in _HEX_NORMAL_ANGLES_RAD]),
-        axis=0,
-    )
+    # Pairwise maxima, not a max-reduction: the reduction's gradient divides by the
+    # number of entries equal to the maximum, which XLA's fused (FMA) recomputation can
+    # make zero, giving nan under jit.
+    a, b, c = (jnp.abs(np.cos(t) * x + np.sin(t) * y) for t in _HEX_NORMAL_ANGLES_RAD)
+    distance = jnp.maximum(jnp.maximum(a, b), c)
     return jnp.clip(0.5 - (distance - half) / edge_m, 0.0, 1.0)
 
 
@@ -125,27 +136,45 @@ class PupilGrid(eqx.Module):
         return x, y
 
 
+@functools.cache
+def _zernike_factors(j: int) -> tuple[int, int, np.ndarray, np.ndarray]:
+    """Noll indices and radial-polynomial factors of mode ``j`` (constants, via dLux)."""
+    with jax.ensure_compile_time_eval():
+        n, m = dlu.noll_indices(j)
+        c, k = dlu.zernike_factors(j)
+        return int(n), int(m), np.asarray(c, dtype=float), np.asarray(k, dtype=float)
+
+
 def zernike_basis(
     grid: PupilGrid,
     centres_m: Float[Array, "h 2"],
     radius_m: Array | float,
     n_modes: int,
+    support_m: Array | float | None = None,
 ) -> Float[Array, "h j ny nx"]:
-    """Noll Zernikes ``1..n_modes`` on a disc of ``radius_m`` about each hole centre.
+    """Noll Zernikes ``1..n_modes`` about each hole centre, unit rms on a disc of ``radius_m``.
 
-    Each mode has unit rms over its disc and is zero outside it.
+    The polynomials are evaluated out to ``support_m`` (default ``radius_m``) and are zero
+    beyond: a support a little larger than the normalisation disc keeps the wavefront
+    defined wherever the sharpened hole amplitude is not zero.
     """
     x, y = grid.coordinates()
-    modes = []
-    for j in range(1, n_modes + 1):
-        n, m = dlu.noll_indices(j)
-        c, k = dlu.zernike_factors(j)
-        per_hole = [
-            dlu.zernike_fast(n, m, c, k, jnp.stack([x - cx, y - cy]), 2.0 * radius_m)
-            for cx, cy in centres_m
-        ]
-        modes.append(jnp.stack(per_hole))
-    return jnp.stack(modes, axis=1)
+    factors = [_zernike_factors(j) for j in range(1, n_modes + 1)]
+    support = radius_m if support_m is None else support_m
+
+    def one_hole(centre):
+        rho, theta = dlu.cart2polar(jnp.stack([x - centre[0], y - centre[1]]) / radius_m)
+        inside = rho * radius_m <= support
+        return jnp.stack(
+            [
+                inside
+                * dlu.eval_radial(rho, n, c.astype(rho.dtype), k.astype(rho.dtype))
+                * dlu.eval_azimuthal(theta, n, m)
+                for n, m, c, k in factors
+            ]
+        )
+
+    return jax.vmap(one_hole)(jnp.asarray(centres_m))
 
 
 class Aperture(eqx.Module):
@@ -200,10 +229,24 @@ class Aperture(eqx.Module):
         return order
 
     def hole_transmissions(
-        self, grid: PupilGrid, softening_px: float = 1.0
+        self, grid: PupilGrid, softening_px: float = 1.0, supersample: int = 1
     ) -> Float[Array, "7 ny nx"]:
-        """(7, ny, nx) amplitude transmission of each hole (soft edges, values in [0, 1])."""
+        """(7, ny, nx) amplitude transmission of each hole (soft edges, values in [0, 1]).
+
+        With ``supersample`` > 1 each pixel is the mean of ``supersample^2`` sub-samples
+        (soft edges of ``softening_px`` sub-sample widths): closer to a pixel average.
+        """
+        offsets = (np.arange(supersample) - 0.5 * (supersample - 1)) / supersample
+        edge_m = softening_px * grid.pixel_m / supersample
+        total = 0.0
+        for oy in offsets:
+            for ox in offsets:
+                total = total + self._draw(grid, ox * grid.pixel_m, oy * grid.pixel_m, edge_m)
+        return total / supersample**2
+
+    def _draw(self, grid: PupilGrid, dx_m: float, dy_m: float, edge_m: float) -> Array:
         x, y = grid.coordinates()
+        x, y = x + dx_m, y + dy_m
         scale = self.global_scale_m
         gx, gy = polynomial_displacement(
             x / scale,
@@ -214,20 +257,26 @@ class Aperture(eqx.Module):
         x, y = x + scale * gx, y + scale * gy
         rc = self.circumradius_m
         powers = polynomial_powers(self._order(self.hole_distortion.shape[-1]))
-        holes = []
-        for h in range(self.centres_m.shape[0]):
-            qx, qy = x - self.centres_m[h, 0], y - self.centres_m[h, 1]
-            hx, hy = polynomial_displacement(qx / rc, qy / rc, self.hole_distortion[h], powers)
-            holes.append(
-                soft_hexagon(
-                    qx + rc * hx, qy + rc * hy, self.flat_to_flat_m, softening_px * grid.pixel_m
-                )
-            )
-        return jnp.stack(holes)
+
+        def one_hole(centre, coefficients):
+            qx, qy = x - centre[0], y - centre[1]
+            hx, hy = polynomial_displacement(qx / rc, qy / rc, coefficients, powers)
+            return soft_hexagon(qx + rc * hx, qy + rc * hy, self.flat_to_flat_m, edge_m)
+
+        # vmap, not a Python loop over holes: one copy of the graph compiles 7x faster.
+        return jax.vmap(one_hole)(self.centres_m, self.hole_distortion)
 
     def zernike_basis(self, grid: PupilGrid, n_modes: int, radius_factor: float) -> Array:
-        """(7, n_modes, ny, nx) per-hole Zernike basis (see module notes)."""
-        return zernike_basis(grid, self.centres_m, radius_factor * self.circumradius_m, n_modes)
+        """(7, n_modes, ny, nx) per-hole Zernike basis (see module notes).
+
+        Normalised on ``radius_factor`` times the hole circumradius, supported out to
+        half the closest hole spacing (0.66 m), so the discs never overlap.
+        """
+        centres = self.centres_m
+        gaps = jnp.linalg.norm(centres[:, None] - centres[None, :], axis=-1)
+        gaps = gaps + jnp.eye(centres.shape[0]) * 1e9
+        support = 0.5 * jax.lax.stop_gradient(jnp.min(gaps))
+        return zernike_basis(grid, centres, radius_factor * self.circumradius_m, n_modes, support)
 
 
 class StaticAperture(eqx.Module):
@@ -249,14 +298,17 @@ class StaticAperture(eqx.Module):
         n_modes: int,
         radius_factor: float,
         softening_px: float,
+        supersample: int = 1,
     ) -> StaticAperture:
         return cls(
-            holes=aperture.hole_transmissions(grid, softening_px),
+            holes=aperture.hole_transmissions(grid, softening_px, supersample),
             basis=aperture.zernike_basis(grid, n_modes, radius_factor),
         )
 
-    def hole_transmissions(self, grid: PupilGrid, softening_px: float = 1.0) -> Array:
-        del grid, softening_px  # fixed at construction
+    def hole_transmissions(
+        self, grid: PupilGrid, softening_px: float = 1.0, supersample: int = 1
+    ) -> Array:
+        del grid, softening_px, supersample  # fixed at construction
         return self.holes
 
     def zernike_basis(self, grid: PupilGrid, n_modes: int, radius_factor: float) -> Array:

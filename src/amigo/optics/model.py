@@ -4,9 +4,10 @@ Data flow (one exposure)::
 
     spectrum (wavelengths, weights)      source position (optical frame, arcsec)
             |                                      |
-    pupil = sum_h a_h hole_h * exp(2 pi i OPD / lambda),  OPD = sum_hj z_hj Z_hj  (nm)
-            |  MFT to the (80 * oversample)^2 focal grid, centred on the source
-            |  Fresnel defocus (angular spectrum, optional)
+    pupil = sharpen(sum_h a_h hole_h) * exp(2 pi i OPD / lambda),
+            OPD = sum_hj z_hj Z_hj + source tilt + defocus (the "pupil" defocus method)
+            |  MFT to the (80 * oversample)^2 focal grid
+            |  [or Fresnel defocus by the angular-spectrum transfer function]
     monochromatic PSFs (n_lambda, 240, 240): point samples, each normalised to unit power
             |  weighted sum over wavelengths (visibility injection goes here, per lambda)
             |  pixel integration (sub-pixel box integrals)
@@ -48,12 +49,18 @@ class OpticsConfig:
     pixel_scale_arcsec
         Mean detector pixel scale; the optical grid's pitch is this over ``oversample``.
     pupil_npix
-        Pupil pixels across ``pupil_diameter_m`` (the grid is cropped to the mask).
+        Pupil pixels across ``pupil_diameter_m`` (the grid is cropped to the mask). The
+        soft holes are treated as pixel averages and sharpened back
+        (:func:`~amigo.optics.propagation.pupil_sharpen_taps`), so 128 (5 cm pixels, 15
+        across a hole) is accurate to ~5e-4 of the PSF peak.
     pupil_diameter_m
         Diameter whose sampling sets the pupil pitch, and the radius unit of the
         global distortion and of the defocus parameter.
     softening_px
-        Width of the soft hole edges, pupil pixels.
+        Width of the soft hole edges, in (sub-sampled) pupil pixels; 1 is best.
+    supersample
+        Sub-samples per pupil pixel per axis when drawing the holes (pixel averages
+        closer to exact: 2 halves the PSF error at 4x the drawing cost).
     n_zernike
         Noll Zernike modes per hole (10: four radial orders).
     zernike_radius_factor
@@ -75,14 +82,15 @@ class OpticsConfig:
     npix_detector: int = instrument.SUBARRAY_SIZE
     oversample: int = 3
     pixel_scale_arcsec: float = instrument.PIXEL_SCALE_ARCSEC
-    pupil_npix: int = 256
+    pupil_npix: int = 128
     pupil_diameter_m: float = instrument.PUPIL_DIAMETER_M
     softening_px: float = 1.0
+    supersample: int = 1
     n_zernike: int = 10
     zernike_radius_factor: float = 1.2
     fresnel: bool = True
     fresnel_pad: int = 2
-    defocus_method: str = "angular_spectrum"
+    defocus_method: str = "pupil"
     pixel_integration: str = "fir"
 
     @property
@@ -169,26 +177,45 @@ class NRMOptics(eqx.Module):
             return self
         c = self.config
         static = StaticAperture.from_aperture(
-            self.aperture, self.grid, c.n_zernike, c.zernike_radius_factor, c.softening_px
+            self.aperture,
+            self.grid,
+            c.n_zernike,
+            c.zernike_radius_factor,
+            c.softening_px,
+            c.supersample,
         )
         return eqx.tree_at(lambda o: o.aperture, self, static)
 
     # ------------------------------------------------------------------ pupil
     def pupil(self) -> tuple[Float[Array, "ny nx"], Float[Array, "ny nx"]]:
-        """Amplitude transmission and OPD (metres) on the pupil grid, each (ny, nx)."""
-        c = self.config
-        holes = self.aperture.hole_transmissions(self.grid, c.softening_px)
-        amplitude = jnp.tensordot(self.hole_amplitudes, holes, 1)
-        z = self.zernikes_nm
-        z = z.at[:, 0].add(-jnp.mean(z[:, 0]))  # global piston is unobservable
-        basis = self.aperture.zernike_basis(self.grid, c.n_zernike, c.zernike_radius_factor)
-        opd_m = 1e-9 * jnp.einsum("hj,hjyx->yx", z, basis)
+        """Amplitude transmission and OPD (metres) on the pupil grid, each (ny, nx).
+
+        The amplitude is the sharpened pixel average of the mask (it slightly overshoots
+        1 and undershoots 0 along the hole edges); the OPD is defined everywhere.
+        """
+        amplitude, opd_m, _ = self._pupil_and_power()
         return amplitude, opd_m
 
     def pupil_power(self) -> Float[Array, ""]:
         """Power through the mask in pupil pixels: ``sum_h a_h^2 * area_h / pixel^2``."""
-        holes = self.aperture.hole_transmissions(self.grid, self.config.softening_px)
-        return jnp.sum(self.hole_amplitudes**2 * jnp.sum(holes, axis=(-2, -1)))
+        return self._pupil_and_power()[2]
+
+    def _pupil_and_power(self) -> tuple[Array, Array, Array]:
+        c = self.config
+        holes = self.aperture.hole_transmissions(self.grid, c.softening_px, c.supersample)
+        # The soft holes are pixel averages of the mask; sharpen them back (in band) so
+        # the MFT of the sampled pupil is the transform of the continuous one.
+        amplitude = propagation.separable_filter(
+            jnp.tensordot(self.hole_amplitudes, holes, 1), propagation.pupil_sharpen_taps()
+        )
+        # The soft edges stand for a binary mask whose area is the sum of the soft
+        # transmission (not of its square): the power is sum_h a_h^2 * area_h.
+        power = jnp.sum(self.hole_amplitudes**2 * jnp.sum(holes, axis=(-2, -1)))
+        z = self.zernikes_nm
+        z = z.at[:, 0].add(-jnp.mean(z[:, 0]))  # global piston is unobservable
+        basis = self.aperture.zernike_basis(self.grid, c.n_zernike, c.zernike_radius_factor)
+        opd_m = 1e-9 * jnp.einsum("hj,hjyx->yx", z, basis)
+        return amplitude, opd_m, power
 
     # ------------------------------------------------------------------ propagation
     def focal_grid_rad(self) -> Float[Array, " m"]:
@@ -207,7 +234,7 @@ class NRMOptics(eqx.Module):
         the gradient cheap).
         """
         c = self.config
-        amplitude, opd_m = self.pupil()
+        amplitude, opd_m, power = self._pupil_and_power()
         x, y = self.grid.x_m, self.grid.y_m
         pos = jnp.asarray(position_arcsec) * ARCSEC_TO_RAD
         opd_m = opd_m + x[None, :] * pos[0] + y[:, None] * pos[1]
@@ -216,9 +243,6 @@ class NRMOptics(eqx.Module):
             opd_m = opd_m + defocus_opd_m(self.grid, self.defocus_nm, 0.5 * c.pupil_diameter_m)
         theta = jax.lax.stop_gradient(self.focal_grid_rad())
         # Parseval: sum |E|^2 dtheta^2 over the plane = lambda^2 dx^2 * (power in pupil).
-        # The soft edges stand for a binary mask whose area is the sum of the soft
-        # transmission (not of its square), so the power is sum_h a_h^2 * area_h.
-        power = self.pupil_power()
 
         def one(wavelength):
             wavelength = jax.lax.stop_gradient(wavelength)

@@ -82,8 +82,10 @@ class DetectorConfig:
     Switches (``True`` = effect on): ``poisson`` (photon and dark shot noise; off uses
     expected values), ``flat_field``, ``intra_pixel``, ``bfe``, ``ipc``, ``nonlinearity``,
     ``dark_current``, ``bias``, ``reset_noise``, ``read_noise``, ``one_over_f``,
-    ``cosmic_rays``, ``adc_inl``, ``saturation``, ``quantize`` (round to integer counts and
-    clip to 0..65535; off returns floating-point counts).
+    ``cosmic_rays``, ``adc_inl``, ``saturation``, ``reference_pixels`` (the bottom
+    :data:`amigo.instrument.N_REFERENCE_ROWS` rows of SUB80 collect no charge: bias and
+    read noise only), ``quantize`` (round to integer counts and clip to 0..65535; off
+    returns floating-point counts).
 
     Parameters are in the units their names say; ``bfe_strength_pix_per_e`` is the shift
     (pixels) of the boundary between two pixels per electron of charge difference
@@ -104,6 +106,7 @@ class DetectorConfig:
     cosmic_rays: bool = True
     adc_inl: bool = True
     saturation: bool = True
+    reference_pixels: bool = True
     quantize: bool = True
 
     gain_e_per_dn: float = instrument.GAIN_E_PER_DN
@@ -132,7 +135,7 @@ class DetectorConfig:
     SWITCHES = (
         "poisson", "flat_field", "intra_pixel", "bfe", "ipc", "nonlinearity", "dark_current",
         "bias", "reset_noise", "read_noise", "one_over_f", "cosmic_rays", "adc_inl",
-        "saturation", "quantize",
+        "saturation", "reference_pixels", "quantize",
     )  # fmt: skip
 
     @classmethod
@@ -543,6 +546,10 @@ class RampSimulator:
         self.coeff_x = bfe_coefficients(strength, config.bfe_radius_pix)
         self.coeff_y = bfe_coefficients(strength * config.bfe_anisotropy, config.bfe_radius_pix)
         self.efficiency = realisation.flat if config.flat_field else np.ones(self.shape)
+        # Reference pixels have no photodiode: no photo-charge, dark current or cosmic rays.
+        self.active = np.ones(self.shape)
+        if config.reference_pixels and self.shape[0] > instrument.N_REFERENCE_ROWS:
+            self.active[: instrument.N_REFERENCE_ROWS] = 0.0
         self.ipc = ipc_kernel()
 
     # ---------------------------------------------------------------- physics pieces
@@ -637,6 +644,8 @@ class RampSimulator:
                 else:
                     photo = mean
                     dark = dark_rate * dt
+                photo = photo * self.active
+                dark = dark * self.active
                 photons += float(photo.sum())
                 dark_total += float(dark.sum())
                 charge += photo + dark
@@ -644,7 +653,7 @@ class RampSimulator:
                     _, y, x, energy = hits[hit_index]
                     padded[:] = 0.0
                     padded[y : y + 3, x : x + 3] = energy * COSMIC_RAY_FOOTPRINT
-                    charge += padded[1:-1, 1:-1]
+                    charge += padded[1:-1, 1:-1] * self.active
                     recorded.append({"group": group, "y": y, "x": x, "electrons": energy})
                     hit_index += 1
                 if cfg.saturation:

@@ -20,9 +20,9 @@ This module provides:
   jitter. It includes per-hole piston (fringe phases), per-hole tip/tilt (envelope
   shifts), the defocus's effect on each hole (the piston and tilt of the pupil's
   quadratic phase at the hole), the hole-position distortion and the detector's
-  rotation and per-axis pixel scales. It ignores the higher-order (Noll >= 4) shape of
+  rotation and anisotropy (the geometry of :mod:`amigo.detector.linear`). It ignores the higher-order (Noll >= 4) shape of
   the wavefront *within* each hole; an optical model that propagates a sampled pupil is
-  needed for those (see :mod:`amigo.simulate.optics_illumination`).
+  needed for those: :mod:`amigo.simulate.optics_illumination`, the default.
 * :class:`UniformIllumination`: a flat field (uniformly illuminated detector).
 """
 
@@ -139,13 +139,18 @@ def _hexagon_transform_real(qx: np.ndarray, qy: np.ndarray, vertices_m: np.ndarr
 def detector_to_optical_matrix_rad() -> np.ndarray:
     """2x2 matrix mapping a detector offset (pixels, [dx, dy]) to an optical angle (rad).
 
-    The pixel grid has the SIAF per-axis scales and is rotated by
-    :data:`amigo.instrument.DETECTOR_ROTATION_DEG` relative to the optical (pupil) frame.
+    The convention of :mod:`amigo.detector.linear`: an optical offset ``p`` in units of
+    the mean pixel scale lands at the detector offset ``d = S(a) R(phi) p`` with
+    ``R(phi)`` the rotation by :data:`amigo.instrument.DETECTOR_ROTATION_DEG` and
+    ``S(a) = diag(a^(1/2), a^(-1/2))``, ``a`` = :data:`amigo.instrument.DETECTOR_ANISOTROPY`
+    (written out here with NumPy so the analytic model needs no JAX).
     """
-    scales = np.diag([instrument.PIXEL_SCALE_X_ARCSEC, instrument.PIXEL_SCALE_Y_ARCSEC])
-    angle = np.deg2rad(instrument.DETECTOR_ROTATION_DEG)
-    rotation = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
-    return rotation @ scales * RAD_PER_ARCSEC
+    phi = np.deg2rad(instrument.DETECTOR_ROTATION_DEG)
+    root = np.sqrt(instrument.DETECTOR_ANISOTROPY)
+    geometry = np.diag([root, 1.0 / root]) @ np.array(
+        [[np.cos(phi), -np.sin(phi)], [np.sin(phi), np.cos(phi)]]
+    )
+    return np.linalg.inv(geometry) * instrument.PIXEL_SCALE_ARCSEC * RAD_PER_ARCSEC
 
 
 def hole_phases_and_tilts(

@@ -23,6 +23,7 @@ from amigo.orientation import Orientation
 from amigo.progress import step, track
 from amigo.simulate.detector import DetectorConfig, RampSimulator, draw_detector
 from amigo.simulate.illumination import AnalyticNRM, Illumination, UniformIllumination
+from amigo.simulate.optics_illumination import OpticalModelIllumination
 from amigo.simulate.scenarios import ExposureSpec, Scenario
 from amigo.simulate.scene import REFERENCE_PIXEL_XY, DetectorScene, PointSource, detector_scene
 from amigo.simulate.state import InstrumentState, draw_instrument_state
@@ -51,20 +52,14 @@ class SimulatedExposure:
 def default_illumination(scenario: Scenario) -> Illumination:
     """The optical model a scenario asks for.
 
-    ``analytic`` (and, until the project's differentiable optics is available, ``auto``)
-    gives :class:`~amigo.simulate.illumination.AnalyticNRM`; ``optics`` gives the
-    project's optical model at higher fidelity
-    (:mod:`amigo.simulate.optics_illumination`).
+    ``auto`` and ``optics``: the project's optical model at simulation fidelity
+    (:class:`~amigo.simulate.optics_illumination.OpticalModelIllumination`); ``analytic``:
+    the closed-form :class:`~amigo.simulate.illumination.AnalyticNRM` (no JAX, no
+    intra-hole aberrations; fast, for tests and quick looks).
     """
-    if scenario.illumination in ("optics", "auto"):
-        try:
-            from amigo.simulate.optics_illumination import OpticalModelIllumination
-        except ImportError:
-            if scenario.illumination == "optics":
-                raise
-        else:
-            return OpticalModelIllumination(n_wavelengths=scenario.n_wavelengths)
-    return AnalyticNRM(n_wavelengths=scenario.n_wavelengths)
+    if scenario.illumination == "analytic":
+        return AnalyticNRM(n_wavelengths=scenario.n_wavelengths)
+    return OpticalModelIllumination(n_wavelengths=scenario.n_wavelengths)
 
 
 def _photon_scale(spec: ExposureSpec, unit_rate: np.ndarray, oversample: int, gain: float) -> float:

@@ -1,0 +1,349 @@
+"""Vectorised grid search: the best contrast of one more companion at every sky position.
+
+For every position ``theta`` of a square grid (dRA, dDec in mas) and every filter, the flux
+ratio ``c`` of a companion added to a fixed *background* scene (the primary and the
+companions already found) is solved by a few Gauss-Newton steps on the exact model::
+
+    V(c) = (N + c e(theta)) / (D + c),   N, D: background numerator and total flux
+
+starting from ``c = 0`` (the first step is the linear least-squares contrast). ``c`` may be
+negative: the signed estimate and its error are what the contrast limits need; a
+detection only counts positive contrasts. Returned per filter: the contrast, its 1-sigma
+error (from the Gauss-Newton curvature) and ``dchi2 = chi2(background) - chi2(c)``.
+
+Speed: the band-averaged phasors factorise over the grid axes,
+``e(x, y) = sum_l w_l exp(-2 pi i b_x x / l) exp(-2 pi i b_y y / l)``, so no complex
+exponential is evaluated per grid point; positions are processed in column chunks by
+one jitted, vmapped solver.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from scipy import ndimage, special, stats
+
+from amigo.companions.models import MAS_TO_RAD, scene_terms
+from amigo.companions.observables import Dataset, Observables
+
+#: Bounds of the contrast solved at each grid point (flux ratios).
+CONTRAST_BOUNDS: tuple[float, float] = (-0.5, 0.95)
+
+
+@dataclass(frozen=True)
+class Grid:
+    """A square grid of sky offsets, ``x`` = dRA (east positive), ``y`` = dDec (mas)."""
+
+    x_mas: np.ndarray
+    y_mas: np.ndarray
+    rmax_mas: float
+    step_mas: float
+
+    @classmethod
+    def square(cls, rmax_mas: float, step_mas: float) -> Grid:
+        n = int(np.floor(rmax_mas / step_mas + 1e-9))
+        axis = np.arange(-n, n + 1) * float(step_mas)
+        return cls(
+            x_mas=axis, y_mas=axis.copy(), rmax_mas=float(rmax_mas), step_mas=float(step_mas)
+        )
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(n_y, n_x): maps are indexed ``[dDec, dRA]``."""
+        return self.y_mas.size, self.x_mas.size
+
+    @property
+    def radius_mas(self) -> np.ndarray:
+        return np.hypot(self.x_mas[None, :], self.y_mas[:, None])
+
+    def valid(self, iwa_mas: float) -> np.ndarray:
+        """(n_y, n_x) True outside ``iwa_mas`` and inside ``rmax_mas``."""
+        r = self.radius_mas
+        return (r >= iwa_mas) & (r <= self.rmax_mas)
+
+
+def default_step_mas(dataset: Dataset) -> float:
+    """A third of the finest fringe spacing: ``lambda_min / (3 B_max)``, in mas."""
+    fringe = min(b.min_wavelength_m / b.max_baseline_m for b in dataset.blocks)
+    return fringe / MAS_TO_RAD / 3.0
+
+
+def inner_working_angle_mas(blocks: tuple[Observables, ...] | list[Observables]) -> float:
+    """``lambda / (2 B_max)`` (mas) at the blocks' mean wavelength and longest baseline."""
+    wavelength = np.mean([b.mean_wavelength_m for b in blocks])
+    baseline = max(b.max_baseline_m for b in blocks)
+    return wavelength / (2.0 * baseline) / MAS_TO_RAD
+
+
+@dataclass(frozen=True)
+class ContrastMap:
+    """Per-filter result of the grid search, maps of shape (n_y, n_x).
+
+    ``contrast`` (signed flux ratio), ``sigma`` (its 1-sigma error), ``dchi2`` (chi2
+    improvement over the background scene), ``chi2_background`` and ``n_obs`` (scalars
+    for the Absil limits), ``iwa_mas`` (the masked inner radius of this filter).
+    """
+
+    filter_name: str
+    contrast: np.ndarray
+    sigma: np.ndarray
+    dchi2: np.ndarray
+    chi2_background: float
+    n_obs: int
+    iwa_mas: float
+
+    @property
+    def significance(self) -> np.ndarray:
+        """Signed significance ``sign(c) sqrt(dchi2)`` (one parameter at a fixed position)."""
+        return np.sign(self.contrast) * np.sqrt(np.clip(self.dchi2, 0.0, None))
+
+
+@dataclass(frozen=True)
+class GridResult:
+    """Grid search over all filters: per-filter maps and the joint detection map."""
+
+    grid: Grid
+    maps: tuple[ContrastMap, ...]
+    iwa_mas: float
+
+    @property
+    def valid(self) -> np.ndarray:
+        return self.grid.valid(self.iwa_mas)
+
+    @property
+    def joint_dchi2(self) -> np.ndarray:
+        """Sum over filters of the chi2 gain of positive contrasts (0 where masked)."""
+        total = sum(np.where(m.contrast > 0, np.clip(m.dchi2, 0, None), 0.0) for m in self.maps)
+        return np.where(self.valid, total, 0.0)
+
+    @property
+    def joint_significance(self) -> np.ndarray:
+        """Gaussian-equivalent significance of the joint map (dof = number of filters)."""
+        return sigma_from_chi2(self.joint_dchi2, len(self.maps))
+
+    def peaks(self, n: int = 5) -> list[tuple[float, float, float]]:
+        """The ``n`` highest local maxima of the joint map: (dRA, dDec, dchi2), best first."""
+        values = self.joint_dchi2
+        local = (
+            (values == ndimage.maximum_filter(values, size=3, mode="nearest"))
+            & self.valid
+            & (values > 0)
+        )
+        iy, ix = np.nonzero(local)
+        order = np.argsort(values[iy, ix])[::-1][:n]
+        return [
+            (
+                float(self.grid.x_mas[ix[k]]),
+                float(self.grid.y_mas[iy[k]]),
+                float(values[iy[k], ix[k]]),
+            )
+            for k in order
+        ]
+
+
+def sigma_from_chi2(dchi2: np.ndarray | float, dof: int) -> np.ndarray:
+    """Gaussian-equivalent significance of a chi2 improvement with ``dof`` parameters.
+
+    ``n`` such that the two-sided normal tail beyond ``n`` equals the chi2 tail beyond
+    ``dchi2``: for one parameter this is exactly ``sqrt(dchi2)``. Computed in log space so
+    that very strong detections (dchi2 ~ 1e4) stay finite.
+    """
+    dchi2 = np.clip(np.asarray(dchi2, dtype=float), 0.0, None)
+    if dof == 1:
+        return np.sqrt(dchi2)
+    log_p = np.asarray(stats.chi2.logsf(dchi2, dof), dtype=float)
+    lost = ~np.isfinite(log_p)
+    if np.any(lost):
+        # Far tail, where SciPy underflows: Gamma(s, y) ~ y^(s-1) e^-y (1 + (s-1)/y).
+        s, y = 0.5 * dof, 0.5 * dchi2[lost]
+        log_p[lost] = (s - 1) * np.log(y) - y - special.gammaln(s) + np.log1p((s - 1) / y)
+    return np.clip(-special.ndtri_exp(log_p - np.log(2.0)), 0.0, None)
+
+
+# ---------------------------------------------------------------------------- solver
+class _Background(eqx.Module):
+    """Per-block background scene terms: numerator (n_uv,) and total flux (scalar)."""
+
+    numerators: tuple[jax.Array, ...]
+    denominators: tuple[jax.Array, ...]
+
+
+def _axis_phasors(block: Observables, axis_mas: np.ndarray, column: int) -> jax.Array:
+    """exp(-2 pi i b_axis * axis / lambda): (n_axis, n_uv, n_wl)."""
+    path = (
+        jnp.asarray(axis_mas)[:, None, None]
+        * MAS_TO_RAD
+        * jnp.asarray(block.uv_m)[None, :, column, None]
+    )
+    return jnp.exp(-2j * jnp.pi * path / jnp.asarray(block.wavelengths_m)[None])
+
+
+def _gauss_newton(residual_and_jacobian, r0, n_steps):
+    """A few bounded Gauss-Newton steps on one scalar contrast, from c = 0."""
+    lo, hi = CONTRAST_BOUNDS
+    c = jnp.zeros((), dtype=r0.dtype)
+    for _ in range(n_steps):
+        r, j = residual_and_jacobian(c)
+        curvature = jnp.dot(j, j)
+        # At the origin the companion is the primary (no signal, zero curvature): stay at 0.
+        safe = jnp.where(curvature > 0, curvature, 1.0)
+        c = jnp.clip(c - jnp.where(curvature > 0, jnp.dot(j, r) / safe, 0.0), lo, hi)
+    r, j = residual_and_jacobian(c)
+    curvature = jnp.dot(j, j)
+    safe = jnp.where(curvature > 0, curvature, 1.0)
+    sigma = jnp.where(curvature > 0, 1.0 / jnp.sqrt(safe), jnp.inf)
+    # chi2(0) - chi2(c) written as a product of small differences: no cancellation.
+    dchi2 = jnp.sum((r0 - r) * (r0 + r))
+    return c, sigma, dchi2
+
+
+def _solve_position(blocks, background, scales, r0, phasors, n_steps):
+    """Exact model: Gauss-Newton with forward-mode derivatives; returns (c, sigma, dchi2)."""
+
+    def residual(c):
+        parts = []
+        for block, num, den, scale, e in zip(
+            blocks,
+            background.numerators,
+            background.denominators,
+            scales,
+            phasors,
+            strict=True,
+        ):
+            parts.append(block.residuals((num + c * e) / (den + c)) / scale)
+        return jnp.concatenate(parts)
+
+    return _gauss_newton(lambda c: jax.jvp(residual, (c,), (jnp.ones_like(c),)), r0, n_steps)
+
+
+#: Terms of the series of log V(c) used by the fast path for linear (calvis) blocks.
+SERIES_TERMS = 3
+
+
+def _solve_position_linear(blocks, background, scales, r0, phasors, n_steps):
+    """Linear observables (y = D log V): expand log V in powers of c, then Gauss-Newton.
+
+    ``log V(c) = log(N + c e) - log(D + c) = log V(0) + sum_k (-1)^(k+1)/k c^k
+    [(e/N)^k - D^-k]``, converging for ``c |e/N| < 1``; with 3 terms the relative error of
+    the model is about c^3 / 4: 2.5e-4 at c = 0.1, 7e-3 at c = 0.3 (the grid only starts
+    the exact fits). Each block then needs one product of its matrix with 3 vectors
+    instead of two per Gauss-Newton step.
+    """
+    terms = []
+    for block, num, den, scale, e in zip(
+        blocks, background.numerators, background.denominators, scales, phasors, strict=True
+    ):
+        ratio = e / num
+        k = jnp.arange(1, SERIES_TERMS + 1)[:, None]
+        series = (-1.0) ** (k + 1) / k * (ratio[None, :] ** k - den ** (-k))  # (K, n_uv)
+        log_terms = jnp.concatenate([series.real, series.imag], axis=1)  # (K, 2 n_uv)
+        terms.append((log_terms @ block.design.T) / (block.errors * scale))  # (K, n_obs)
+    m = jnp.concatenate(terms, axis=1)
+    powers = jnp.arange(1, SERIES_TERMS + 1)
+
+    def residual_and_jacobian(c):
+        r = r0 + jnp.sum(c ** powers[:, None] * m, axis=0)
+        j = jnp.sum((powers * c ** (powers - 1))[:, None] * m, axis=0)
+        return r, j
+
+    return _gauss_newton(residual_and_jacobian, r0, n_steps)
+
+
+@eqx.filter_jit
+def _solve_chunk(blocks, background, scales, r0, x_phasors, y_phasors, n_steps):
+    # e[j, i, u] = sum_l w_l exp_x[i, u, l] exp_y[j, u, l]  (weights folded into x_phasors)
+    phasors = tuple(
+        jnp.einsum("iul,jul->jiu", ex, ey) for ex, ey in zip(x_phasors, y_phasors, strict=True)
+    )
+    n_y, n_i = phasors[0].shape[:2]
+    flat = tuple(p.reshape(n_y * n_i, -1) for p in phasors)
+    solver = _solve_position_linear if all(b.linear for b in blocks) else _solve_position
+    solve = jax.vmap(lambda *e: solver(blocks, background, scales, r0, e, n_steps))
+    c, sigma, dchi2 = solve(*flat)
+    return (c.reshape(n_y, n_i), sigma.reshape(n_y, n_i), dchi2.reshape(n_y, n_i))
+
+
+def contrast_grid(
+    dataset: Dataset,
+    grid: Grid,
+    offsets_mas: np.ndarray | None = None,
+    contrasts: np.ndarray | None = None,
+    group_scales: np.ndarray | None = None,
+    primary_diameter_mas: float = 0.0,
+    n_steps: int = 3,
+    chunk_columns: int | None = None,
+) -> GridResult:
+    """Solve the contrast of one more companion at every grid position, per filter.
+
+    Parameters
+    ----------
+    dataset
+        The observables.
+    grid
+        Positions to test.
+    offsets_mas, contrasts
+        Background companions: (K, 2) sky offsets and (K, n_filters) flux ratios
+        (``None`` for none).
+    group_scales
+        (n_groups,) error scales (``None``: ones).
+    primary_diameter_mas
+        Uniform-disc diameter of the primary (0: unresolved).
+    n_steps
+        Gauss-Newton steps per position (3 reaches 1e-6 relative accuracy for c < 0.1).
+    chunk_columns
+        Grid columns per jitted call (default: about 2e5 uv-point evaluations per call).
+    """
+    offsets = np.zeros((0, 2)) if offsets_mas is None else np.asarray(offsets_mas, float)
+    flux = np.zeros((0, dataset.n_filters)) if contrasts is None else np.asarray(contrasts, float)
+    scales_all = np.ones(dataset.n_groups) if group_scales is None else np.asarray(group_scales)
+    scale_vectors = dataset.scale_vectors(scales_all)
+    maps = []
+    for f, name in enumerate(dataset.filters):
+        index = [i for i in range(len(dataset.blocks)) if dataset.filter_index(i) == f]
+        blocks = tuple(dataset.blocks[i] for i in index)
+        scales = tuple(scale_vectors[i] for i in index)
+        terms = [
+            scene_terms(
+                jnp.asarray(b.uv_m),
+                jnp.asarray(b.wavelengths_m),
+                jnp.asarray(b.weights),
+                jnp.asarray(offsets),
+                jnp.asarray(flux[:, f]),
+                primary_diameter_mas,
+            )
+            for b in blocks
+        ]
+        background = _Background(tuple(t[0] for t in terms), tuple(t[1] for t in terms))
+        r0 = jnp.concatenate(
+            [b.residuals(t[0] / t[1]) / s for b, t, s in zip(blocks, terms, scales, strict=True)]
+        )
+        y_ph = tuple(_axis_phasors(b, grid.y_mas, 1) for b in blocks)
+        x_ph = tuple(_axis_phasors(b, grid.x_mas, 0) * jnp.asarray(b.weights)[None] for b in blocks)
+        n_uv = sum(b.n_uv for b in blocks)
+        n_x = grid.x_mas.size
+        step = chunk_columns or max(1, min(n_x, int(2e5 // (n_uv * grid.y_mas.size)) or 1))
+        outputs = []
+        for start in range(0, n_x, step):
+            stop = min(start + step, n_x)
+            pad = step - (stop - start)  # keep one compiled shape for every chunk
+            xs = tuple(jnp.pad(x[start:stop], ((0, pad), (0, 0), (0, 0))) for x in x_ph)
+            c, sigma, dchi2 = _solve_chunk(blocks, background, scales, r0, xs, y_ph, n_steps)
+            outputs.append([np.asarray(a)[:, : stop - start] for a in (c, sigma, dchi2)])
+        c, sigma, dchi2 = (np.concatenate([o[k] for o in outputs], axis=1) for k in range(3))
+        maps.append(
+            ContrastMap(
+                filter_name=name,
+                contrast=c,
+                sigma=sigma,
+                dchi2=dchi2,
+                chi2_background=float(jnp.sum(r0**2)),
+                n_obs=int(r0.size),
+                iwa_mas=inner_working_angle_mas(blocks),
+            )
+        )
+    iwa = max(m.iwa_mas for m in maps)
+    return GridResult(grid=grid, maps=tuple(maps), iwa_mas=iwa)

@@ -1,0 +1,477 @@
+"""One abstraction for every kind of interferometric observable amigo fits.
+
+A data *block* (one file, one filter) is described by a chain of maps from the complex
+visibility ``V`` at ``n_uv`` uv points to ``n_obs`` statistically independent observables::
+
+    L    = [log|V|, arg V]                              (2 n_uv,)   log visibility
+    raw  = g(A @ L)                                     (n_raw,)    e.g. V2, closure phases
+    z    = P @ wrap(raw - raw_data) / error             (n_obs,)    whitened residuals
+
+* calvis files (DISCOs): ``A`` is the file's DISCO matrix, ``g`` the identity, ``P`` the
+  identity: the observables are already independent.
+* OIFITS: ``raw`` holds V2 (``g = exp`` of twice the log-amplitude) and closure phases
+  (``A`` is the closure operator on the phases, ``g`` the identity, residuals wrapped into
+  (-pi, pi]); ``P`` rotates correlated observables into the eigenbasis of their covariance
+  (``error`` = square roots of its eigenvalues), so that ``z`` is independent in all cases.
+
+The closure phases of a 7-hole mask are not independent (35 triangles, 15 independent
+combinations). When a file gives no covariance, amigo by default assumes the closure
+phases come from independent baseline-phase noise (each triangle sharing a baseline with
+another is correlated by +-1/3) and keeps the 15 independent combinations; treating the 35
+as independent would overstate every significance by about sqrt(7/3) = 1.5.
+
+``uv_m`` is stored already rotated onto the sky (see :mod:`amigo.companions.models`): for
+calvis files ``b_sky = S^T b`` with ``S`` the file's sky-to-uv matrix, so that
+``b . (S theta_sky) = b_sky . theta_sky``; OIFITS u, v are on the sky by definition.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Sequence
+from typing import Literal
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+from amigo.errors import InputError
+from amigo.io.calvis import CalVis, is_calvis, read_calvis
+from amigo.io.oifits import OIFits, is_oifits, read_oifits
+
+#: Observable kinds, indexed by the integers stored in :attr:`Observables.kinds`.
+KIND_NAMES: tuple[str, ...] = ("amplitude", "phase")
+AMPLITUDE, PHASE = 0, 1
+
+#: Number of wavelengths that sample an OIFITS channel's bandwidth (a top hat).
+OIFITS_BAND_SAMPLES = 5
+
+#: Eigenvalues below this fraction of the largest are the null space of a covariance.
+COVARIANCE_RANK_TOL = 1e-9
+
+
+class Observables(eqx.Module):
+    """Independent observables of one target in one filter, and how to predict them.
+
+    Array attributes (shapes in brackets) are pytree leaves, stored as NumPy float64 so
+    that the precision is decided where they are used (amigo runs its fits in float64
+    contexts); the rest is static metadata.
+
+    Attributes
+    ----------
+    uv_m
+        [n_uv, 2] uv points (m) in the sky-aligned frame (x east, y north).
+    wavelengths_m, weights
+        [n_uv, n_wl] wavelengths (m) and normalised weights at each uv point.
+    design
+        [n_raw, 2 n_uv] the linear map ``A`` from ``[log|V|, arg V]`` to raw observables.
+    exp_rows, wrap_rows
+        [n_raw] booleans: raw observables that are ``exp`` of their linear part (V2), and
+        those whose residuals are angles to wrap (closure phases).
+    data_raw
+        [n_raw] measured raw observables.
+    projection
+        [n_obs, n_raw] whitening rotation ``P`` (identity for calvis files).
+    errors
+        [n_obs] 1-sigma errors of the independent observables.
+    kinds
+        (n_obs ints, static) 0 for amplitude-like, 1 for phase-like observables.
+    filter_name, source, target
+        Filter, input file, target name.
+    n_photons
+        Photons behind the observables (NaN if unknown); ``photon_source`` says where the
+        number came from (``"NPHOT"`` or ``"closure-phase errors"``).
+    linear
+        True when the observables are linear in the log visibility (no ``exp`` rows, no
+        wrapping, no projection: calvis files); the grid search then uses a faster path.
+    """
+
+    uv_m: Array
+    wavelengths_m: Array
+    weights: Array
+    design: Array
+    exp_rows: Array
+    wrap_rows: Array
+    data_raw: Array
+    projection: Array | None
+    errors: Array
+    kinds: tuple[int, ...] = eqx.field(static=True)
+    filter_name: str = eqx.field(static=True)
+    source: str = eqx.field(static=True)
+    target: str = eqx.field(static=True, default="")
+    n_photons: float = eqx.field(static=True, default=float("nan"))
+    photon_source: str = eqx.field(static=True, default="")
+    linear: bool = eqx.field(static=True, default=False)
+    sky_to_uv: tuple[tuple[float, float], tuple[float, float]] = eqx.field(
+        static=True, default=((1.0, 0.0), (0.0, 1.0))
+    )
+
+    # ------------------------------------------------------------------ sizes
+    @property
+    def n_obs(self) -> int:
+        return int(self.errors.shape[0])
+
+    @property
+    def n_uv(self) -> int:
+        return int(self.uv_m.shape[0])
+
+    @property
+    def max_baseline_m(self) -> float:
+        return float(np.max(np.hypot(self.uv_m[:, 0], self.uv_m[:, 1])))
+
+    @property
+    def mean_wavelength_m(self) -> float:
+        return float(np.sum(self.wavelengths_m * self.weights) / np.sum(self.weights))
+
+    @property
+    def min_wavelength_m(self) -> float:
+        return float(np.min(np.where(self.weights > 0, self.wavelengths_m, np.inf)))
+
+    # ------------------------------------------------------------------ model
+    def raw(self, vis: Array) -> Array:
+        """Raw observables (n_raw,) of a complex visibility (n_uv,) (principal-branch log).
+
+        The phase of ``log V`` is continuous as long as the companions' total flux ratio is
+        below the primary's visibility at every uv point (always for an unresolved primary
+        and a total flux ratio below one): then ``Re V > 0`` and no branch cut is crossed.
+        """
+        log_vis = jnp.concatenate([jnp.log(jnp.abs(vis)), jnp.angle(vis)])
+        linear = self.design @ log_vis
+        return jnp.where(self.exp_rows, jnp.exp(linear), linear)
+
+    def _whiten(self, raw_residual: Array) -> Array:
+        wrapped = jnp.where(self.wrap_rows, jnp.angle(jnp.exp(1j * raw_residual)), raw_residual)
+        return wrapped if self.projection is None else self.projection @ wrapped
+
+    def residuals(self, vis: Array) -> Array:
+        """Whitened residuals ``(model - data) / error`` (n_obs,) for a visibility (n_uv,)."""
+        return self._whiten(self.raw(vis) - self.data_raw) / self.errors
+
+    def observed(self) -> Array:
+        """The independent observables (data)."""
+        return self.data_raw if self.projection is None else self.projection @ self.data_raw
+
+    def predicted(self, vis: Array) -> Array:
+        """Model independent observables (data + wrapped difference, for plots)."""
+        return self.observed() + self._whiten(self.raw(vis) - self.data_raw)
+
+
+# ---------------------------------------------------------------------------- builders
+def from_calvis(calvis: CalVis, source: str = "") -> Observables:
+    """Observables of a calvis file (DISCOs through the file's linear map)."""
+    sky_to_uv = np.asarray(calvis.sky_to_uv, dtype=float)
+    uv_sky = np.asarray(calvis.uv_m) @ sky_to_uv  # b_sky = S^T b, as rows
+    n_uv = uv_sky.shape[0]
+    wl = np.broadcast_to(calvis.wavelengths_m, (n_uv, calvis.wavelengths_m.size))
+    w = np.broadcast_to(calvis.weights / calvis.weights.sum(), wl.shape)
+    n_obs = calvis.n_obs
+    return Observables(
+        uv_m=np.asarray(uv_sky),
+        wavelengths_m=np.asarray(wl),
+        weights=np.asarray(w),
+        design=np.asarray(calvis.disco_matrix),
+        exp_rows=np.zeros(n_obs, dtype=bool),
+        wrap_rows=np.zeros(n_obs, dtype=bool),
+        data_raw=np.asarray(calvis.values),
+        projection=None,
+        errors=np.asarray(calvis.errors),
+        kinds=tuple(KIND_NAMES.index(k) for k in calvis.kinds),
+        filter_name=calvis.filter_name,
+        source=source,
+        target=calvis.target,
+        n_photons=float(calvis.n_photons),
+        photon_source="NPHOT" if np.isfinite(calvis.n_photons) else "",
+        linear=True,
+        sky_to_uv=tuple(tuple(float(x) for x in row) for row in sky_to_uv),
+    )
+
+
+CpCorrelation = Literal["baseline", "independent"]
+
+
+def from_oifits(
+    oi: OIFits,
+    cp_correlation: CpCorrelation = "baseline",
+    band_samples: int = OIFITS_BAND_SAMPLES,
+    n_holes: int = 7,
+) -> Observables:
+    """Observables of an OIFITS file: V2 and closure phases, whitened.
+
+    Parameters
+    ----------
+    cp_correlation
+        How to treat closure phases when the file has no covariance: ``"baseline"``
+        (default) builds the correlation implied by independent baseline phases from the
+        triangles' station indices; ``"independent"`` takes them as independent (as most
+        peer tools do).
+    band_samples
+        Wavelengths sampling each channel's ``EFF_BAND`` (top hat, equal weights).
+    n_holes
+        Holes of the mask, used only for the photon-count estimate from closure phases.
+    """
+    uv, waves, bands = [], [], []
+    rows_amp, rows_phase = [], []  # (indices into uv, coefficients)
+    raw_data, exp_rows, wrap_rows, kinds = [], [], [], []
+    blocks_cov: list[np.ndarray] = []
+
+    def add_uv(u: np.ndarray, v: np.ndarray, wave: np.ndarray, band: np.ndarray) -> np.ndarray:
+        start = sum(len(x) for x in uv)
+        uv.append(np.column_stack([u, v]))
+        waves.append(wave)
+        bands.append(band)
+        return np.arange(start, start + len(u))
+
+    if oi.vis2 is not None:
+        v2 = oi.vis2
+        index = add_uv(v2.u_m, v2.v_m, v2.wavelength_m, v2.bandwidth_m)
+        rows_amp.append((index[:, None], np.full((len(index), 1), 2.0)))
+        raw_data.append(v2.value)
+        exp_rows.append(np.ones(len(index), bool))
+        wrap_rows.append(np.zeros(len(index), bool))
+        kinds.append(np.full(len(index), AMPLITUDE))
+        blocks_cov.append(v2.covariance if v2.covariance is not None else np.diag(v2.error**2))
+    if oi.t3 is not None:
+        t3 = oi.t3
+        i1 = add_uv(t3.u1_m, t3.v1_m, t3.wavelength_m, t3.bandwidth_m)
+        i2 = add_uv(t3.u2_m, t3.v2_m, t3.wavelength_m, t3.bandwidth_m)
+        i3 = add_uv(t3.u1_m + t3.u2_m, t3.v1_m + t3.v2_m, t3.wavelength_m, t3.bandwidth_m)
+        rows_phase.append((np.column_stack([i1, i2, i3]), np.tile([1.0, 1.0, -1.0], (len(i1), 1))))
+        raw_data.append(t3.phase_rad)
+        exp_rows.append(np.zeros(len(i1), bool))
+        wrap_rows.append(np.ones(len(i1), bool))
+        kinds.append(np.full(len(i1), PHASE))
+        if t3.covariance is not None:
+            blocks_cov.append(t3.covariance)
+        elif cp_correlation == "baseline" and t3.stations is not None:
+            blocks_cov.append(
+                baseline_closure_covariance(t3.stations, t3.wavelength_m, t3.error_rad)
+            )
+        else:
+            blocks_cov.append(np.diag(t3.error_rad**2))
+
+    uv_m = np.concatenate(uv)
+    n_uv = uv_m.shape[0]
+    n_amp = sum(len(r[0]) for r in rows_amp)
+    n_raw = n_amp + sum(len(r[0]) for r in rows_phase)
+    design = np.zeros((n_raw, 2 * n_uv))
+    row = 0
+    for index, coef in rows_amp:
+        for k in range(len(index)):
+            design[row, index[k]] = coef[k]
+            row += 1
+    for index, coef in rows_phase:
+        for k in range(len(index)):
+            np.add.at(design[row], n_uv + index[k], coef[k])
+            row += 1
+
+    wl, w = _band_sampling(np.concatenate(waves), np.concatenate(bands), band_samples)
+    projection, errors, obs_kinds = _whitening(blocks_cov, np.concatenate(kinds))
+    n_photons, photon_source = float("nan"), ""
+    if oi.t3 is not None:
+        # Ireland (2013): sigma_CP = N_h / N_p * sqrt(1.5 N_p) => N_p = 1.5 N_h^2 / sigma_CP^2.
+        sigma_cp = float(np.median(oi.t3.error_rad))
+        n_photons, photon_source = 1.5 * n_holes**2 / sigma_cp**2, "closure-phase errors"
+    return Observables(
+        uv_m=np.asarray(uv_m),
+        wavelengths_m=np.asarray(wl),
+        weights=np.asarray(w),
+        design=np.asarray(design),
+        exp_rows=np.asarray(np.concatenate(exp_rows)),
+        wrap_rows=np.asarray(np.concatenate(wrap_rows)),
+        data_raw=np.asarray(np.concatenate(raw_data)),
+        projection=np.asarray(projection),
+        errors=np.asarray(errors),
+        kinds=tuple(int(k) for k in obs_kinds),
+        filter_name=oi.filter_name,
+        source=oi.path,
+        target=oi.target,
+        n_photons=n_photons,
+        photon_source=photon_source,
+    )
+
+
+def baseline_closure_covariance(
+    stations: np.ndarray, wavelength_m: np.ndarray, error_rad: np.ndarray
+) -> np.ndarray:
+    """Closure-phase covariance implied by independent noise on each baseline phase.
+
+    A triangle (a, b, c) measures ``phi_ab + phi_bc - phi_ac``; with independent baseline
+    phases of equal variance, two closure phases sharing one baseline are correlated by
+    +-1/3. The covariance is ``diag(sigma) (T T^T / 3) diag(sigma)`` with ``T`` the closure
+    operator, built per spectral channel. Its rank is n_baselines - (n_holes - 1).
+    """
+    n = len(error_rad)
+    operator: dict[tuple[float, int, int], int] = {}
+    rows = np.zeros((n, 3), dtype=int)
+    signs = np.zeros((n, 3))
+    for k in range(n):
+        a, b, c = (int(s) for s in stations[k])
+        for j, (p, q, sign) in enumerate(((a, b, 1.0), (b, c, 1.0), (a, c, -1.0))):
+            key = (float(wavelength_m[k]), min(p, q), max(p, q))
+            rows[k, j] = operator.setdefault(key, len(operator))
+            signs[k, j] = sign if p < q else -sign
+    closure = np.zeros((n, len(operator)))
+    for k in range(n):
+        np.add.at(closure[k], rows[k], signs[k])
+    correlation = closure @ closure.T / 3.0
+    return correlation * np.outer(error_rad, error_rad)
+
+
+def _whitening(
+    covariances: Sequence[np.ndarray], raw_kinds: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Block-wise eigen-rotation of the raw covariance: (P, errors, kinds)."""
+    n_raw = sum(c.shape[0] for c in covariances)
+    rows, errors, kinds = [], [], []
+    start = 0
+    for cov in covariances:
+        size = cov.shape[0]
+        sigma = np.sqrt(np.diag(cov))
+        if np.allclose(cov, np.diag(np.diag(cov))):
+            vectors, values = np.eye(size), sigma**2
+        else:
+            values, vectors = np.linalg.eigh(0.5 * (cov + cov.T))
+            keep = values > COVARIANCE_RANK_TOL * values.max()
+            values, vectors = values[keep], vectors[:, keep]
+        block = np.zeros((values.size, n_raw))
+        block[:, start : start + size] = vectors.T
+        rows.append(block)
+        errors.append(np.sqrt(values))
+        kinds.append(np.full(values.size, raw_kinds[start]))
+        start += size
+    return np.concatenate(rows), np.concatenate(errors), np.concatenate(kinds)
+
+
+def _band_sampling(wave: np.ndarray, band: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Top-hat sampling of each channel: (n_uv, n) wavelengths and equal weights."""
+    offsets = (np.arange(n) + 0.5) / n - 0.5
+    wl = wave[:, None] + band[:, None] * offsets[None, :]
+    return wl, np.full(wl.shape, 1.0 / n)
+
+
+def select_kinds(block: Observables, kinds: Sequence[str]) -> Observables | None:
+    """The block restricted to observables of the given kinds (``None`` if none is left)."""
+    wanted = {KIND_NAMES.index(k) for k in kinds}
+    rows = np.array([k in wanted for k in block.kinds])
+    if not rows.any():
+        return None
+    if rows.all():
+        return block
+    kept = tuple(k for k in block.kinds if k in wanted)
+    if block.projection is None:  # raw observables are the independent ones
+        return dataclasses.replace(
+            block,
+            design=block.design[rows],
+            exp_rows=block.exp_rows[rows],
+            wrap_rows=block.wrap_rows[rows],
+            data_raw=block.data_raw[rows],
+            errors=block.errors[rows],
+            kinds=kept,
+        )
+    return dataclasses.replace(
+        block, projection=block.projection[rows], errors=block.errors[rows], kinds=kept
+    )
+
+
+# ---------------------------------------------------------------------------- loading
+#: Which observables each choice of ``observables`` keeps.
+OBSERVABLE_CHOICES: dict[str, tuple[str, ...]] = {
+    "all": ("amplitude", "phase"),
+    "phase": ("phase",),
+    "amplitude": ("amplitude",),
+}
+
+
+def load(
+    path: str | os.PathLike[str],
+    cp_correlation: CpCorrelation = "baseline",
+    observables: str = "all",
+) -> Observables:
+    """Read a calvis or OIFITS file into :class:`Observables`; :class:`InputError` if neither.
+
+    ``observables`` chooses what is fitted: ``"all"`` (default: DISCO amplitudes and
+    phases, or V2 and closure phases), ``"phase"`` (kernel/closure phases only: for
+    OIFITS files whose V2 are poorly calibrated) or ``"amplitude"``. Closure phases alone
+    leave aliases of a 7-hole mask almost degenerate (docs/detect.md).
+    """
+    path = os.fspath(path)
+    if observables not in OBSERVABLE_CHOICES:
+        raise ValueError(f"observables must be one of {list(OBSERVABLE_CHOICES)}")
+    if not os.path.isfile(path):
+        raise InputError(path, "no such file")
+    if is_calvis(path):
+        block = from_calvis(read_calvis(path), source=path)
+    elif is_oifits(path):
+        block = from_oifits(read_oifits(path), cp_correlation=cp_correlation)
+    else:
+        raise InputError(path, "is neither an amigo calvis file nor an OIFITS file")
+    wanted = OBSERVABLE_CHOICES[observables]
+    selected = select_kinds(block, wanted)
+    if selected is None:
+        raise InputError(path, f"holds no {' or '.join(wanted)} observables")
+    return selected
+
+
+# ---------------------------------------------------------------------------- datasets
+class Dataset(eqx.Module):
+    """Several blocks fitted together: one contrast per filter, one error scale per group.
+
+    A *group* is a (filter, observable kind) pair present in the data; the paper fits one
+    multiplicative error scale per group.
+
+    Attributes
+    ----------
+    blocks
+        The data blocks (files).
+    filters
+        Distinct filter names, in order of first appearance.
+    groups
+        ``(filter, kind name)`` of each group.
+    """
+
+    blocks: tuple[Observables, ...]
+    filters: tuple[str, ...] = eqx.field(static=True)
+    groups: tuple[tuple[str, str], ...] = eqx.field(static=True)
+
+    @classmethod
+    def from_blocks(cls, blocks: Sequence[Observables]) -> Dataset:
+        if not blocks:
+            raise ValueError("a dataset needs at least one block of observables")
+        filters = tuple(dict.fromkeys(b.filter_name for b in blocks))
+        groups = tuple(
+            (f, KIND_NAMES[k])
+            for f in filters
+            for k in range(len(KIND_NAMES))
+            if any(b.filter_name == f and np.any(np.asarray(b.kinds) == k) for b in blocks)
+        )
+        return cls(blocks=tuple(blocks), filters=filters, groups=groups)
+
+    @property
+    def n_filters(self) -> int:
+        return len(self.filters)
+
+    @property
+    def n_groups(self) -> int:
+        return len(self.groups)
+
+    def filter_index(self, block: int) -> int:
+        """Index into :attr:`filters` of block ``block``."""
+        return self.filters.index(self.blocks[block].filter_name)
+
+    def group_index(self, block: int) -> np.ndarray:
+        """(n_obs,) group index of each observable of block ``block``."""
+        b = self.blocks[block]
+        lookup = {g: i for i, g in enumerate(self.groups)}
+        return np.array([lookup[(b.filter_name, KIND_NAMES[k])] for k in np.asarray(b.kinds)])
+
+    def subset(self, filter_name: str) -> Dataset:
+        """The blocks of one filter."""
+        return Dataset.from_blocks([b for b in self.blocks if b.filter_name == filter_name])
+
+    def scale_vectors(self, group_scales: Array | np.ndarray) -> tuple[Array, ...]:
+        """Per-block (n_obs,) error-scale vectors from (n_groups,) group scales."""
+        return tuple(
+            jnp.asarray(group_scales)[self.group_index(i)] for i in range(len(self.blocks))
+        )

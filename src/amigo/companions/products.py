@@ -1,0 +1,169 @@
+"""Files written by ``amigo detect``: ``companions.json`` and ``contrast_limits.csv``.
+
+The keys of ``companions.json`` listed in the project's interfaces are a public contract;
+amigo adds (never removes) keys: per-companion ``dra_err_mas``, ``ddec_err_mas``,
+``per_filter``; top-level ``sigma_scale_by_kind``, ``photon_count``, ``search``, ``hmc``,
+``warnings``, ``sky_convention``. See docs/detect.md.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from amigo._version import __version__
+from amigo.companions.search import DetectionResult, Estimate
+from amigo.io.atomic import write_text
+
+SKY_CONVENTION = (
+    "dra_mas positive to the east, ddec_mas to the north; pa_deg east of north "
+    "(0..360), from each input's orientation (FITS WCS convention)"
+)
+
+
+def _r(x: float, digits: int = 4) -> float | None:
+    x = float(x)
+    return round(x, digits) if np.isfinite(x) else None
+
+
+def _estimate_dict(e: Estimate) -> dict[str, Any]:
+    return {
+        "sep_mas": _r(e.sep_mas),
+        "sep_err_mas": _r(e.sep_err_mas),
+        "pa_deg": _r(e.pa_deg),
+        "pa_err_deg": _r(e.pa_err_deg),
+        "dra_mas": _r(e.dra_mas),
+        "ddec_mas": _r(e.ddec_mas),
+        "dra_err_mas": _r(e.dra_err_mas),
+        "ddec_err_mas": _r(e.ddec_err_mas),
+        "dmag": {f: _r(v) for f, v in e.dmag.items()},
+        "dmag_err": {f: _r(v) for f, v in e.dmag_err.items()},
+    }
+
+
+def companions_document(result: DetectionResult, inputs: list[str]) -> dict[str, Any]:
+    """The content of ``companions.json`` as a plain dictionary."""
+    companions = []
+    for c in result.companions:
+        entry = {
+            "id": c.id,
+            **_estimate_dict(c.estimate),
+            "detection_sigma": _r(c.detection_sigma, 2),
+            "method": c.method,
+        }
+        if c.per_filter:
+            entry["per_filter"] = {f: _estimate_dict(e) for f, e in c.per_filter.items()}
+        companions.append(entry)
+    limits = {
+        curve.filter_name: {
+            "sep_mas": [_r(x, 2) for x in curve.sep_mas],
+            "dmag_3sigma": [_r(x, 3) for x in curve.ruffio_dmag],
+            "dmag_3sigma_std": [_r(x, 3) for x in curve.ruffio_dmag_std],
+            "absil_dmag_3sigma": [_r(x, 3) for x in curve.absil_dmag],
+            "absil_dmag_3sigma_std": [_r(x, 3) for x in curve.absil_dmag_std],
+            "method": "ruffio2018",
+        }
+        for curve in result.limits
+    }
+    document: dict[str, Any] = {
+        "amigo_version": __version__,
+        "inputs": [os.path.basename(p) for p in inputs],
+        "filters": list(result.dataset.filters),
+        "companions": companions,
+        "sigma_scale": {f: _r(v) for f, v in result.sigma_scale.items()},
+        "sigma_scale_by_kind": {
+            f: {k: _r(v) for k, v in d.items()} for f, d in result.sigma_scale_by_kind.items()
+        },
+        "contrast_limits": limits,
+        "photon_limit_dmag": {f: _r(v, 3) for f, v in result.photon_limit_dmag.items()},
+        "photon_count": {
+            f: {
+                "n_photons": float(n),
+                "source": sorted(
+                    {b.photon_source for b in result.dataset.blocks if b.filter_name == f}
+                ),
+            }
+            for f, n in result.photon_counts.items()
+        },
+        "search": {
+            "rmax_mas": result.grid.rmax_mas,
+            "step_mas": _r(result.grid.step_mas),
+            "inner_working_angle_mas": _r(result.detection_maps[0].iwa_mas, 2),
+            "threshold_sigma": result.settings.threshold_sigma,
+            "iterations": len(result.detection_maps),
+            "max_joint_sigma_per_iteration": [
+                _r(float(np.max(m.joint_significance)), 2) for m in result.detection_maps
+            ],
+            "observables": {
+                os.path.basename(b.source): sorted({("amplitude", "phase")[k] for k in b.kinds})
+                for b in result.dataset.blocks
+            },
+        },
+        "sky_convention": SKY_CONVENTION,
+        "warnings": list(result.warnings),
+    }
+    if result.posterior is not None:
+        post = result.posterior
+        document["hmc"] = {
+            "num_chains": post.num_chains,
+            "num_samples": post.num_samples,
+            "r_hat_max": _r(post.r_hat_max),
+            "ess_min": _r(post.ess_min, 1),
+            "per_filter": {
+                f: {"r_hat_max": _r(p.r_hat_max), "ess_min": _r(p.ess_min, 1)}
+                for f, p in result.per_filter_posteriors.items()
+            },
+        }
+    return document
+
+
+def write_companions_json(
+    path: str | os.PathLike[str], result: DetectionResult, inputs: list[str]
+) -> Path:
+    """Write ``companions.json`` atomically."""
+    text = json.dumps(companions_document(result, inputs), indent=2) + "\n"
+    write_text(path, text)
+    return Path(path)
+
+
+#: Columns of ``contrast_limits.csv``.
+CSV_COLUMNS = (
+    "filter",
+    "sep_mas",
+    "n_sigma",
+    "ruffio_dmag",
+    "ruffio_dmag_std",
+    "absil_dmag",
+    "absil_dmag_std",
+    "photon_limit_dmag",
+)
+
+
+def write_contrast_csv(path: str | os.PathLike[str], result: DetectionResult) -> Path:
+    """Write ``contrast_limits.csv``: one row per filter and separation bin."""
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(CSV_COLUMNS)
+    for curve in result.limits:
+        photon = "" if curve.photon_limit_dmag is None else f"{curve.photon_limit_dmag:.3f}"
+        for i in range(curve.sep_mas.size):
+            writer.writerow(
+                [
+                    curve.filter_name,
+                    f"{curve.sep_mas[i]:.2f}",
+                    f"{curve.n_sigma:g}",
+                    f"{curve.ruffio_dmag[i]:.3f}",
+                    f"{curve.ruffio_dmag_std[i]:.3f}",
+                    f"{curve.absil_dmag[i]:.3f}",
+                    f"{curve.absil_dmag_std[i]:.3f}",
+                    photon,
+                ]
+            )
+    write_text(path, buffer.getvalue())
+    return Path(path)

@@ -1,0 +1,501 @@
+"""The companion search as ``amigo detect`` runs it.
+
+1. **Grid search** (:mod:`~amigo.companions.grid`) for one more companion on top of the
+   companions already found, in every filter; the joint detection map sums the filters'
+   chi2 gains of positive contrasts.
+2. **Candidates**: the highest local maxima of the joint map are refined by a joint
+   least-squares fit of all companions (:mod:`~amigo.companions.fit`); the best refined
+   candidate's chi2 gain over the previous scene gives its significance (Gaussian
+   equivalent, one degree of freedom per filter: ``sqrt(dchi2)`` in one filter).
+3. **Error scales**: significances use the errors multiplied by, per filter and
+   observable kind, ``max(1, sqrt(chi2 / N))`` of the scene *with* the candidate: data
+   that scatter more than their errors do not produce detections, and errors are never
+   shrunk to make one.
+4. Accept the candidate if it exceeds the threshold, refit all companions jointly and go
+   back to 1; otherwise stop.
+5. **Posterior** (:mod:`~amigo.companions.posterior`) of all companions jointly over all
+   filters and, when there are several filters, per filter.
+6. **Limits** (:mod:`~amigo.companions.limits`) from a last grid search on the
+   companion-subtracted data, with the fitted ``sigma_scale``.
+
+Significances are *local* (at the best position); the grid tests many positions, so a
+few-sigma peak is expected from noise alone (about 3.5 sigma for ~1000 independent
+resolution elements): the default 5-sigma threshold accounts for that.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import jax
+import numpy as np
+
+from amigo.companions import fit as fitting
+from amigo.companions.grid import (
+    Grid,
+    GridResult,
+    contrast_grid,
+    default_step_mas,
+    sigma_from_chi2,
+)
+from amigo.companions.limits import ContrastCurve, contrast_limits, photon_limit_dmag
+from amigo.companions.observables import KIND_NAMES, Dataset
+from amigo.companions.posterior import Posterior, Priors, sample_posterior
+from amigo.orientation import separation_pa
+from amigo.progress import step
+
+#: Candidates whose chi2 gain is within this of the best are followed as alternatives.
+ALIAS_DCHI2 = 25.0
+#: Most hypotheses followed per search level.
+BEAM_WIDTH = 3
+
+
+@dataclass(frozen=True)
+class SearchSettings:
+    """Options of :func:`detect` (the command-line options of ``amigo detect``)."""
+
+    rmax_mas: float = 1000.0
+    step_mas: float | None = None
+    threshold_sigma: float = 5.0
+    max_companions: int = 3
+    n_candidates: int = 20
+    primary_diameter_mas: float = 0.0
+    hmc: bool = True
+    per_filter: bool = True
+    num_warmup: int = 500
+    num_samples: int = 1000
+    num_chains: int = 2
+    seed: int = 0
+    limit_sigma: float = 3.0
+    priors: Priors = field(default_factory=Priors)
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """A companion's position and photometry with 1-sigma errors (one fit or posterior)."""
+
+    dra_mas: float
+    ddec_mas: float
+    dra_err_mas: float
+    ddec_err_mas: float
+    sep_mas: float
+    sep_err_mas: float
+    pa_deg: float
+    pa_err_deg: float
+    dmag: dict[str, float]
+    dmag_err: dict[str, float]
+
+
+@dataclass(frozen=True)
+class Companion:
+    """A detected companion: its estimate, significance and how it was obtained."""
+
+    id: int
+    estimate: Estimate
+    detection_sigma: float
+    method: str
+    per_filter: dict[str, Estimate] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class DetectionResult:
+    """Everything :func:`detect` found; see :mod:`amigo.companions.products` for files."""
+
+    dataset: Dataset
+    settings: SearchSettings
+    grid: Grid
+    detection_maps: tuple[GridResult, ...]
+    residual_map: GridResult
+    companions: tuple[Companion, ...]
+    fit: fitting.FitResult | None
+    posterior: Posterior | None
+    per_filter_posteriors: dict[str, Posterior]
+    group_scales: np.ndarray
+    limits: tuple[ContrastCurve, ...]
+    photon_counts: dict[str, float]
+    warnings: tuple[str, ...]
+
+    @property
+    def sigma_scale(self) -> dict[str, float]:
+        """One error scale per filter: the rms over its groups, weighted by observables."""
+        counts = _group_counts(self.dataset)
+        out = {}
+        for f in self.dataset.filters:
+            index = [g for g, (name, _) in enumerate(self.dataset.groups) if name == f]
+            n = counts[index]
+            out[f] = float(np.sqrt(np.sum(n * self.group_scales[index] ** 2) / np.sum(n)))
+        return out
+
+    @property
+    def sigma_scale_by_kind(self) -> dict[str, dict[str, float]]:
+        out: dict[str, dict[str, float]] = {}
+        for g, (f, kind) in enumerate(self.dataset.groups):
+            out.setdefault(f, {})[kind] = float(self.group_scales[g])
+        return out
+
+    @property
+    def photon_limit_dmag(self) -> dict[str, float]:
+        return {f: photon_limit_dmag(n) for f, n in self.photon_counts.items()}
+
+
+def _group_counts(dataset: Dataset) -> np.ndarray:
+    counts = np.zeros(dataset.n_groups)
+    for i in range(len(dataset.blocks)):
+        np.add.at(counts, dataset.group_index(i), 1)
+    return counts
+
+
+def _photon_counts(dataset: Dataset) -> dict[str, float]:
+    out = {}
+    for f in dataset.filters:
+        values = [b.n_photons for b in dataset.blocks if b.filter_name == f]
+        if all(np.isfinite(v) for v in values):
+            out[f] = float(np.sum(values))
+    return out
+
+
+@dataclass(frozen=True)
+class _Candidate:
+    """One more companion, refined: the joint fit, its chi2 gain and the scales used."""
+
+    fit: fitting.FitResult
+    dchi2: float
+    scales: np.ndarray
+
+
+def _search_one(
+    dataset: Dataset,
+    grid: Grid,
+    current: fitting.FitResult | None,
+    settings: SearchSettings,
+) -> tuple[GridResult, list[_Candidate]]:
+    """Grid-search one more companion; refine the best peaks; settle the error scales.
+
+    Returns the grid and the refined candidates, best (largest chi2 gain) first.
+    """
+    k = 0 if current is None else current.n_companions
+    offsets = np.zeros((0, 2)) if current is None else current.offsets_mas
+    log10c = np.zeros((0, dataset.n_filters)) if current is None else current.log10_contrasts
+    scales = np.ones(dataset.n_groups)
+    diameter = settings.primary_diameter_mas
+    candidates: list[_Candidate] = []
+    for _ in range(3):  # error scales depend on the candidate, the candidate on the scales
+        result = contrast_grid(dataset, grid, offsets, 10.0**log10c, scales, diameter)
+        if k:
+            chi2_before = _chi2(dataset, offsets, log10c, scales, diameter)
+        else:
+            chi2_before = fitting.background_chi2(dataset, scales, diameter)
+        candidates = []
+        for x, y, _ in result.peaks(settings.n_candidates):
+            iy = int(np.argmin(np.abs(grid.y_mas - y)))
+            ix = int(np.argmin(np.abs(grid.x_mas - x)))
+            start = [np.log10(max(m.contrast[iy, ix], m.sigma[iy, ix], 1e-8)) for m in result.maps]
+            trial = fitting.fit_companions(
+                dataset,
+                np.vstack([offsets, [[x, y]]]),
+                np.vstack([log10c, [start]]),
+                scales,
+                diameter,
+            )
+            candidates.append(_Candidate(trial, chi2_before - trial.chi2, scales))
+        if not candidates:
+            return result, []
+        candidates.sort(key=lambda c: -c.dchi2)
+        best = candidates[0].fit
+        new_scales = np.maximum(
+            1.0, fitting.estimate_scales(dataset, best.offsets_mas, best.contrasts, diameter)
+        )
+        if np.allclose(new_scales, scales, rtol=0.02):
+            break
+        scales = new_scales
+    return result, candidates
+
+
+def _chi2(dataset, offsets, log10c, scales, diameter) -> float:
+    residuals = fitting.block_residuals(dataset, offsets, 10.0**log10c, diameter)
+    return float(
+        sum(
+            np.sum((np.asarray(r) / np.asarray(s)) ** 2)
+            for r, s in zip(residuals, dataset.scale_vectors(scales), strict=True)
+        )
+    )
+
+
+@dataclass(frozen=True)
+class _Hypothesis:
+    """A scene on the search path: its fit, significances and the maps that led to it."""
+
+    fit: fitting.FitResult | None
+    chi2: float  # with unit error scales, to rank hypotheses on the same footing
+    significances: tuple[float, ...]
+    maps: tuple[GridResult, ...]
+
+
+def _unit_chi2(dataset: Dataset, fit: fitting.FitResult | None, diameter: float) -> float:
+    ones = np.ones(dataset.n_groups)
+    if fit is None:
+        return fitting.background_chi2(dataset, ones, diameter)
+    return _chi2(dataset, fit.offsets_mas, fit.log10_contrasts, ones, diameter)
+
+
+def _beam_search(
+    dataset: Dataset, grid: Grid, settings: SearchSettings, notes: list[str]
+) -> _Hypothesis:
+    """Iterative search, keeping near-degenerate alternatives (aliases) alive.
+
+    A sparse uv coverage has aliases: positions where one companion fits almost as well
+    as at the truth, and a second, fainter companion can tip the balance towards the wrong
+    one. Every candidate whose chi2 gain is within :data:`ALIAS_DCHI2` of the best is
+    followed as a separate hypothesis (at most :data:`BEAM_WIDTH` per level); the final
+    scene is the one with the lowest chi2.
+    """
+    diameter = settings.primary_diameter_mas
+    beam = [_Hypothesis(None, _unit_chi2(dataset, None, diameter), (), ())]
+    finished: list[_Hypothesis] = []
+    for level in range(settings.max_companions + 1):
+        expansions: list[_Hypothesis] = []
+        for parent in beam:
+            step(
+                f"grid search {level + 1}: {grid.shape[0]}x{grid.shape[1]} positions, "
+                f"{grid.step_mas:.1f} mas steps, {dataset.n_filters} filter(s)"
+            )
+            result, candidates = _search_one(dataset, grid, parent.fit, settings)
+            finished.append(
+                _Hypothesis(parent.fit, parent.chi2, parent.significances, (*parent.maps, result))
+            )
+            for rank, cand in enumerate(candidates):
+                if cand.dchi2 < candidates[0].dchi2 - ALIAS_DCHI2:
+                    break
+                sigma = float(sigma_from_chi2(cand.dchi2, dataset.n_filters))
+                if rank == 0:
+                    dra, ddec = cand.fit.offsets_mas[-1]
+                    step(
+                        f"  best candidate at dRA={dra:.1f} dDec={ddec:.1f} mas: {sigma:.1f} sigma"
+                    )
+                if sigma >= settings.threshold_sigma:
+                    expansions.append(
+                        _Hypothesis(
+                            cand.fit,
+                            _unit_chi2(dataset, cand.fit, diameter),
+                            (*parent.significances, sigma),
+                            (*parent.maps, result),
+                        )
+                    )
+        if not expansions:
+            break
+        expansions.sort(key=lambda h: h.chi2)
+        if level == settings.max_companions:
+            notes.append(
+                f"stopped at --max-companions={settings.max_companions}: one more candidate "
+                f"exceeds the threshold ({expansions[0].significances[-1]:.1f} sigma)"
+            )
+            break
+        beam = expansions[:BEAM_WIDTH]
+        finished = []  # a deeper level supersedes the shallower scenes
+    # The final scene: among the searches that found nothing more, the lowest chi2.
+    best = min(finished, key=lambda h: h.chi2)
+    for other in finished:
+        if other is best or other.fit is None or best.fit is None:
+            continue
+        moved = np.max(np.hypot(*(other.fit.offsets_mas - best.fit.offsets_mas).T))
+        if other.chi2 - best.chi2 < ALIAS_DCHI2 and moved > grid.step_mas:
+            positions = ", ".join(f"({x:.0f}, {y:.0f})" for x, y in other.fit.offsets_mas)
+            notes.append(
+                f"possible alias: companions at (dRA, dDec) = {positions} mas fit almost as "
+                f"well (chi2 larger by {other.chi2 - best.chi2:.1f}); see detection_maps.png"
+            )
+    return best
+
+
+def _estimate_from_samples(dra, ddec, log10c, filters) -> Estimate:
+    sep, pa = separation_pa(dra, ddec)
+    centre = (
+        np.rad2deg(np.arctan2(np.mean(np.sin(np.deg2rad(pa))), np.mean(np.cos(np.deg2rad(pa)))))
+        % 360.0
+    )
+    pa = centre + (pa - centre + 180.0) % 360.0 - 180.0  # unwrap around the mean direction
+
+    def stat(x):
+        lo, mid, hi = np.percentile(x, [15.865, 50.0, 84.135])
+        return float(mid), float(0.5 * (hi - lo))
+
+    dmag = -2.5 * log10c
+    return Estimate(
+        dra_mas=stat(dra)[0],
+        ddec_mas=stat(ddec)[0],
+        dra_err_mas=stat(dra)[1],
+        ddec_err_mas=stat(ddec)[1],
+        sep_mas=stat(sep)[0],
+        sep_err_mas=stat(sep)[1],
+        pa_deg=stat(pa)[0] % 360.0,
+        pa_err_deg=stat(pa)[1],
+        dmag={f: stat(dmag[:, i])[0] for i, f in enumerate(filters)},
+        dmag_err={f: stat(dmag[:, i])[1] for i, f in enumerate(filters)},
+    )
+
+
+def _estimate_from_fit(fit: fitting.FitResult, k: int, filters) -> Estimate:
+    dra, ddec = fit.offsets_mas[k]
+    cov = fit.covariance[2 * k : 2 * k + 2, 2 * k : 2 * k + 2]
+    sep, pa = separation_pa(dra, ddec)
+    # Linear propagation to polar coordinates.
+    j_sep = np.array([dra, ddec]) / sep
+    j_pa = np.rad2deg(np.array([ddec, -dra]) / sep**2)
+    err = fit.log10_contrast_errors()[k]
+    return Estimate(
+        dra_mas=float(dra),
+        ddec_mas=float(ddec),
+        dra_err_mas=float(np.sqrt(cov[0, 0])),
+        ddec_err_mas=float(np.sqrt(cov[1, 1])),
+        sep_mas=float(sep),
+        sep_err_mas=float(np.sqrt(j_sep @ cov @ j_sep)),
+        pa_deg=float(pa),
+        pa_err_deg=float(np.sqrt(j_pa @ cov @ j_pa)),
+        dmag={f: float(-2.5 * fit.log10_contrasts[k, i]) for i, f in enumerate(filters)},
+        dmag_err={f: float(2.5 * err[i]) for i, f in enumerate(filters)},
+    )
+
+
+def detect(dataset: Dataset, settings: SearchSettings | None = None) -> DetectionResult:
+    """Search, fit, sample and bound companions in ``dataset`` (runs in float64)."""
+    settings = settings or SearchSettings()
+    with jax.enable_x64(True):
+        return _detect(dataset, settings)
+
+
+def _detect(dataset: Dataset, settings: SearchSettings) -> DetectionResult:
+    diameter = settings.primary_diameter_mas
+    step_mas = settings.step_mas or default_step_mas(dataset)
+    grid = Grid.square(settings.rmax_mas, step_mas)
+    notes: list[str] = []
+    path = _beam_search(dataset, grid, settings, notes)
+    current = path.fit
+    significances = list(path.significances)
+    maps = list(path.maps)
+
+    k = 0 if current is None else current.n_companions
+    scales_ml = fitting.estimate_scales(
+        dataset,
+        np.zeros((0, 2)) if current is None else current.offsets_mas,
+        np.zeros((0, dataset.n_filters)) if current is None else current.contrasts,
+        diameter,
+    )
+    final_fit = None
+    posterior = None
+    per_filter_post: dict[str, Posterior] = {}
+    companions: list[Companion] = []
+    group_scales = scales_ml
+    if k:
+        final_fit = fitting.fit_companions(
+            dataset, current.offsets_mas, current.log10_contrasts, scales_ml, diameter
+        )
+        if not final_fit.converged:
+            notes.append("the joint least-squares fit did not converge to its tolerance")
+        estimates = [_estimate_from_fit(final_fit, i, dataset.filters) for i in range(k)]
+        per_filter_est: list[dict[str, Estimate]] = [{} for _ in range(k)]
+        method = "fit"
+        if settings.hmc:
+            step(
+                f"NUTS: {k} companion(s), {dataset.n_filters} filter(s), "
+                f"{settings.num_chains}x({settings.num_warmup}+{settings.num_samples}) steps"
+            )
+            posterior = sample_posterior(
+                dataset,
+                final_fit,
+                scales_ml,
+                num_warmup=settings.num_warmup,
+                num_samples=settings.num_samples,
+                num_chains=settings.num_chains,
+                seed=settings.seed,
+                priors=settings.priors,
+                primary_diameter_mas=diameter,
+            )
+            notes.extend(posterior.warnings)
+            s = posterior.samples
+            estimates = [
+                _estimate_from_samples(
+                    s["dra"][:, i], s["ddec"][:, i], s["log10c"][:, i, :], dataset.filters
+                )
+                for i in range(k)
+            ]
+            group_scales = np.median(s["scale"], axis=0)
+            method = "hmc"
+        if settings.per_filter and dataset.n_filters > 1:
+            for f_index, f in enumerate(dataset.filters):
+                sub = dataset.subset(f)
+                sub_scales = fitting.estimate_scales(
+                    sub, final_fit.offsets_mas, final_fit.contrasts[:, [f_index]], diameter
+                )
+                sub_fit = fitting.fit_companions(
+                    sub,
+                    final_fit.offsets_mas,
+                    final_fit.log10_contrasts[:, [f_index]],
+                    sub_scales,
+                    diameter,
+                )
+                if settings.hmc:
+                    step(f"NUTS: {f} alone")
+                    post = sample_posterior(
+                        sub,
+                        sub_fit,
+                        sub_scales,
+                        num_warmup=settings.num_warmup,
+                        num_samples=settings.num_samples,
+                        num_chains=settings.num_chains,
+                        seed=settings.seed + 1 + f_index,
+                        priors=settings.priors,
+                        primary_diameter_mas=diameter,
+                    )
+                    notes.extend(f"{f}: {w}" for w in post.warnings)
+                    per_filter_post[f] = post
+                    for i in range(k):
+                        per_filter_est[i][f] = _estimate_from_samples(
+                            post.samples["dra"][:, i],
+                            post.samples["ddec"][:, i],
+                            post.samples["log10c"][:, i, :],
+                            (f,),
+                        )
+                else:
+                    for i in range(k):
+                        per_filter_est[i][f] = _estimate_from_fit(sub_fit, i, (f,))
+        companions = [
+            Companion(
+                id=i + 1,
+                estimate=estimates[i],
+                detection_sigma=significances[i],
+                method=method,
+                per_filter=per_filter_est[i],
+            )
+            for i in range(k)
+        ]
+
+    # Limits on the companion-subtracted data, with the fitted error scales.
+    step("contrast limits on the companion-subtracted data")
+    residual = contrast_grid(
+        dataset,
+        grid,
+        None if final_fit is None else final_fit.offsets_mas,
+        None if final_fit is None else final_fit.contrasts,
+        group_scales,
+        diameter,
+    )
+    photons = _photon_counts(dataset)
+    limits = contrast_limits(residual, settings.limit_sigma, photon_counts=photons)
+    return DetectionResult(
+        dataset=dataset,
+        settings=settings,
+        grid=grid,
+        detection_maps=tuple(maps),
+        residual_map=residual,
+        companions=tuple(companions),
+        fit=final_fit,
+        posterior=posterior,
+        per_filter_posteriors=per_filter_post,
+        group_scales=np.asarray(group_scales, dtype=float),
+        limits=tuple(limits),
+        photon_counts=photons,
+        warnings=tuple(notes),
+    )
+
+
+__all__ = ["KIND_NAMES", "Companion", "DetectionResult", "Estimate", "SearchSettings", "detect"]

@@ -1,0 +1,210 @@
+"""``amigo detect`` through its public interface: files written, keys, exit codes, peer data."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from amigo.cli import main
+from conftest import SHARED_DATA
+from detect_helpers import write_sim_calvis, write_sim_oifits
+
+#: Keys of companions.json fixed by the project's interfaces (shared/design/interfaces.md).
+TOP_KEYS = {
+    "amigo_version",
+    "inputs",
+    "filters",
+    "companions",
+    "sigma_scale",
+    "contrast_limits",
+    "photon_limit_dmag",
+}
+COMPANION_KEYS = {
+    "id",
+    "sep_mas",
+    "sep_err_mas",
+    "pa_deg",
+    "pa_err_deg",
+    "dra_mas",
+    "ddec_mas",
+    "dmag",
+    "dmag_err",
+    "detection_sigma",
+    "method",
+}
+
+
+def run(argv: list[str]) -> int:
+    with pytest.raises(SystemExit) as exit_info:
+        main(["detect", *argv])
+    return exit_info.value.code
+
+
+def within_2_sigma(companion: dict, dra: float, ddec: float, dmag: dict[str, float]) -> None:
+    assert abs(companion["dra_mas"] - dra) < 2 * companion["dra_err_mas"]
+    assert abs(companion["ddec_mas"] - ddec) < 2 * companion["ddec_err_mas"]
+    for f, value in dmag.items():
+        assert abs(companion["dmag"][f] - value) < 2 * companion["dmag_err"][f]
+
+
+@pytest.mark.slow
+@pytest.mark.filterwarnings("ignore::amigo.companions.posterior.PosteriorWarning")
+def test_calvis_end_to_end(tmp_path, capsys):
+    rng = np.random.default_rng(7)
+    truth = (-323.4, 59.9)
+    flux = {"F380M": 0.0188, "F480M": 0.0176}
+    inputs = [
+        str(write_sim_calvis(tmp_path / f"ABDOR-SIM_{f}_calvis.fits", f, [(*truth, flux[f])], rng))
+        for f in flux
+    ]
+    out = tmp_path / "out"
+    code = run(
+        [
+            *inputs,
+            "--out",
+            str(out),
+            "--rmax-mas",
+            "600",
+            "--warmup",
+            "60",
+            "--samples",
+            "60",
+            "--chains",
+            "1",
+            "--no-per-filter",
+        ]
+    )
+    assert code == 0
+    assert "companion 1: sep" in capsys.readouterr().out
+    names = sorted(p.name for p in out.iterdir())
+    assert names == [
+        "companions.json",
+        "contrast_limits.csv",
+        "contrast_limits.png",
+        "corner_1.png",
+        "detection_maps.png",
+        "posterior_predictive.png",
+    ]
+    doc = json.loads((out / "companions.json").read_text())
+    assert TOP_KEYS <= set(doc)
+    assert doc["filters"] == ["F380M", "F480M"]
+    assert doc["inputs"] == [os.path.basename(p) for p in inputs]
+    (companion,) = doc["companions"]
+    assert COMPANION_KEYS <= set(companion)
+    assert companion["method"] == "hmc" and companion["detection_sigma"] > 20
+    # Loose check here (60 samples); the 2-sigma recovery is tested in test_companions_search.
+    assert abs(companion["sep_mas"] - np.hypot(*truth)) < 5 * companion["sep_err_mas"] + 1
+    assert set(doc["contrast_limits"]["F480M"]) >= {"sep_mas", "dmag_3sigma"}
+    assert doc["photon_limit_dmag"]["F380M"] == pytest.approx(7.5)
+    with open(out / "contrast_limits.csv") as handle:
+        rows = list(csv.DictReader(handle))
+    assert {r["filter"] for r in rows} == {"F380M", "F480M"}
+    assert set(rows[0]) == {
+        "filter",
+        "sep_mas",
+        "n_sigma",
+        "ruffio_dmag",
+        "ruffio_dmag_std",
+        "absil_dmag",
+        "absil_dmag_std",
+        "photon_limit_dmag",
+    }
+
+
+@pytest.mark.parametrize("kind", ["missing", "text", "image"])
+def test_bad_input_exits_2_with_one_line(tmp_path, capsys, kind):
+    path = tmp_path / "input.fits"
+    if kind == "text":
+        path.write_text("hello")
+    elif kind == "image":
+        from astropy.io import fits
+
+        fits.HDUList([fits.PrimaryHDU(np.zeros((4, 4)))]).writeto(path)
+    code = run([str(path), "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err.strip()
+    assert code == 2
+    assert err.startswith("amigo: error:") and str(path) in err
+    assert len(err.splitlines()) == 1 and "Traceback" not in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_bad_option_exits_2(tmp_path, capsys):
+    code = run(["x.fits", "--out", str(tmp_path), "--rmax-mas", "-3"])
+    assert code == 2
+
+
+@pytest.mark.slow
+def test_peer_implaneia_binary_gives_a_companion(oifits_dir, tmp_path):
+    """The simulated binary's closure phases are fit by one companion (chi2_nu < 1).
+
+    Its V2 disagree with its own closure phases (no binary fits both: chi2 ~ 7000 for 21
+    V2), so closure phases alone are used, as a user would after seeing the V2 residuals.
+    """
+    out = tmp_path / "out"
+    code = run(
+        [
+            str(oifits_dir / "implaneia_sim_binary_F430M.oifits"),
+            "--out",
+            str(out),
+            "--observables",
+            "phase",
+            "--no-hmc",
+        ]
+    )
+    assert code == 0
+    doc = json.loads((out / "companions.json").read_text())
+    assert len(doc["companions"]) == 1
+    companion = doc["companions"][0]
+    assert companion["detection_sigma"] > 50
+    assert 0.5 < companion["dmag"]["F430M"] < 1.5  # a near-equal binary (flux ratio ~0.4)
+
+
+@pytest.mark.slow
+def test_peer_nuhor_null_and_injection(oifits_dir, tmp_path):
+    nuhor = oifits_dir / "NuHor_F480M.oifits"
+    code = run([str(nuhor), "--out", str(tmp_path / "null"), "--no-hmc"])
+    assert code == 0
+    doc = json.loads((tmp_path / "null" / "companions.json").read_text())
+    assert doc["companions"] == []
+    assert max(doc["search"]["max_joint_sigma_per_iteration"]) < 5.0
+
+    # The peer test: a companion at dRA=250, dDec=150 mas, flux ratio 5e-4, in data with
+    # Nu Hor's uv coverage and errors (closure-phase noise correlated through baselines).
+    injected = write_sim_oifits(
+        tmp_path / "nuhor_injected.oifits",
+        np.random.default_rng(1),
+        (250.0, 150.0, 5e-4),
+        template=nuhor,
+    )
+    code = run([str(injected), "--out", str(tmp_path / "inj"), "--no-hmc", "--rmax-mas", "400"])
+    assert code == 0
+    doc = json.loads((tmp_path / "inj" / "companions.json").read_text())
+    (companion,) = doc["companions"]
+    within_2_sigma(companion, 250.0, 150.0, {"F480M": -2.5 * np.log10(5e-4)})
+
+
+ABDOR_CALVIS = Path(os.environ.get("AMIGO_ABDOR_CALVIS", SHARED_DATA / "calvis" / "com1093"))
+
+
+@pytest.mark.slow
+def test_ab_dor_c_from_the_fitter(tmp_path):
+    """Real data end to end with issue 4: AB Dor C (paper: 328.85 mas; WCS PA 280.5 deg)."""
+    files = sorted(ABDOR_CALVIS.glob("AB-DOR_*_calvis.fits")) if ABDOR_CALVIS.is_dir() else []
+    if len(files) < 3:
+        pytest.skip(
+            f"AB Dor calvis files from `amigo fit` not found in {ABDOR_CALVIS} "
+            "(set AMIGO_ABDOR_CALVIS to the folder `amigo fit` wrote)"
+        )
+    out = tmp_path / "out"
+    assert run([*map(str, files), "--out", str(out)]) == 0
+    doc = json.loads((out / "companions.json").read_text())
+    companion = doc["companions"][0]
+    assert abs(companion["sep_mas"] - 328.85) < 3.0
+    assert abs((companion["pa_deg"] - 280.5 + 180) % 360 - 180) < 0.7
+    for f, paper in {"F380M": 4.313, "F430M": 4.354, "F480M": 4.381}.items():
+        assert abs(companion["dmag"][f] - paper) < 0.15

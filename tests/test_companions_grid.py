@@ -1,0 +1,128 @@
+"""Grid search and limits, against brute-force and SciPy calculations."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy import optimize, stats
+
+from amigo.companions import observables as obs
+from amigo.companions.fit import block_residuals
+from amigo.companions.grid import Grid, contrast_grid, sigma_from_chi2
+from amigo.companions.limits import (
+    absil_limit,
+    azimuthal_profile,
+    photon_limit_dmag,
+    ruffio_upper_limit,
+)
+from detect_helpers import write_sim_calvis, write_sim_oifits
+
+
+@pytest.fixture(autouse=True)
+def _float64():
+    with jax.enable_x64(True):
+        yield
+
+
+def _chi2(dataset, position, contrast, background=None):
+    offsets = [position] if background is None else [*background[0], position]
+    flux = [contrast] if background is None else [*background[1], contrast]
+    r = block_residuals(dataset, jnp.asarray(offsets, float), jnp.asarray(flux, float)[:, None])
+    return float(sum(jnp.sum(x**2) for x in r))
+
+
+@pytest.mark.parametrize("kind", ["calvis", "oifits"])
+def test_grid_contrast_is_the_chi2_minimum(tmp_path, kind):
+    """Each grid point's contrast, error and chi2 gain equal a brute-force 1-D minimisation."""
+    rng = np.random.default_rng(11)
+    if kind == "calvis":
+        path = write_sim_calvis(
+            tmp_path / "s_F480M_calvis.fits",
+            "F480M",
+            [(250.0, 150.0, 0.01), (-400.0, -90.0, 0.004)],
+            rng,
+        )
+    else:
+        path = write_sim_oifits(tmp_path / "s.oifits", rng, (250.0, 150.0, 0.01))
+    dataset = obs.Dataset.from_blocks([obs.load(path)])
+    grid = Grid.square(500.0, 100.0)
+    background = ([(-400.0, -90.0)], [0.004])  # one companion in the background scene
+    result = contrast_grid(dataset, grid, np.array(background[0]), np.array(background[1])[:, None])
+    m = result.maps[0]
+    chi2_0 = _chi2(dataset, (0.0, 0.0), 0.0, background)
+    for iy, ix in [(7, 8), (3, 1), (5, 9), (1, 4)]:
+        position = (grid.x_mas[ix], grid.y_mas[iy])
+        solution = optimize.minimize_scalar(
+            lambda c, p=position: _chi2(dataset, p, c, background),
+            bounds=(-0.3, 0.3),
+            method="bounded",
+            options={"xatol": 1e-10},
+        )
+        assert m.contrast[iy, ix] == pytest.approx(solution.x, abs=1e-6 + 1e-4 * abs(solution.x))
+        assert m.dchi2[iy, ix] == pytest.approx(chi2_0 - solution.fun, rel=1e-5, abs=1e-6)
+        # sigma = (d2 chi2 / dc2 / 2)^-1/2 by finite differences.
+        h = 1e-4
+        curvature = (
+            _chi2(dataset, position, solution.x + h, background)
+            - 2 * solution.fun
+            + _chi2(dataset, position, solution.x - h, background)
+        ) / h**2
+        assert m.sigma[iy, ix] == pytest.approx((curvature / 2) ** -0.5, rel=2e-2)
+
+
+def test_sigma_from_chi2():
+    x = np.array([0.0, 1.0, 9.0, 25.0, 40.0])
+    np.testing.assert_allclose(sigma_from_chi2(x, 1), np.sqrt(x))
+    expected = stats.norm.isf(stats.chi2.sf(x, 3) / 2)
+    np.testing.assert_allclose(sigma_from_chi2(x, 3)[1:], expected[1:], rtol=1e-9)
+    big = sigma_from_chi2(np.array([1e4, 4e4]), 3)
+    assert np.all(np.isfinite(big)) and big[1] > big[0] > 90
+
+
+def test_grid_geometry():
+    grid = Grid.square(1000.0, 10.0)
+    assert grid.shape == (201, 201)
+    valid = grid.valid(94.0)
+    assert not valid[100, 100] and valid[100, 0] and not valid[0, 0]
+
+
+def test_ruffio_limit_is_a_truncated_normal_quantile():
+    c = np.array([-3e-4, 0.0, 2e-4, 1e-3])
+    s = np.array([1e-4, 2e-4, 1e-4, 5e-4])
+    q = stats.norm.cdf(3.0)
+    expected = stats.truncnorm.ppf(q, (0 - c) / s, np.inf, loc=c, scale=s)
+    np.testing.assert_allclose(ruffio_upper_limit(c, s, q), expected, rtol=1e-8)
+
+
+def test_absil_limit_solves_the_exact_chi2_test(tmp_path):
+    """The quadratic Absil limit equals a root-finding on the exact model's chi2."""
+    path = write_sim_calvis(
+        tmp_path / "n_F430M_calvis.fits", "F430M", [], np.random.default_rng(12)
+    )
+    dataset = obs.Dataset.from_blocks([obs.load(path)])
+    grid = Grid.square(400.0, 100.0)
+    m = contrast_grid(dataset, grid).maps[0]
+    n, chi2_0 = m.n_obs, m.chi2_background
+    target = stats.chi2.isf(2 * stats.norm.sf(3.0), n)
+    for iy, ix in [(1, 2), (4, 0), (3, 3)]:
+        position = (grid.x_mas[ix], grid.y_mas[iy])
+        exact = optimize.brentq(
+            lambda c, p=position: n * _chi2(dataset, p, c) / chi2_0 - target, 1e-6, 0.5
+        )
+        limit = absil_limit(m.contrast[iy, ix], m.sigma[iy, ix], chi2_0, n)
+        assert limit == pytest.approx(exact, rel=0.02)
+
+
+def test_photon_rule_and_azimuthal_profile():
+    assert photon_limit_dmag(1e8) == pytest.approx(7.5)
+    radius = np.array([[1.0, 2.0], [3.0, 4.0]])
+    values = np.array([[1.0, 3.0], [5.0, 7.0]])
+    centres, mean, std, count = azimuthal_profile(
+        radius, values, np.ones((2, 2), bool), np.array([0.5, 2.5, 4.5])
+    )
+    np.testing.assert_allclose(centres, [1.5, 3.5])
+    np.testing.assert_allclose(mean, [2.0, 6.0])
+    np.testing.assert_allclose(std, [1.0, 1.0])
+    np.testing.assert_array_equal(count, [2, 2])
