@@ -142,15 +142,25 @@ class MovableHoles(eqx.Module):
     basis: Float[Array, "7 j ny nx"]
     flat_to_flat_m: float = eqx.field(static=True, default=instrument.HOLE_FLAT_TO_FLAT_M)
 
-    def hole_transmissions(self, grid: PupilGrid, softening_px: float = 1.0) -> Array:
+    def hole_transmissions(
+        self, grid: PupilGrid, softening_px: float = 1.0, supersample: int = 1
+    ) -> Array:
+        """(7, ny, nx) soft-edged hexagons at ``centres_m``; with ``supersample`` > 1 each
+        pixel is the mean of ``supersample^2`` sub-samples (as the optics' aperture)."""
         x, y = grid.coordinates()
-        edge = softening_px * grid.pixel_m
-        return jnp.stack(
-            [
-                soft_hexagon(x - cx, y - cy, jnp.asarray(self.flat_to_flat_m, x.dtype), edge)
-                for cx, cy in self.centres_m
-            ]
-        )
+        edge = softening_px * grid.pixel_m / supersample
+        size = jnp.asarray(self.flat_to_flat_m, x.dtype)
+        offsets = (np.arange(supersample) - 0.5 * (supersample - 1)) / supersample * grid.pixel_m
+        total = 0.0
+        for oy in offsets:
+            for ox in offsets:
+                total = total + jnp.stack(
+                    [
+                        soft_hexagon(x + ox - cx, y + oy - cy, size, edge)
+                        for cx, cy in self.centres_m
+                    ]
+                )
+        return total / supersample**2
 
     def zernike_basis(self, grid: PupilGrid, n_modes: int, radius_factor: float) -> Array:
         del grid, radius_factor
