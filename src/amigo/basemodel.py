@@ -96,6 +96,8 @@ class BaseModelConfig:
         Settings of the charge-migration network (see :mod:`amigo.detector.ramp`).
     gain_e_per_dn
         Gain (not trained: it is degenerate with the flux).
+    defocus_method
+        How the optics applies the Fresnel defocus (see :class:`amigo.optics.OpticsConfig`).
     """
 
     filters: tuple[str, ...] = instrument.CALIBRATED_FILTERS
@@ -109,6 +111,7 @@ class BaseModelConfig:
     network_width: int = 16
     network_depth: int = 3
     gain_e_per_dn: float = instrument.GAIN_E_PER_DN
+    defocus_method: str = "angular_spectrum"
 
     def to_json(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -123,8 +126,13 @@ class BaseModelConfig:
         return cls(**values)
 
     def optics_config(self) -> OpticsConfig:
+        # Pinned here, not taken from the optics' defaults: a model must predict what it
+        # was trained to predict whatever those defaults become.
         return OpticsConfig(
-            npix_detector=self.shape[0], pupil_npix=self.pupil_npix, n_zernike=self.n_zernike
+            npix_detector=self.shape[0],
+            pupil_npix=self.pupil_npix,
+            n_zernike=self.n_zernike,
+            defocus_method=self.defocus_method,
         )
 
 
