@@ -96,6 +96,8 @@ class BaseModelConfig:
         Settings of the charge-migration network (see :mod:`amigo.detector.ramp`).
     gain_e_per_dn
         Gain (not trained: it is degenerate with the flux).
+    defocus_method
+        How the optics applies the Fresnel defocus (see :class:`amigo.optics.OpticsConfig`).
     """
 
     filters: tuple[str, ...] = instrument.CALIBRATED_FILTERS
@@ -109,6 +111,7 @@ class BaseModelConfig:
     network_width: int = 16
     network_depth: int = 3
     gain_e_per_dn: float = instrument.GAIN_E_PER_DN
+    defocus_method: str = "angular_spectrum"
 
     def to_json(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -123,8 +126,13 @@ class BaseModelConfig:
         return cls(**values)
 
     def optics_config(self) -> OpticsConfig:
+        # Pinned here, not taken from the optics' defaults: a model must predict what it
+        # was trained to predict whatever those defaults become.
         return OpticsConfig(
-            npix_detector=self.shape[0], pupil_npix=self.pupil_npix, n_zernike=self.n_zernike
+            npix_detector=self.shape[0],
+            pupil_npix=self.pupil_npix,
+            n_zernike=self.n_zernike,
+            defocus_method=self.defocus_method,
         )
 
 
@@ -145,18 +153,20 @@ class MovableHoles(eqx.Module):
     def hole_transmissions(
         self, grid: PupilGrid, softening_px: float = 1.0, supersample: int = 1
     ) -> Array:
-        """(7, ny, nx) soft hexagons; with ``supersample`` > 1 each pixel is the mean of
-        ``supersample^2`` sub-samples (the optics' own convention)."""
+        """(7, ny, nx) soft-edged hexagons at ``centres_m``; with ``supersample`` > 1 each
+        pixel is the mean of ``supersample^2`` sub-samples (as the optics' aperture)."""
         x, y = grid.coordinates()
-        offsets = (np.arange(supersample) - 0.5 * (supersample - 1)) / supersample
         edge = softening_px * grid.pixel_m / supersample
-        f2f = jnp.asarray(self.flat_to_flat_m, x.dtype)
+        size = jnp.asarray(self.flat_to_flat_m, x.dtype)
+        offsets = (np.arange(supersample) - 0.5 * (supersample - 1)) / supersample * grid.pixel_m
         total = 0.0
         for oy in offsets:
             for ox in offsets:
-                xs, ys = x + ox * grid.pixel_m, y + oy * grid.pixel_m
                 total = total + jnp.stack(
-                    [soft_hexagon(xs - cx, ys - cy, f2f, edge) for cx, cy in self.centres_m]
+                    [
+                        soft_hexagon(x + ox - cx, y + oy - cy, size, edge)
+                        for cx, cy in self.centres_m
+                    ]
                 )
         return total / supersample**2
 
