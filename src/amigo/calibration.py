@@ -83,6 +83,21 @@ def _false_like(tree: Any) -> Any:
     return jax.tree.map(lambda _: False, tree)
 
 
+def _physical_leaves(m: BaseModel) -> tuple:
+    """The physical parameters trained on calibration exposures, in a fixed order (the
+    selector shared by :func:`physical_mask` and :func:`physical_step_limits`)."""
+    return (
+        m.zernikes_nm,
+        m.defocus_nm,
+        m.hole_centres_m,
+        m.detector.jitter_arcsec,
+        m.detector.rotation_deg,
+        m.detector.anisotropy,
+        m.ramp.intra_pixel.coefficients,
+        m.read.dark_e_per_group,
+    )
+
+
 def physical_mask(base: BaseModel, filter_name: str | None = None) -> BaseModel:
     """Boolean pytree over ``base.with_linear_detector()``: True on the physical
     parameters (trained on calibrators); only one filter's optics if ``filter_name``."""
@@ -92,16 +107,7 @@ def physical_mask(base: BaseModel, filter_name: str | None = None) -> BaseModel:
         return filter_name is None or k == filter_name
 
     return eqx.tree_at(
-        lambda m: (
-            m.zernikes_nm,
-            m.defocus_nm,
-            m.hole_centres_m,
-            m.detector.jitter_arcsec,
-            m.detector.rotation_deg,
-            m.detector.anisotropy,
-            m.ramp.intra_pixel.coefficients,
-            m.read.dark_e_per_group,
-        ),
+        _physical_leaves,
         _false_like(linear),
         (
             {k: on(k) for k in linear.zernikes_nm},
@@ -133,16 +139,7 @@ def physical_step_limits(base: BaseModel) -> BaseModel:
         jnp.full_like(physical.read.dark_e_per_group, 0.2),
     )
     return eqx.tree_at(
-        lambda m: (
-            m.zernikes_nm,
-            m.defocus_nm,
-            m.hole_centres_m,
-            m.detector.jitter_arcsec,
-            m.detector.rotation_deg,
-            m.detector.anisotropy,
-            m.ramp.intra_pixel.coefficients,
-            m.read.dark_e_per_group,
-        ),
+        _physical_leaves,
         physical,
         limits,
     )
