@@ -26,6 +26,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "info": ("amigo.cli.info", "Identify and validate JWST NIRISS AMI files."),
     "simulate": ("amigo.cli.simulate", "Simulate raw AMI ramps with physical detector effects."),
     "process": ("amigo.cli.process", "Raw ramps (uncal) -> slopes and covariances (calslope)."),
+    "fit": ("amigo.cli.fit", "Fit exposures and extract calibrated observables (DISCOs)."),
+    "basis": ("amigo.cli.basis", "Build and cache the latent visibility bases."),
     "detect": ("amigo.cli.detect", "Search calibrated observables for companions; limits."),
     "train": (
         "amigo.cli.train",

@@ -1,0 +1,110 @@
+"""Time to fit one exposure and one science/calibrator pair (``amigo fit`` machinery).
+
+Synthetic level-2 images of one filter (default F480M, 9 wavelengths, the default 51 x 51
+knot grid) are made with the optics of issue 3: a single-star calibrator and a binary
+science target. Prints a table of wall times on this machine: basis (load or build),
+Fisher information, natural-gradient iterations, float64 Hessians, the whole pair.
+
+    python benchmarks/fit.py [--filter F480M] [--iterations 150]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import time
+
+os.environ.setdefault("JAX_PLATFORMS", "cpu")
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from amigo.basis import load_basis
+from amigo.extract import extract_filter
+from amigo.fitting import FilterFit, FitConfig, FitExposure, latent_information
+from amigo.likelihood import ImageData
+from amigo.model import FilterSetup, Instrument
+from amigo.optics import LinearSpectrum, NRMOptics
+
+
+def scene(instrument, filter_name, sources, photons, rng):
+    optics = NRMOptics.create(zernikes_nm=jnp.asarray(rng.normal(0, 3.0, (7, 10))))
+    spectrum = LinearSpectrum.from_filter(filter_name, instrument.n_wavelengths)
+    ill = sum(f * optics.illuminance(spectrum, jnp.asarray(p)) for p, f in sources)
+    model = np.asarray(instrument.detector(ill, photons), float)
+    sigma = np.sqrt(model.clip(0) + 100.0)
+    mask = np.ones(model.shape, bool)
+    mask[:4] = False
+    return ImageData(model + sigma * rng.normal(size=model.shape), sigma, mask)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--filter", default="F480M")
+    parser.add_argument("--iterations", type=int, default=150)
+    args = parser.parse_args()
+    rng = np.random.default_rng(0)
+    instrument = Instrument.nominal()
+    rows = []
+
+    t = time.perf_counter()
+    basis, info = load_basis(instrument, args.filter)
+    rows.append(
+        ("basis (load or build)", time.perf_counter() - t, f"{info.n_amp}+{info.n_phase} modes")
+    )
+    cal = scene(instrument, args.filter, [((0.01, 0.02), 1.0)], 1e8, rng)
+    sci = scene(
+        instrument, args.filter, [((0.0, 0.0), 1 / 1.01), ((0.12, 0.09), 0.01 / 1.01)], 1e8, rng
+    )
+    config = FitConfig(max_iterations=args.iterations)
+
+    # One exposure: a calibrator alone (wavefront, visibilities, position, flux).
+    setup = FilterSetup.create(args.filter, instrument, basis)
+    fit = FilterFit(instrument, setup, [FitExposure("cal", "calibrator", "CAL", cal)])
+    t = time.perf_counter()
+    params = fit.initial_params()
+    precond = fit.preconditioner(params)
+    t_fisher = time.perf_counter() - t
+    result = fit.fit(config, params)
+    t_fit = result.seconds - t_fisher
+    t = time.perf_counter()
+    latent_information(fit, result.params)
+    t_hess = time.perf_counter() - t
+    del precond
+    rows.append(("1 exposure: Fisher information", t_fisher, ""))
+    rows.append(
+        ("1 exposure: optimisation", t_fit, f"{result.iterations} it, converged={result.converged}")
+    )
+    rows.append(("1 exposure: float64 Hessian + nuisances", t_hess, ""))
+    rows.append(("1 exposure: total", t_fisher + t_fit + t_hess, ""))
+
+    # A science/calibrator pair, the whole extraction (fit, Hessians, kernel, DISCOs).
+    t = time.perf_counter()
+    product = extract_filter(
+        instrument,
+        args.filter,
+        [FitExposure("cal", "calibrator", "CAL", cal), FitExposure("sci", "science", "SCI", sci)],
+        config,
+    )
+    rows.append(
+        (
+            "pair: fit + DISCOs",
+            time.perf_counter() - t,
+            f"{product.result.iterations} it, converged={product.result.converged}",
+        )
+    )
+
+    print(
+        f"\namigo fit benchmark, {args.filter}, {instrument.n_wavelengths} wavelengths, "
+        f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
+        f"jax {jax.__version__} on {jax.default_backend()}"
+    )
+    print(f"{'step':45s} {'seconds':>9s}  notes")
+    for name, seconds, note in rows:
+        print(f"{name:45s} {seconds:9.1f}  {note}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,309 @@
+"""``amigo fit --sci FILE... --cal FILE... --out DIR``: fit exposures, extract DISCOs.
+
+Writes, per science target and filter, ``<TARGPROP>_<FILTER>_calvis.fits`` and
+``<TARGPROP>_<FILTER>.oifits``; and ``fit_summary.json`` and ``plots/*.png`` (see
+docs/fit.md and the interfaces contract).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections import defaultdict
+from pathlib import Path
+
+import click
+
+from amigo.errors import InputError
+
+LEVEL2_KINDS = ("cal", "calints", "rateints", "rate")
+
+
+def _kind_of(path: Path) -> str:
+    """'calslope', a level-2 kind or 'uncal', without reading pixels."""
+    from astropy.io import fits
+
+    if path.name.lower().endswith("_calslope.fits"):
+        return "calslope"
+    try:
+        with fits.open(path) as hdul:
+            if "SLOPE" in hdul:
+                return "calslope"
+    except (OSError, ValueError):
+        pass  # read_header reports unreadable files precisely
+    from amigo.io.jwst import read_header
+
+    return read_header(path).kind
+
+
+def _check_inputs(sci: tuple[Path, ...], cal: tuple[Path, ...], detector: str | None) -> None:
+    kinds = {path: _kind_of(path) for path in (*sci, *cal)}
+    for path, kind in kinds.items():
+        if kind == "uncal":
+            raise InputError(path, "is a raw ramp (uncal): run 'amigo process' first")
+        if kind == "calslope":
+            raise InputError(
+                path,
+                "calslope input needs the ramp model (issue 8), which this version does not "
+                "have yet: fit STScI level-2 images (_cal, _calints, _rateints) instead",
+            )
+    levels = {"level2" if k in LEVEL2_KINDS else k for k in kinds.values()}
+    if len(levels) > 1:
+        raise InputError(None, "mixing raw-ramp products and level-2 images in one call")
+    if detector == "full":
+        raise InputError(
+            None,
+            "--detector full needs raw-ramp (calslope) input; level-2 images are fitted "
+            "with the linear detector (use --detector linear or leave it out)",
+        )
+
+
+@click.command("fit")
+@click.option(
+    "--sci",
+    "sci",
+    multiple=True,
+    required=True,
+    type=click.Path(path_type=Path),
+    help="Science exposure (repeat the option for several).",
+)
+@click.option(
+    "--cal",
+    "cal",
+    multiple=True,
+    required=True,
+    type=click.Path(path_type=Path),
+    help="Calibrator (PSF reference) exposure (repeat for several).",
+)
+@click.option("--out", "out", required=True, type=click.Path(path_type=Path), help="Output folder.")
+@click.option(
+    "--model",
+    "model",
+    type=click.Path(path_type=Path),
+    default=None,
+    help="Base model file (default: the nominal instrument).",
+)
+@click.option(
+    "--detector",
+    type=click.Choice(["full", "linear"]),
+    default=None,
+    help="Detector model: level-2 images use 'linear'.",
+)
+@click.option(
+    "--max-iterations",
+    type=int,
+    default=None,
+    help="Upper bound on optimiser iterations per filter.",
+)
+@click.option(
+    "--polish",
+    type=int,
+    default=0,
+    show_default=True,
+    help="BFGS polish steps after the natural-gradient descent.",
+)
+def command(
+    sci: tuple[Path, ...],
+    cal: tuple[Path, ...],
+    out: Path,
+    model: Path | None,
+    detector: str | None,
+    max_iterations: int | None,
+    polish: int,
+) -> None:
+    """Fit the instrument model to each exposure and extract calibrated observables.
+
+    Science and calibrator files are grouped by filter (from their headers); in each
+    filter all exposures are fitted jointly (visibilities shared per target, wavefront
+    from the calibrators), then each science target gets a calvis file of DISCOs and
+    an OIFITS file of calibrated V2 and closure phases.
+    """
+    os.environ.setdefault("JAX_PLATFORMS", "cpu")
+    overlap = set(sci) & set(cal)
+    if overlap:
+        raise InputError(sorted(overlap)[0], "is given both as --sci and --cal")
+    _check_inputs(sci, cal, detector)
+
+    import dataclasses
+
+    from amigo.fitting import FitConfig, FitExposure
+    from amigo.io.jwst import read_exposure
+    from amigo.likelihood import ImageData
+    from amigo.model import Instrument, load_instrument
+    from amigo.progress import step
+
+    instrument = Instrument.nominal() if model is None else load_instrument(model)
+    by_filter: dict[str, list[tuple[FitExposure, object]]] = defaultdict(list)
+    for role, paths in (("science", sci), ("calibrator", cal)):
+        for path in paths:
+            exposure = read_exposure(path)
+            image = ImageData.from_exposure(exposure)
+            fit_exposure = FitExposure(path.name, role, exposure.meta.target, image)
+            by_filter[exposure.meta.filter].append((fit_exposure, exposure.meta))
+    for filter_name, items in by_filter.items():
+        roles = {e.role for e, _ in items}
+        if "calibrator" not in roles:
+            raise InputError(items[0][1].path, f"no calibrator exposure in {filter_name}")
+        if "science" not in roles:
+            step(f"{filter_name}: calibrators only (no science exposure): skipped")
+        _check_orientations(items)
+    config = FitConfig(polish_steps=polish)
+    if max_iterations is not None:
+        config = dataclasses.replace(config, max_iterations=max_iterations)
+
+    out.mkdir(parents=True, exist_ok=True)
+    summary_exposures = []
+    filters_summary = {}
+    for filter_name, items in sorted(by_filter.items()):
+        if not any(e.role == "science" for e, _ in items):
+            continue
+        product = _run_filter(instrument, filter_name, items, config, out)
+        summary_exposures.extend(product["exposures"])
+        filters_summary[filter_name] = product["filter"]
+    _write_summary(out, instrument, summary_exposures, filters_summary)
+    step(f"wrote {out / 'fit_summary.json'}")
+
+
+def _check_orientations(items) -> None:
+    """Exposures of one target in one filter share visibilities: same roll required."""
+    by_target = defaultdict(list)
+    for exposure, meta in items:
+        by_target[exposure.target].append(meta)
+    for metas in by_target.values():
+        pas = [m.orientation.pa_aper_deg for m in metas]
+        spread = max((p - pas[0] + 180) % 360 - 180 for p in pas) - min(
+            (p - pas[0] + 180) % 360 - 180 for p in pas
+        )
+        if spread > 0.1:
+            raise InputError(
+                metas[0].path,
+                f"exposures of {metas[0].target} in {metas[0].filter} have roll angles "
+                f"{spread:.2f} deg apart; fit each roll separately",
+            )
+
+
+def _run_filter(instrument, filter_name, items, config, out: Path) -> dict:
+    import numpy as np
+
+    from amigo import instrument as nis
+    from amigo.basis import spectrum_figure
+    from amigo.detector.linear import sky_to_optical_matrix
+    from amigo.extract import extract_filter
+    from amigo.io.calvis import calvis_filename, write_calvis
+    from amigo.io.oifits_write import write_oifits
+    from amigo.plots.fit import exposure_figure, save_figure
+    from amigo.progress import step
+
+    exposures = [e for e, _ in items]
+    metas = {e.name: m for e, m in items}
+    product = extract_filter(instrument, filter_name, exposures, config)
+    fit = product.fit
+    plots = out / "plots"
+    save_figure(spectrum_figure(product.basis_info), plots / f"basis_{filter_name}.png")
+    for e, exposure in enumerate(fit.exposures):
+        stem = Path(exposure.name).name.removesuffix(".fits")
+        figure = exposure_figure(exposure.image, product.models[e], product.stats[e])
+        save_figure(figure, plots / f"{stem}_fit.png")
+
+    bins = nis.filter_bins(filter_name, instrument.n_wavelengths)
+    blue, red = nis.half_power_limits(filter_name)
+    params = product.result.params
+    for target_product in product.products:
+        target = target_product.target
+        sci_items = [(e, metas[e.name]) for e in exposures if e.target == target]
+        cal_names = [e.name for e in exposures if e.role == "calibrator"]
+        orientation = sci_items[0][1].orientation
+        sky_to_uv = sky_to_optical_matrix(orientation, instrument.detector)
+        photons = 0.0
+        for e, exposure in enumerate(fit.exposures):
+            if exposure.target == target:
+                meta = metas[exposure.name]
+                seconds = float(
+                    meta.primary_header.get("EFFEXPTM")
+                    or meta.nints * meta.ngroups * meta.group_time_s
+                )
+                photons += float(np.exp(params.exposures.log_flux[e])) * seconds * nis.GAIN_E_PER_DN
+        discos = target_product.discos
+        calvis_path = out / calvis_filename(target, filter_name)
+        write_calvis(
+            calvis_path,
+            values=discos.values,
+            errors=discos.errors,
+            kinds=discos.kinds,
+            disco_matrix=discos.matrix,
+            uv_m=fit.setup.basis.knots_m(),
+            wavelengths_m=bins.wavelengths_m,
+            weights=bins.weights,
+            sky_to_uv=sky_to_uv,
+            orientation=orientation,
+            n_photons=photons,
+            target=target,
+            filter_name=filter_name,
+            science_files=[e.name for e, _ in sci_items],
+            calibrator_files=cal_names,
+            header={
+                "NAMP": (fit.setup.basis.n_amp, "latent log-amplitude modes"),
+                "NPHA": (fit.setup.basis.n_phase, "latent phase modes"),
+                "NNUIS": (discos.kernel.n_nuisance, "nuisance parameters nulled"),
+            },
+        )
+        step(f"wrote {calvis_path}")
+        n_b = len(nis.baselines_m())
+        oifits_path = out / f"{calvis_path.name.removesuffix('_calvis.fits')}.oifits"
+        meta = sci_items[0][1]
+        write_oifits(
+            oifits_path,
+            target=target,
+            filter_name=filter_name,
+            wavelength_m=bins.central_wavelength_m,
+            bandwidth_m=red - blue,
+            log_amp=target_product.baseline_log_vis[:n_b],
+            phase_rad=target_product.baseline_log_vis[n_b:],
+            covariance=target_product.baseline_covariance,
+            sky_to_uv=sky_to_uv,
+            date_obs=meta.date_obs,
+            int_time_s=float(meta.primary_header.get("EFFEXPTM") or 0.0),
+        )
+        step(f"wrote {oifits_path}")
+    info = product.basis_info
+    return {
+        "exposures": [
+            {
+                "file": s.name,
+                "role": s.role,
+                "target": s.target,
+                "filter": s.filter,
+                "npix": s.npix,
+                "chi2": round(s.chi2, 3),
+                "dof": round(s.dof, 3),
+                "zscore_std": round(s.zscore_std, 5),
+                "converged": s.converged,
+                "iterations": s.iterations,
+                "seconds": round(s.seconds, 2),
+                "loss_change": float(product.result.loss_change),
+                "newton_decrement": float(product.result.newton_decrement),
+            }
+            for s in product.stats
+        ],
+        "filter": {
+            "basis_amplitude_modes": info.n_amp,
+            "basis_phase_modes": info.n_phase,
+            "kernel_amplitudes": int(product.kernel.amp.shape[0]),
+            "kernel_phases": int(product.kernel.phase.shape[0]),
+            "seconds": round(product.seconds, 2),
+        },
+    }
+
+
+def _write_summary(out: Path, instrument, exposures: list[dict], filters: dict) -> None:
+    from amigo._version import __version__
+    from amigo.io.atomic import write_text
+
+    summary = {
+        "amigo_version": __version__,
+        "model": instrument.name,
+        "detector": "linear",
+        "exposures": exposures,
+        "filters": filters,
+    }
+    write_text(out / "fit_summary.json", json.dumps(summary, indent=2) + "\n")

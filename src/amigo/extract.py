@@ -1,0 +1,217 @@
+"""From exposures of one filter to calibrated observables: fit -> Hessians -> kernel -> DISCOs.
+
+This is the work of ``amigo fit`` for one filter (:func:`extract_filter`), as a function a
+script can call. Steps:
+
+1. the latent basis of the filter (:func:`amigo.basis.load_basis`: shipped, cached or built);
+2. the joint fit of all exposures (:class:`amigo.fitting.FilterFit`);
+3. the Hessians of the latent visibilities at the optimum and the calibrators' nuisance
+   cross terms, float64 (:func:`amigo.fitting.latent_information`);
+4. per target: latent values and covariance; calibrators combined (inverse-covariance
+   weighted) into one reference;
+5. the kernel from the latent response to the nuisances at the calibrators' state, and the
+   DISCOs of every science target (:mod:`amigo.observables`);
+6. calibrated log-visibilities at the 21 mask baselines (for OIFITS).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from amigo import instrument as nis
+from amigo import observables as obs
+from amigo.basis import BasisInfo, load_basis
+from amigo.fitting import FilterFit, FitConfig, FitExposure, FitResult, latent_information
+from amigo.model import FilterSetup, Instrument
+from amigo.progress import step
+from amigo.visibility import UVGrid
+
+
+@dataclass
+class ExposureStats:
+    """Goodness of fit of one exposure (the keys of ``fit_summary.json``)."""
+
+    name: str
+    role: str
+    target: str
+    filter: str
+    npix: int
+    chi2: float
+    dof: float
+    zscore_std: float
+    converged: bool
+    iterations: int
+    seconds: float
+
+
+@dataclass
+class TargetProduct:
+    """Calibrated observables of one science target in one filter.
+
+    Attributes
+    ----------
+    target
+        Target name.
+    discos
+        :class:`amigo.observables.Discos`.
+    calibrated_latent, calibrated_covariance
+        ``x_sci - x_cal`` and ``C_sci + C_cal`` (latent ``[amp, phase]``).
+    baseline_log_vis, baseline_covariance
+        (42,) ``[log|V|, arg V]`` at the 21 mask baselines and its covariance.
+    """
+
+    target: str
+    discos: obs.Discos
+    calibrated_latent: np.ndarray
+    calibrated_covariance: np.ndarray
+    baseline_log_vis: np.ndarray
+    baseline_covariance: np.ndarray
+
+
+@dataclass
+class FilterProduct:
+    """Everything :func:`extract_filter` produced for one filter."""
+
+    filter_name: str
+    fit: FilterFit
+    result: FitResult
+    basis_info: BasisInfo
+    stats: list[ExposureStats]
+    models: np.ndarray
+    products: list[TargetProduct]
+    kernel: obs.Kernel
+    seconds: float
+
+
+def baseline_map(setup: FilterSetup) -> np.ndarray:
+    """(42, m_a + m_p) map: latent ``[amp, phase]`` -> ``[log|V|, arg V]`` at the 21 baselines."""
+    basis = setup.basis
+    grid = basis.grid
+    weights = grid.point_weights(nis.baselines_m())  # (21, n^2) on the full grid
+    s_amp, s_pha = grid.fold_matrix()  # (n^2, n_half)
+    knots = np.asarray(basis.knots)
+    amp = weights @ s_amp[:, knots] @ np.asarray(basis.amp, float)
+    pha = weights @ s_pha[:, knots] @ np.asarray(basis.phase, float)
+    out = np.zeros((2 * len(weights), amp.shape[1] + pha.shape[1]))
+    out[: len(weights), : amp.shape[1]] = amp
+    out[len(weights) :, amp.shape[1] :] = pha
+    return out
+
+
+def exposure_stats(
+    fit: FilterFit, result: FitResult, models: np.ndarray, seconds_each: float
+) -> list[ExposureStats]:
+    """chi2, dof and z-score spread of every exposure at the optimum.
+
+    ``dof`` = used pixels minus the parameters the exposure pays for: its position and
+    flux (3), its share of its target's latent visibilities and slope, and (calibrators)
+    its share of the 71 wavefront parameters.
+    """
+    p = result.params
+    n_latent = p.sources.amp.shape[1] + p.sources.phase.shape[1] + 1
+    n_optics = p.optics.zernikes_nm.size + 1
+    per_target = np.bincount(fit.source_index, minlength=len(fit.targets))
+    n_cal = max(int(fit.is_calibrator.sum()), 1)
+    stats = []
+    for e, exposure in enumerate(fit.exposures):
+        image = exposure.image
+        z = (image.data - models[e]) / image.error
+        z = z[image.mask]
+        share = 3 + n_latent / per_target[fit.source_index[e]]
+        if fit.is_calibrator[e]:
+            share += n_optics / n_cal
+        stats.append(
+            ExposureStats(
+                name=exposure.name,
+                role=exposure.role,
+                target=exposure.target,
+                filter=fit.setup.name,
+                npix=int(image.n_pixels),
+                chi2=float(np.sum(z * z)),
+                dof=float(image.n_pixels - share),
+                zscore_std=float(np.std(z)),
+                converged=bool(result.converged),
+                iterations=int(result.iterations),
+                seconds=float(seconds_each),
+            )
+        )
+    return stats
+
+
+def extract_filter(
+    instrument: Instrument,
+    filter_name: str,
+    exposures: list[FitExposure],
+    config: FitConfig | None = None,
+    grid: UVGrid | None = None,
+) -> FilterProduct:
+    """Fit the exposures of one filter and extract every science target's DISCOs.
+
+    ``grid`` is the knot grid of the latent basis (default :class:`UVGrid`'s 51 x 51).
+    """
+    start = time.perf_counter()
+    basis, basis_info = load_basis(instrument, filter_name, grid)
+    setup = FilterSetup.create(filter_name, instrument, basis)
+    fit = FilterFit(instrument, setup, exposures)
+    if not fit.is_calibrator.any():
+        raise ValueError(f"{filter_name}: no calibrator exposure")
+    if fit.is_calibrator.all():
+        raise ValueError(f"{filter_name}: no science exposure")
+    label = f"fit {filter_name}"
+    step(f"{label}: {fit.n_exposures} exposures, {len(fit.targets)} targets")
+    result = fit.fit(config, label=label)
+    step(
+        f"{label}: {'converged' if result.converged else 'NOT converged'} after "
+        f"{result.iterations} iterations (loss change {result.loss_change:.3g}, "
+        f"Newton decrement {result.newton_decrement:.3g} per exposure)"
+    )
+    information = latent_information(fit, result.params, label)
+    params = result.params
+    latents = np.concatenate(
+        [np.asarray(params.sources.amp, float), np.asarray(params.sources.phase, float)], axis=1
+    )
+    covariances = [obs.covariance_from_hessian(h) for h in information.hessian]
+    roles = fit.target_roles()
+    n_amp = basis.n_amp
+    nuisance = obs.nuisance_regression(information.cal_hessian, information.cross)
+    kernel = obs.build_kernel(nuisance, n_amp)
+    cal_idx = [i for i, t in enumerate(fit.targets) if roles[t] == "calibrator"]
+    cal_value, cal_cov = obs.combine(
+        [latents[i] for i in cal_idx], [covariances[i] for i in cal_idx]
+    )
+    to_knots = basis.latent_from_knots()
+    to_baselines = baseline_map(setup)
+    products = []
+    for i, target in enumerate(fit.targets):
+        if roles[target] != "science":
+            continue
+        discos = obs.discos(latents[i], covariances[i], cal_value, cal_cov, kernel, to_knots)
+        value = latents[i] - cal_value
+        cov = covariances[i] + cal_cov
+        products.append(
+            TargetProduct(
+                target=target,
+                discos=discos,
+                calibrated_latent=value,
+                calibrated_covariance=cov,
+                baseline_log_vis=to_baselines @ value,
+                baseline_covariance=to_baselines @ cov @ to_baselines.T,
+            )
+        )
+    models = np.asarray(fit.models(params), dtype=float)
+    seconds = time.perf_counter() - start
+    stats = exposure_stats(fit, result, models, seconds / fit.n_exposures)
+    return FilterProduct(
+        filter_name=filter_name,
+        fit=fit,
+        result=result,
+        basis_info=basis_info,
+        stats=stats,
+        models=models,
+        products=products,
+        kernel=kernel,
+        seconds=seconds,
+    )

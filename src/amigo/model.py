@@ -1,0 +1,409 @@
+"""Image-level forward model of one exposure (STScI level-2 data).
+
+::
+
+    wavelengths, weights (filter x linear SED)       position (optical frame, arcsec)
+          |                                                   |
+    optics (issue 3): mask + Zernikes + Fresnel defocus -> PSF_lambda (n_lambda, 240, 240)
+          |  visibilities: IFFT(OTF_lambda * exp(log V(b = f lambda)))      (amigo.visibility)
+          |  weighted sum over wavelengths, pixel integration
+          |  linear detector (issue 3): jitter, rotation/anisotropy, 3x3 binning
+          |  x flux
+    image (80, 80), DN/s
+
+Who owns what
+-------------
+:class:`Instrument`
+    The base model: everything that is *not* fitted to science data (mask geometry,
+    jitter, detector rotation and anisotropy, the nominal aberrations and defocus). Issue
+    8 will ship a calibrated one; until then the nominal instrument of issues 2/3 is used.
+:class:`FilterSetup`
+    What is fixed per filter during a fit: wavelengths and filter weights, the
+    visibility :class:`~amigo.visibility.Injector` and :class:`~amigo.visibility.LatentBasis`.
+:class:`OpticsParams`, :class:`SourceParams`, :class:`ExposureParams`
+    The fitted parameters, shared per filter (aberrations, defocus: from calibrators),
+    per target and filter (latent visibilities, spectral slope), per exposure (position,
+    flux). :mod:`amigo.fitting` wires the sharing.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from amigo import instrument as nis
+from amigo._version import __version__
+from amigo.detector.linear import LinearDetector
+from amigo.errors import InputError
+from amigo.optics import LinearSpectrum, NRMOptics
+from amigo.visibility import Injector, LatentBasis, UVGrid
+
+#: Number of wavelengths propagated per filter. Source: AMIGO paper (9 by default).
+DEFAULT_N_WAVELENGTHS = 9
+#: Detector pixels of optical field computed beyond each edge of SUB80, so that sources
+#: can be shifted by up to this much in the Fourier domain with no light missing at the
+#: field edges (4 px: 3e-6 of the peak against 2e-3 without; see tests/test_model.py).
+FIELD_MARGIN_PIX = 4
+#: FFT size of the visibility injection for the (80 + 2 * margin) * 3 = 264 sample field.
+INJECTION_FFT_SIZE = 512
+
+
+class Instrument(eqx.Module):
+    """The base model: the instrument state held fixed when fitting science data.
+
+    Attributes
+    ----------
+    optics
+        :class:`~amigo.optics.NRMOptics` (static mask), whose ``zernikes_nm`` and
+        ``defocus_nm`` are the starting point of the per-filter :class:`OpticsParams`.
+    detector
+        :class:`~amigo.detector.linear.LinearDetector`.
+    n_wavelengths
+        Wavelengths per filter.
+    name
+        Name and version of the base model (written into ``fit_summary.json``).
+    """
+
+    optics: NRMOptics
+    detector: LinearDetector
+    n_wavelengths: int = eqx.field(static=True, default=DEFAULT_N_WAVELENGTHS)
+    name: str = eqx.field(static=True, default=f"nominal-{__version__}")
+
+    @classmethod
+    def nominal(cls, n_wavelengths: int = DEFAULT_N_WAVELENGTHS) -> Instrument:
+        """The uncalibrated nominal instrument (instrument facts, no aberrations)."""
+        return cls(
+            optics=NRMOptics.create(),
+            detector=LinearDetector.create(),
+            n_wavelengths=n_wavelengths,
+            name=f"nominal-{__version__} (uncalibrated: no base model trained yet)",
+        )
+
+    @property
+    def psf_pixel_rad(self) -> float:
+        return float(self.optics.config.psf_pixel_rad)
+
+    @property
+    def psf_size(self) -> int:
+        """Samples per side of the detector's oversampled grid (240)."""
+        return int(self.optics.config.npix_psf)
+
+    @property
+    def oversample(self) -> int:
+        return int(self.optics.config.oversample)
+
+    @property
+    def field_size(self) -> int:
+        """Samples per side of the optical field computed (240 + 2 margins = 264)."""
+        return self.psf_size + 2 * FIELD_MARGIN_PIX * self.oversample
+
+    def wide_optics(self, optics_params: OpticsParams) -> NRMOptics:
+        """The optics with the given wavefront, on the field widened by the margins."""
+        o = self.optics
+        config = dataclasses.replace(
+            o.config, npix_detector=o.config.npix_detector + 2 * FIELD_MARGIN_PIX
+        )
+        return NRMOptics(
+            aperture=o.aperture,
+            zernikes_nm=optics_params.zernikes_nm,
+            defocus_nm=optics_params.defocus_nm,
+            hole_amplitudes=o.hole_amplitudes,
+            grid=o.grid,
+            config=config,
+        )
+
+
+def save_instrument(instrument: Instrument, path: str | Path) -> None:
+    """Serialise an :class:`Instrument`'s arrays (equinox leaves) to ``path``."""
+    from amigo.io.atomic import atomic_path
+
+    with atomic_path(path) as tmp:
+        eqx.tree_serialise_leaves(tmp, instrument)
+
+
+def load_instrument(path: str | Path) -> Instrument:
+    """Load arrays saved by :func:`save_instrument` into the nominal structure.
+
+    Raises :class:`~amigo.errors.InputError` if the file does not match it.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "no such base-model file")
+    try:
+        return eqx.tree_deserialise_leaves(path, Instrument.nominal())
+    except Exception as error:  # equinox raises several types for a mismatched file
+        raise InputError(path, f"is not an amigo base model of this version ({error})") from None
+
+
+class FilterSetup(eqx.Module):
+    """Everything fixed for one filter during a fit.
+
+    Attributes
+    ----------
+    name
+        Filter.
+    wavelengths_m, filter_weights
+        (n,) bin wavelengths (m) and integrated throughputs (sum to one).
+    central_wavelength_m
+        Throughput-weighted mean wavelength (m): the pivot of the linear SED.
+    injector
+        Visibility injection for these wavelengths.
+    grid
+        The knot grid of the log-visibilities.
+    basis
+        Latent visibility basis of the filter (``None`` while the basis is being built).
+    """
+
+    name: str = eqx.field(static=True)
+    wavelengths_m: Float[Array, " n"]
+    filter_weights: Float[Array, " n"]
+    central_wavelength_m: Float[Array, ""]
+    injector: Injector
+    grid: UVGrid = eqx.field(static=True)
+    basis: LatentBasis | None = None
+
+    @classmethod
+    def create(
+        cls,
+        name: str,
+        instrument: Instrument,
+        basis: LatentBasis | None = None,
+        grid: UVGrid | None = None,
+        dtype=np.float32,
+    ) -> FilterSetup:
+        """Setup of filter ``name``; ``grid`` defaults to the basis's (or the default)."""
+        grid = basis.grid if basis is not None else (grid or UVGrid())
+        bins = nis.filter_bins(name, instrument.n_wavelengths)
+        injector = Injector.build(
+            grid,
+            bins.wavelengths_m,
+            instrument.psf_pixel_rad,
+            instrument.field_size,
+            fft_size=INJECTION_FFT_SIZE,
+            dtype=dtype,
+        )
+        return cls(
+            name=name,
+            wavelengths_m=jnp.asarray(bins.wavelengths_m, dtype),
+            filter_weights=jnp.asarray(bins.weights, dtype),
+            central_wavelength_m=jnp.asarray(bins.central_wavelength_m, dtype),
+            injector=injector,
+            grid=grid,
+            basis=basis,
+        )
+
+    def spectrum(self, slope_per_um: Array) -> LinearSpectrum:
+        """The filter's :class:`~amigo.optics.LinearSpectrum` with SED slope ``m``."""
+        return LinearSpectrum(
+            wavelengths_m=self.wavelengths_m,
+            filter_weights=self.filter_weights,
+            central_wavelength_m=self.central_wavelength_m,
+            slope_per_um=slope_per_um,
+        )
+
+
+class OpticsParams(eqx.Module):
+    """Per-filter wavefront: fitted on calibrators, fixed for science targets.
+
+    Attributes
+    ----------
+    zernikes_nm
+        (7, 10) Noll Zernike coefficients per hole (rms nm).
+    defocus_nm
+        Fresnel defocus (Noll Z4 over the pupil, rms nm; see :class:`~amigo.optics.NRMOptics`).
+    """
+
+    zernikes_nm: Float[Array, "7 nz"]
+    defocus_nm: Float[Array, ""]
+
+    @classmethod
+    def from_instrument(cls, instrument: Instrument) -> OpticsParams:
+        return cls(instrument.optics.zernikes_nm, instrument.optics.defocus_nm)
+
+
+class SourceParams(eqx.Module):
+    """Per target and filter: latent visibilities and spectral slope.
+
+    Attributes
+    ----------
+    amp, phase
+        (m_a,), (m_p,) latent log-amplitudes and phases (see :class:`LatentBasis`).
+    slope_per_um
+        Linear SED slope ``m`` (per micron).
+    """
+
+    amp: Float[Array, " ma"]
+    phase: Float[Array, " mp"]
+    slope_per_um: Float[Array, ""]
+
+    @classmethod
+    def point(cls, basis: LatentBasis, dtype=jnp.float32) -> SourceParams:
+        """A point source (``V = 1``) with a flat SED."""
+        return cls(
+            jnp.zeros(basis.n_amp, dtype), jnp.zeros(basis.n_phase, dtype), jnp.zeros((), dtype)
+        )
+
+
+class ExposureParams(eqx.Module):
+    """Per exposure: position of the source and its flux.
+
+    Attributes
+    ----------
+    position_arcsec
+        (2,) offset ``(x, y)`` from the field centre in the optical frame (arcsec).
+    log_flux
+        Natural log of the flux entering the mask, in the image unit (DN/s for level 2).
+    """
+
+    position_arcsec: Float[Array, " 2"]
+    log_flux: Float[Array, ""]
+
+
+def filter_psfs(
+    instrument: Instrument,
+    setup: FilterSetup,
+    optics_params: OpticsParams,
+    anchor_arcsec: Float[Array, " 2"] | None = None,
+) -> Float[Array, "l 264 264"]:
+    """(n_lambda, 264, 264) monochromatic PSFs (unit power each) on the widened field.
+
+    Computed once per filter and shared by every exposure of the filter, for a source at
+    ``anchor_arcsec`` (optical frame; default the centre): each exposure's offset from the
+    anchor is applied as a Fourier phase ramp in the visibility injection, which equals
+    the optics' pupil tilt for a band-limited PSF, at no extra propagation cost. The
+    margins keep this exact for offsets up to :data:`FIELD_MARGIN_PIX` pixels.
+    """
+    optics = instrument.wide_optics(optics_params)
+    dtype = setup.wavelengths_m.dtype
+    anchor = jnp.zeros(2, dtype) if anchor_arcsec is None else anchor_arcsec
+    return optics.psfs(setup.wavelengths_m, anchor)
+
+
+def image_from_psfs(
+    instrument: Instrument,
+    setup: FilterSetup,
+    psfs: Float[Array, "l 264 264"],
+    slope_per_um: Array,
+    exposure: ExposureParams,
+    log_amp: Float[Array, "k k"] | None,
+    phase: Float[Array, "k k"] | None,
+    anchor_arcsec: Float[Array, " 2"] | None = None,
+) -> Float[Array, "80 80"]:
+    """The 80 x 80 detector image from :func:`filter_psfs` and log-visibility grids."""
+    config = instrument.optics.config
+    pixel_arcsec = config.pixel_scale_arcsec / config.oversample
+    offset = (
+        exposure.position_arcsec
+        if anchor_arcsec is None
+        else (exposure.position_arcsec - anchor_arcsec)
+    )
+    spectrum = setup.spectrum(slope_per_um)
+    images = setup.injector(psfs, log_amp, phase, shift_pix=offset / pixel_arcsec)
+    lo = FIELD_MARGIN_PIX * config.oversample
+    images = images[:, lo : lo + instrument.psf_size, lo : lo + instrument.psf_size]
+    illuminance = instrument.optics.integrate_pixels(jnp.tensordot(spectrum.weights(), images, 1))
+    return instrument.detector(illuminance, jnp.exp(exposure.log_flux))
+
+
+def image_from_log_vis(
+    instrument: Instrument,
+    setup: FilterSetup,
+    optics_params: OpticsParams,
+    slope_per_um: Array,
+    exposure: ExposureParams,
+    log_amp: Float[Array, "k k"] | None,
+    phase: Float[Array, "k k"] | None,
+) -> Float[Array, "80 80"]:
+    """The 80 x 80 detector image for given log-visibility grids (see module notes)."""
+    psfs = filter_psfs(instrument, setup, optics_params)
+    return image_from_psfs(instrument, setup, psfs, slope_per_um, exposure, log_amp, phase)
+
+
+def exposure_image(
+    instrument: Instrument,
+    setup: FilterSetup,
+    optics_params: OpticsParams,
+    source: SourceParams,
+    exposure: ExposureParams,
+) -> Float[Array, "80 80"]:
+    """The 80 x 80 model image (DN/s) of one exposure."""
+    if setup.basis is None:
+        raise ValueError(f"filter setup {setup.name} has no latent basis")
+    log_amp, phase = setup.basis.grids(source.amp, source.phase)
+    return image_from_log_vis(
+        instrument, setup, optics_params, source.slope_per_um, exposure, log_amp, phase
+    )
+
+
+def locate(
+    data: np.ndarray,
+    mask: np.ndarray,
+    template: np.ndarray,
+    detector: LinearDetector,
+) -> tuple[np.ndarray, float]:
+    """Initial position and flux of a star from its image.
+
+    Cross-correlates the masked data with a centred model ``template`` (same shape),
+    refines the integer peak with a parabola, and returns the optical-frame position
+    (arcsec) and the flux scale ``sum(data) / sum(template)`` over the mask.
+    """
+    d = np.where(mask, data, 0.0)
+    t = np.where(mask, template, 0.0)
+    corr = np.real(np.fft.ifft2(np.fft.fft2(d) * np.conj(np.fft.fft2(t))))
+    iy, ix = np.unravel_index(np.argmax(corr), corr.shape)
+
+    def vertex(m1: float, c0: float, p1: float) -> float:
+        denom = m1 - 2 * c0 + p1
+        return 0.0 if denom == 0 else 0.5 * (m1 - p1) / denom
+
+    n, m = corr.shape
+    dy = vertex(corr[(iy - 1) % n, ix], corr[iy, ix], corr[(iy + 1) % n, ix])
+    dx = vertex(corr[iy, (ix - 1) % m], corr[iy, ix], corr[iy, (ix + 1) % m])
+    # Shifts beyond half the field wrap to negative offsets.
+    shift_y = (iy + n // 2) % n - n // 2 + dy
+    shift_x = (ix + m // 2) % m - m // 2 + dx
+    position = np.asarray(detector.detector_to_optical(jnp.array([shift_x, shift_y])))
+    flux = float(np.sum(d) / np.sum(t)) if np.sum(t) > 0 else 1.0
+    return position, flux
+
+
+def unit_image(
+    instrument: Instrument,
+    setup: FilterSetup,
+    log_amp_half: Float[Array, " h"],
+    phase_half: Float[Array, " h"],
+) -> Float[Array, "80 80"]:
+    """A centred unit-flux point source of flat SED seen with the instrument's nominal
+    wavefront, as a function of the free knot values (``V = 1`` at zero). The latent
+    basis is built from this function's Jacobian.
+    """
+    dtype = setup.injector.w_y.dtype
+    exposure = ExposureParams(jnp.zeros(2, dtype), jnp.zeros((), dtype))
+    log_amp, phase = setup.grid.to_full(log_amp_half, phase_half)
+    return image_from_log_vis(
+        instrument,
+        setup,
+        OpticsParams.from_instrument(instrument),
+        jnp.zeros((), dtype),
+        exposure,
+        log_amp,
+        phase,
+    )
+
+
+def float64(tree):
+    """Cast every floating array of a pytree to float64 (inside ``jax.enable_x64``)."""
+    return jax.tree.map(
+        lambda x: (
+            jnp.asarray(x, jnp.float64)
+            if isinstance(x, jax.Array | np.ndarray) and jnp.issubdtype(x.dtype, jnp.floating)
+            else x
+        ),
+        tree,
+    )

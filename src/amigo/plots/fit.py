@@ -1,0 +1,60 @@
+"""Diagnostic figures of a fit: data, model, normalised residuals, z-score histogram."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from amigo.plots.optics import save
+
+
+def exposure_figure(image, model: np.ndarray, stats) -> Figure:
+    """Four panels for one exposure.
+
+    Parameters
+    ----------
+    image
+        :class:`amigo.likelihood.ImageData` (data, error, mask).
+    model
+        (80, 80) model image, same unit as the data (DN/s).
+    stats
+        :class:`amigo.extract.ExposureStats` (for the title).
+    """
+    fig = Figure(figsize=(16, 4.2), layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = [fig.add_subplot(1, 4, i + 1) for i in range(4)]
+    data = np.where(image.mask, image.data, np.nan)
+    peak = np.nanmax(np.abs(data)) or 1.0
+    stretch = dict(origin="lower", cmap="inferno", vmin=0.0, vmax=np.sqrt(peak))
+    for ax, values, title in ((axes[0], data, "data"), (axes[1], model, "model")):
+        im = ax.imshow(np.sqrt(np.clip(values, 0, None)), **stretch)
+        ax.set_title(f"{title} (sqrt, DN/s)")
+        fig.colorbar(im, ax=ax, shrink=0.8)
+    z = np.where(image.mask, (image.data - model) / image.error, np.nan)
+    lim = max(3.0, float(np.nanpercentile(np.abs(z), 99.5)))
+    im = axes[2].imshow(z, origin="lower", cmap="RdBu_r", vmin=-lim, vmax=lim)
+    axes[2].set_title("(data - model) / sigma")
+    fig.colorbar(im, ax=axes[2], shrink=0.8)
+    values = z[np.isfinite(z)]
+    bins = np.linspace(-max(5.0, lim), max(5.0, lim), 81)
+    axes[3].hist(values, bins=bins, density=True, color="tab:blue", alpha=0.7, label="pixels")
+    grid = np.linspace(bins[0], bins[-1], 400)
+    axes[3].plot(grid, np.exp(-0.5 * grid**2) / np.sqrt(2 * np.pi), "k--", label="N(0, 1)")
+    axes[3].set_yscale("log")
+    axes[3].set_ylim(1e-5, 1.0)
+    axes[3].set_xlabel("z-score")
+    axes[3].set_title(f"std {np.std(values):.3f}")
+    axes[3].legend()
+    fig.suptitle(
+        f"{stats.name}  {stats.role} {stats.target} {stats.filter}:  "
+        f"chi2/dof = {stats.chi2:.0f}/{stats.dof:.0f} = {stats.chi2 / stats.dof:.3f}"
+    )
+    return fig
+
+
+def save_figure(fig: Figure, path: str | Path) -> Path:
+    """Write a figure as PNG atomically (creating the folder)."""
+    return save(fig, path)
