@@ -22,7 +22,7 @@ def _run(args):
     return 0
 
 
-def test_calslope_input_is_refused_clearly(tmp_path, capsys):
+def test_calslope_mixed_with_level2_or_with_detector_full_is_refused(tmp_path, capsys):
     calslope = tmp_path / "x_calslope.fits"
     fits.HDUList([fits.PrimaryHDU(), fits.ImageHDU(np.zeros((2, 80, 80)), name="SLOPE")]).writeto(
         calslope
@@ -31,7 +31,16 @@ def test_calslope_input_is_refused_clearly(tmp_path, capsys):
     code = _run(["fit", "--sci", str(calslope), "--cal", str(cal), "--out", str(tmp_path / "o")])
     assert code == 2
     err = capsys.readouterr().err
-    assert "calslope" in err and "ramp model" in err and "Traceback" not in err
+    assert "mixing" in err and "Traceback" not in err
+    other = tmp_path / "y_calslope.fits"
+    fits.HDUList([fits.PrimaryHDU(), fits.ImageHDU(np.zeros((2, 80, 80)), name="SLOPE")]).writeto(
+        other
+    )
+    args = ["fit", "--sci", str(calslope), "--cal", str(other), "--out", str(tmp_path / "o")]
+    assert _run([*args, "--detector", "full"]) == 2
+    err = capsys.readouterr().err
+    assert "--detector full" in err and "--detector linear" in err
+    assert not (tmp_path / "o").exists()
 
 
 def test_uncal_and_detector_full_are_refused(tmp_path, capsys):

@@ -106,7 +106,8 @@ def exposure_stats(
 ) -> list[ExposureStats]:
     """chi2, dof and z-score spread of every exposure at the optimum.
 
-    ``dof`` = used pixels minus the parameters the exposure pays for: its position and
+    ``dof`` = values in the likelihood (pixels, or slopes for calslope exposures) minus
+    the parameters the exposure pays for: its position and
     flux (3), its share of its target's latent visibilities and slope, and (calibrators)
     its share of the 71 wavefront parameters.
     """
@@ -118,8 +119,7 @@ def exposure_stats(
     stats = []
     for e, exposure in enumerate(fit.exposures):
         image = exposure.image
-        z = (image.data - models[e]) / image.error
-        z = z[image.mask]
+        z = image.zscores(models[e])  # pixels, or slopes for a calslope exposure
         share = 3 + n_latent / per_target[fit.source_index[e]]
         if fit.is_calibrator[e]:
             share += n_optics / n_cal
@@ -131,7 +131,7 @@ def exposure_stats(
                 filter=fit.setup.name,
                 npix=int(image.n_pixels),
                 chi2=float(np.sum(z * z)),
-                dof=float(image.n_pixels - share),
+                dof=float(z.size - share),
                 zscore_std=float(np.std(z)),
                 converged=bool(result.converged),
                 iterations=int(result.iterations),

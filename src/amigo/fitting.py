@@ -133,7 +133,7 @@ class FitConfig:
         ``"diagonal"`` (its diagonal only).
     """
 
-    max_iterations: int = 40
+    max_iterations: int = 20
     learning_rate: float = 0.3
     momentum: float = 0.6
     starts: dict[str, int] = field(

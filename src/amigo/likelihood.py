@@ -24,14 +24,19 @@ inside a fit whitening is one batched mat-vec.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
+from amigo import instrument
 from amigo.errors import InputError
 from amigo.io.jwst import Exposure
+
+if TYPE_CHECKING:
+    from amigo.io.calslope import CalSlope
 
 LOG_2PI = float(np.log(2.0 * np.pi))
 
@@ -52,12 +57,21 @@ class ImageData:
         (80, 80) True where the pixel is used.
     n_integrations
         Integrations averaged into ``data`` (1 for ``_cal``).
+    whitened_slopes
+        For an image reduced from a calslope file (:meth:`from_calslope`): (2, ny, nx, m)
+        ``W 1`` and ``W s`` per pixel (``W`` the slopes' whitening matrix, ``s`` the
+        slopes in DN per group; zero where masked), so that the slope-level residuals of
+        any model image can be formed (:meth:`slope_zscores`). ``None`` otherwise.
+    group_time_s
+        Time per group (s) of the calslope file; 0 for level-2 images.
     """
 
     data: np.ndarray
     error: np.ndarray
     mask: np.ndarray
     n_integrations: int = 1
+    whitened_slopes: np.ndarray | None = None
+    group_time_s: float = 0.0
 
     @property
     def n_pixels(self) -> int:
@@ -92,6 +106,75 @@ class ImageData:
             mask=mask,
             n_integrations=int(data.shape[0]),
         )
+
+    @classmethod
+    def from_calslope(
+        cls, product: CalSlope, group_time_s: float, structure: str = "auto"
+    ) -> ImageData:
+        """Reduce a calslope product to the image of a linear detector, exactly.
+
+        With linear charge accumulation every slope of a pixel has the same expectation
+        ``r`` (DN per group), so the slope likelihood ``(s - r 1)^T C^-1 (s - r 1)`` is,
+        up to a term that does not depend on ``r``, ``(r_hat - r)^2 / var`` with the
+        generalised least-squares estimate ``r_hat = 1^T C^-1 s / 1^T C^-1 1`` and
+        ``var = 1 / 1^T C^-1 1``. The image is ``r_hat / group_time_s`` in DN/s. The
+        dropped term (the slopes' departure from a constant: non-linearity and
+        brighter-fatter signal) is kept in :attr:`whitened_slopes` and added back by
+        :meth:`slope_zscores`, so reported chi2 and z-scores are those of the slopes.
+
+        ``structure`` is that of :meth:`SlopeNoise.from_covariance`; ``"auto"`` uses the
+        full covariance when every slope was averaged over at least ``10 m`` integrations
+        (``m`` slopes per pixel; a sample covariance from fewer is too noisy to invert),
+        and the pooled estimate otherwise (see there).
+        """
+        path = product.path or "<calslope>"
+        slopes = np.asarray(product.slope_dn, dtype=np.float64)
+        m, ny, nx = slopes.shape
+        if structure == "auto":
+            support = np.asarray(product.slope_support)[:, ~product.badpix]
+            enough = support.size and np.nanmin(support) >= 10 * m
+            structure = "full" if enough else "pooled"
+        bad = product.badpix | ~np.all(np.isfinite(slopes), axis=0)
+        bad[: instrument.N_REFERENCE_ROWS] = True
+        noise = SlopeNoise.from_covariance(product.slope_cov_dn2, bad=bad, structure=structure)
+        if noise.pixels.size < MIN_PIXELS:
+            raise InputError(
+                path, f"only {noise.pixels.size} usable pixels (at least {MIN_PIXELS} needed)"
+            )
+        flat = slopes.reshape(m, -1).T[noise.pixels]  # (n, m)
+        u = noise.whitening @ np.ones(m)  # (n, m): W 1
+        v = np.einsum("nij,nj->ni", noise.whitening, flat)  # W s
+        information = np.sum(u * u, axis=1)  # 1^T C^-1 1
+        rate = np.sum(u * v, axis=1) / information
+        data, error = np.zeros(ny * nx), np.ones(ny * nx)
+        data[noise.pixels] = rate / group_time_s
+        error[noise.pixels] = 1.0 / np.sqrt(information) / group_time_s
+        mask = np.zeros(ny * nx, bool)
+        mask[noise.pixels] = True
+        whitened = np.zeros((2, ny * nx, m))
+        whitened[0, noise.pixels], whitened[1, noise.pixels] = u, v
+        support = np.asarray(product.slope_support)
+        return cls(
+            data=data.reshape(ny, nx),
+            error=error.reshape(ny, nx),
+            mask=mask.reshape(ny, nx),
+            n_integrations=int(np.nanmax(support)) if support.size else 1,
+            whitened_slopes=whitened.reshape(2, ny, nx, m),
+            group_time_s=float(group_time_s),
+        )
+
+    def zscores(self, model: np.ndarray) -> np.ndarray:
+        """Whitened residuals of a model image (DN/s) over the values in the likelihood.
+
+        Pixels for a level-2 image, (n_pixels,); slopes for an image reduced from a
+        calslope file, (n_pixels * m,) (see :meth:`from_calslope`).
+        """
+        model = np.asarray(model, dtype=np.float64)
+        if self.whitened_slopes is None:
+            return ((self.data - model) / self.error)[self.mask]
+        u, v = self.whitened_slopes
+        z = v - u * (model * self.group_time_s)[..., None]
+        return z[self.mask].ravel()
 
 
 class PixelData(eqx.Module):

@@ -85,6 +85,21 @@ class Instrument(eqx.Module):
             name=f"nominal-{__version__} (uncalibrated: no base model trained yet)",
         )
 
+    @classmethod
+    def from_base_model(cls, base, filter_name: str, name: str = "amigo base model") -> Instrument:
+        """The image-level instrument of one filter from a trained
+        :class:`~amigo.basemodel.BaseModel`: its mask (fitted hole positions), wavefront
+        and defocus of that filter, and linear detector (jitter, rotation, anisotropy).
+        The base model's ramp and read models are not part of it (level-2 images and
+        calslope files fitted with ``--detector linear``)."""
+        optics = base.optics(filter_name, base.pupil_cache())
+        return cls(
+            optics=optics,
+            detector=base.detector,
+            n_wavelengths=int(base.config.n_wavelengths),
+            name=f"{name} ({filter_name}; linear detector)",
+        )
+
     @property
     def psf_pixel_rad(self) -> float:
         return float(self.optics.config.psf_pixel_rad)

@@ -64,10 +64,13 @@ class NewtonConfig:
     max_iterations
         Jacobian evaluations (each is the cost of one Fisher matrix).
     tolerance
-        Converged when the Newton decrement ``g^T F^+ g`` per exposure is below this.
-        It is in units of chi2: the Mahalanobis distance squared to the optimum, in all
-        the exposure's few hundred parameters together. 1 leaves each parameter within a
-        small fraction of its error (0.06 sigma rms for 300 parameters).
+        Converged when the Newton decrement ``g^T F^+ g`` per exposure is below this
+        times ``max(1, chi2 / n)`` (``n`` values in the likelihood). It is in units of
+        chi2: the Mahalanobis distance squared to the optimum, in all the exposure's few
+        hundred parameters together; 1 leaves each parameter within a small fraction of
+        its error (0.06 sigma rms for 300 parameters). When the model does not fit to
+        the noise (reduced chi2 above 1) the parameter errors grow by that factor, and
+        so does the tolerance.
     damping
         Initial Levenberg-Marquardt damping ``mu`` (relative to unit diagonal).
     """
@@ -233,6 +236,7 @@ class _Problem:
             self.layout.local(e, int(fit.source_index[e])) for e in range(fit.n_exposures)
         ]
         self.dtype = params.sources.amp.dtype
+        self.n_values = float(np.count_nonzero(self.weight))
 
     def thetas(self, vector: np.ndarray) -> jax.Array:
         return jnp.asarray(np.stack([vector[i] for i in self.locals]), self.dtype)
@@ -325,7 +329,8 @@ def levenberg_marquardt(
             f"{label}: Gauss-Newton {iteration}: chi2 {2 * loss:.2f}, "
             f"Newton decrement {decrement:.3g} per exposure"
         )
-        if decrement < config.tolerance:
+        scale = max(1.0, 2.0 * loss / problem.n_values)
+        if decrement < config.tolerance * scale:
             converged = True
             break
         for _ in range(12):

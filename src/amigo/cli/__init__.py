@@ -29,6 +29,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "fit": ("amigo.cli.fit", "Fit exposures and extract calibrated observables (DISCOs)."),
     "basis": ("amigo.cli.basis", "Build and cache the latent visibility bases."),
     "detect": ("amigo.cli.detect", "Search calibrated observables for companions; limits."),
+    "run": ("amigo.cli.run", "Raw ramps to companions: process + fit + detect in one go."),
+    "demo": ("amigo.cli.demo", "The whole job on built-in simulated data (a binary)."),
     "train": (
         "amigo.cli.train",
         "Train the base model (instrument + BFE network) on calibration data.",

@@ -36,26 +36,48 @@ def _kind_of(path: Path) -> str:
     return read_header(path).kind
 
 
-def _check_inputs(sci: tuple[Path, ...], cal: tuple[Path, ...], detector: str | None) -> None:
+def _check_inputs(sci: tuple[Path, ...], cal: tuple[Path, ...], detector: str | None) -> str:
+    """Validate the kinds of the inputs; return ``"calslope"`` or ``"level2"``."""
     kinds = {path: _kind_of(path) for path in (*sci, *cal)}
     for path, kind in kinds.items():
         if kind == "uncal":
             raise InputError(path, "is a raw ramp (uncal): run 'amigo process' first")
-        if kind == "calslope":
-            raise InputError(
-                path,
-                "calslope input needs the ramp model (issue 8), which this version does not "
-                "have yet: fit STScI level-2 images (_cal, _calints, _rateints) instead",
-            )
     levels = {"level2" if k in LEVEL2_KINDS else k for k in kinds.values()}
     if len(levels) > 1:
         raise InputError(None, "mixing raw-ramp products and level-2 images in one call")
+    level = levels.pop()
     if detector == "full":
-        raise InputError(
-            None,
-            "--detector full needs raw-ramp (calslope) input; level-2 images are fitted "
-            "with the linear detector (use --detector linear or leave it out)",
+        why = (
+            "level-2 images are fitted with the linear detector"
+            if level == "level2"
+            else "this version fits science exposures with the linear detector only (the "
+            "base model's charge-migration network is used in training, not yet in fits)"
         )
+        raise InputError(None, f"--detector full is not available: {why}; use --detector linear")
+    return level
+
+
+def _read_fit_exposure(path: Path, role: str, level: str):
+    """(FitExposure, ExposureMeta) of one input file."""
+    from amigo.fitting import FitExposure
+    from amigo.likelihood import ImageData
+
+    if level == "calslope":
+        from amigo.io.calslope import read_calslope
+        from amigo.io.jwst import meta_from_headers
+
+        product = read_calslope(path)
+        meta = meta_from_headers(
+            path, product.primary_header, product.slope_header, kind="calslope"
+        )
+        image = ImageData.from_calslope(product, meta.group_time_s)
+    else:
+        from amigo.io.jwst import read_exposure
+
+        exposure = read_exposure(path)
+        meta = exposure.meta
+        image = ImageData.from_exposure(exposure)
+    return FitExposure(path.name, role, meta.target, image), meta
 
 
 @click.command("fit")
@@ -81,13 +103,26 @@ def _check_inputs(sci: tuple[Path, ...], cal: tuple[Path, ...], detector: str | 
     "model",
     type=click.Path(path_type=Path),
     default=None,
-    help="Base model file (default: the nominal instrument).",
+    help="Base model: a trained base model (.npz, e.g. from 'amigo train'), or an "
+    "instrument file (default: the nominal instrument).",
 )
 @click.option(
     "--detector",
     type=click.Choice(["full", "linear"]),
     default=None,
-    help="Detector model: level-2 images use 'linear'.",
+    help="Detector model; this version fits with 'linear' (the default).",
+)
+@click.option(
+    "--knots",
+    type=int,
+    default=None,
+    help="Knots per axis of the uv grid of the latent visibilities (odd; default 51).",
+)
+@click.option(
+    "--knot-spacing",
+    type=float,
+    default=None,
+    help="Spacing of the uv knots in metres (default 0.259).",
 )
 @click.option(
     "--max-iterations",
@@ -110,6 +145,8 @@ def command(
     detector: str | None,
     max_iterations: int | None,
     polish: int,
+    knots: int | None,
+    knot_spacing: float | None,
 ) -> None:
     """Fit the instrument model to each exposure and extract calibrated observables.
 
@@ -122,24 +159,20 @@ def command(
     overlap = set(sci) & set(cal)
     if overlap:
         raise InputError(sorted(overlap)[0], "is given both as --sci and --cal")
-    _check_inputs(sci, cal, detector)
+    level = _check_inputs(sci, cal, detector)
+    grid = _grid(knots, knot_spacing)
 
     import dataclasses
 
-    from amigo.fitting import FitConfig, FitExposure
-    from amigo.io.jwst import read_exposure
-    from amigo.likelihood import ImageData
-    from amigo.model import Instrument, load_instrument
+    from amigo.fitting import FitConfig
     from amigo.progress import step
 
-    instrument = Instrument.nominal() if model is None else load_instrument(model)
-    by_filter: dict[str, list[tuple[FitExposure, object]]] = defaultdict(list)
+    instruments = _instruments(model)
+    by_filter: dict[str, list] = defaultdict(list)
     for role, paths in (("science", sci), ("calibrator", cal)):
         for path in paths:
-            exposure = read_exposure(path)
-            image = ImageData.from_exposure(exposure)
-            fit_exposure = FitExposure(path.name, role, exposure.meta.target, image)
-            by_filter[exposure.meta.filter].append((fit_exposure, exposure.meta))
+            fit_exposure, meta = _read_fit_exposure(path, role, level)
+            by_filter[meta.filter].append((fit_exposure, meta))
     for filter_name, items in by_filter.items():
         roles = {e.role for e, _ in items}
         if "calibrator" not in roles:
@@ -154,14 +187,50 @@ def command(
     out.mkdir(parents=True, exist_ok=True)
     summary_exposures = []
     filters_summary = {}
+    names = []
     for filter_name, items in sorted(by_filter.items()):
         if not any(e.role == "science" for e, _ in items):
             continue
-        product = _run_filter(instrument, filter_name, items, config, out)
+        instrument = instruments(filter_name)
+        names.append(instrument.name)
+        product = _run_filter(instrument, filter_name, items, config, out, grid)
         summary_exposures.extend(product["exposures"])
         filters_summary[filter_name] = product["filter"]
-    _write_summary(out, instrument, summary_exposures, filters_summary)
+    _write_summary(out, "; ".join(dict.fromkeys(names)), summary_exposures, filters_summary)
     step(f"wrote {out / 'fit_summary.json'}")
+
+
+def _grid(knots: int | None, spacing: float | None):
+    """The uv knot grid from the options (``None``: the defaults)."""
+    if knots is None and spacing is None:
+        return None
+    from amigo.visibility import DEFAULT_KNOT_SPACING_M, DEFAULT_N_KNOTS, UVGrid
+
+    try:
+        return UVGrid(
+            DEFAULT_N_KNOTS if knots is None else knots,
+            DEFAULT_KNOT_SPACING_M if spacing is None else spacing,
+        )
+    except ValueError as error:
+        raise InputError(None, f"--knots/--knot-spacing: {error}") from None
+
+
+def _instruments(model: Path | None):
+    """A function filter -> :class:`~amigo.model.Instrument` for the ``--model`` option."""
+    from amigo.model import Instrument, load_instrument
+
+    if model is None:
+        nominal = Instrument.nominal()
+        return lambda filter_name: nominal
+    if model.suffix.lower() == ".npz":
+        from amigo.basemodel import load_base_model, read_metadata
+
+        base = load_base_model(model)
+        record = read_metadata(model)
+        name = f"{model.name} (trained on {record.get('scenario', '?').split(' ')[0]}, {record.get('trained_on', '?').split(':')[0]})"
+        return lambda filter_name: Instrument.from_base_model(base, filter_name, name)
+    instrument = load_instrument(model)
+    return lambda filter_name: instrument
 
 
 def _check_orientations(items) -> None:
@@ -182,7 +251,7 @@ def _check_orientations(items) -> None:
             )
 
 
-def _run_filter(instrument, filter_name, items, config, out: Path) -> dict:
+def _run_filter(instrument, filter_name, items, config, out: Path, grid=None) -> dict:
     import numpy as np
 
     from amigo import instrument as nis
@@ -196,7 +265,7 @@ def _run_filter(instrument, filter_name, items, config, out: Path) -> dict:
 
     exposures = [e for e, _ in items]
     metas = {e.name: m for e, m in items}
-    product = extract_filter(instrument, filter_name, exposures, config)
+    product = extract_filter(instrument, filter_name, exposures, config, grid=grid)
     fit = product.fit
     plots = out / "plots"
     save_figure(spectrum_figure(product.basis_info), plots / f"basis_{filter_name}.png")
@@ -295,13 +364,13 @@ def _run_filter(instrument, filter_name, items, config, out: Path) -> dict:
     }
 
 
-def _write_summary(out: Path, instrument, exposures: list[dict], filters: dict) -> None:
+def _write_summary(out: Path, model_name: str, exposures: list[dict], filters: dict) -> None:
     from amigo._version import __version__
     from amigo.io.atomic import write_text
 
     summary = {
         "amigo_version": __version__,
-        "model": instrument.name,
+        "model": model_name,
         "detector": "linear",
         "exposures": exposures,
         "filters": filters,

@@ -22,7 +22,7 @@ from __future__ import annotations
 import os
 import re
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -262,7 +262,31 @@ def _validate(path: Path, hdul: fits.HDUList, *, need_slopes: bool) -> ExposureM
         if _ext(hdul, "OI_VIS2") is not None or _ext(hdul, "OI_T3") is not None:
             raise InputError(path, "is an OIFITS file, not a JWST exposure")
         raise InputError(path, "has no SCI extension: not a JWST exposure")
-    headers = (primary, sci.header)
+    return meta_from_headers(
+        path,
+        primary,
+        sci.header,
+        kind=lambda: _kind(path, hdul, sci),
+        need_slopes=need_slopes,
+    )
+
+
+def meta_from_headers(
+    path: Path,
+    primary: fits.Header,
+    sci_header: fits.Header,
+    *,
+    kind: str | Callable[[], str],
+    need_slopes: bool = False,
+) -> ExposureMeta:
+    """Validate an exposure's PRIMARY and SCI headers into :class:`ExposureMeta`.
+
+    ``kind`` is the product kind, or a function deciding it (called after the instrument
+    checks, so that a foreign file is reported as such first). Used by
+    :func:`read_header` and for amigo's own products that carry the uncal headers
+    (calslope).
+    """
+    headers = (primary, sci_header)
 
     telescope = _get(headers, "TELESCOP")
     if telescope is not None and str(telescope).strip().upper() != "JWST":
@@ -300,8 +324,8 @@ def _validate(path: Path, hdul: fits.HDUList, *, need_slopes: bool) -> ExposureM
     if filter_name not in instrument.CALIBRATED_FILTERS:
         notes.append(f"{filter_name} is not calibrated (the paper and the base model exclude it)")
 
-    kind = _kind(path, hdul, sci)
-    shape = tuple(int(sci.header[f"NAXIS{i}"]) for i in range(sci.header["NAXIS"], 0, -1))
+    kind = kind() if callable(kind) else kind
+    shape = tuple(int(sci_header[f"NAXIS{i}"]) for i in range(sci_header["NAXIS"], 0, -1))
     if shape[-2:] != (instrument.SUBARRAY_SIZE, instrument.SUBARRAY_SIZE):
         raise InputError(path, f"SCI frames are {shape[-2]}x{shape[-1]}, expected 80x80 (SUB80)")
 
@@ -320,7 +344,7 @@ def _validate(path: Path, hdul: fits.HDUList, *, need_slopes: bool) -> ExposureM
         raise InputError(path, "SCI has no integrations")
 
     try:
-        orientation = Orientation.from_header(sci.header, primary)
+        orientation = Orientation.from_header(sci_header, primary)
     except KeyError:
         raise InputError(path, "missing orientation keywords (PA_APER or ROLL_REF)") from None
 
@@ -332,7 +356,7 @@ def _validate(path: Path, hdul: fits.HDUList, *, need_slopes: bool) -> ExposureM
         group_time = instrument.GROUP_TIME_S
     target = _get(headers, "TARGPROP") or _get(headers, "TARGNAME") or "UNKNOWN"
     date = " ".join(str(v) for v in (_get(headers, "DATE-OBS"), _get(headers, "TIME-OBS")) if v)
-    bunit = str(sci.header.get("BUNIT", "DN" if kind == "uncal" else "DN/s"))
+    bunit = str(sci_header.get("BUNIT", "DN" if kind == "uncal" else "DN/s"))
 
     for note in notes:
         warnings.warn(f"{path.name}: {note}", AmiWarning, stacklevel=3)
@@ -357,7 +381,7 @@ def _validate(path: Path, hdul: fits.HDUList, *, need_slopes: bool) -> ExposureM
         orientation=orientation,
         bunit=bunit,
         primary_header=primary.copy(),
-        sci_header=sci.header.copy(),
+        sci_header=sci_header.copy(),
         sci_shape=shape,
         notes=tuple(notes),
     )

@@ -1,0 +1,81 @@
+"""``amigo demo [--out DIR]``: the whole job on built-in simulated data.
+
+Simulates the built-in ``demo`` scenario (an AB Dor-like binary, 329 mas at PA 280.5 deg,
+delta-mag 4.38 in F480M, and a calibrator; raw ramps with the simulator's physical
+detector, seed 0: the simulated telescope the shipped base model was trained on), then
+runs ``amigo run`` on it with the shipped base model, and prints the companion found
+next to the simulated truth. Simulated files go to ``DIR/raw``; everything else is
+written as by ``amigo run`` under ``DIR``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import click
+
+SCENARIO = "demo"
+#: A coarser uv grid than the default (27 knots 0.5 m apart instead of 51 x 0.259 m):
+#: the same baselines, 4x fewer latent visibilities, so the demo runs in minutes on a
+#: laptop CPU. Real analyses use the default grid.
+DEMO_KNOTS, DEMO_KNOT_SPACING_M = 27, 0.5
+
+
+@click.command("demo")
+@click.option(
+    "--out",
+    type=click.Path(path_type=Path),
+    default=Path("amigo_demo"),
+    show_default=True,
+    help="Output folder.",
+)
+@click.option("--no-hmc", is_flag=True, help="Skip the NUTS posterior (faster).")
+@click.pass_context
+def command(ctx: click.Context, out: Path, no_hmc: bool) -> None:
+    """Simulate a binary and a calibrator, and take them from raw ramps to a companion."""
+    from amigo.basemodel import default_model_path
+    from amigo.cli import run, simulate
+
+    raw = out / "raw"
+    ctx.invoke(simulate.command, scenario=SCENARIO, out_dir=str(raw), seed=0)
+    truths = {p: json.loads(p.read_text()) for p in sorted(raw.glob("*_truth.json"))}
+    sci, cal = [], []
+    for path, truth in truths.items():
+        uncal = path.with_name(path.name.removesuffix("_truth.json") + "_uncal.fits")
+        (sci if truth["exposure"]["role"] == "science" else cal).append(uncal)
+    run.pipeline(
+        ctx,
+        tuple(sci),
+        tuple(cal),
+        out,
+        model=default_model_path(),
+        detector="linear",
+        knots=DEMO_KNOTS,
+        knot_spacing=DEMO_KNOT_SPACING_M,
+        no_hmc=no_hmc,
+    )
+    science_truth = next(t for t in truths.values() if t["exposure"]["role"] == "science")
+    found = json.loads((out / "companions.json").read_text())["companions"]
+    click.echo(_comparison(science_truth["scene"]["companions"], found))
+
+
+def _comparison(truth: list[dict], found: list[dict]) -> str:
+    """A small table: simulated companions against the ones found."""
+    lines = [f"{'':10s} {'sep (mas)':>16s} {'PA (deg)':>16s} {'dmag':>14s}"]
+    for c in truth:
+        lines.append(
+            f"{'simulated':10s} {c['sep_mas']:16.2f} {c['pa_deg']:16.2f} {c['dmag']:14.3f}"
+        )
+    for c in found:
+        dmag = ", ".join(
+            f"{v:.3f} +- {c.get('dmag_err', {}).get(k, float('nan')):.3f}"
+            for k, v in c["dmag"].items()
+        )
+        lines.append(
+            f"{'found':10s} {c['sep_mas']:9.2f} +- {c['sep_err_mas']:4.2f} "
+            f"{c['pa_deg']:9.2f} +- {c['pa_err_deg']:4.2f} {dmag:>14s}"
+        )
+    if not found:
+        lines.append("found      nothing above the detection threshold")
+    return "\n".join(lines)

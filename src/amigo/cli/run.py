@@ -1,0 +1,123 @@
+"""``amigo run --sci UNCAL... --cal UNCAL... --out DIR``: process, fit and detect in one go.
+
+Everything is written directly under ``DIR``, with the names of the individual commands
+(docs/interfaces): ``<stem>_calslope.fits`` (``amigo process``), the calvis, OIFITS,
+``fit_summary.json`` and ``plots/`` (``amigo fit``), ``companions.json``,
+``contrast_limits.csv`` and the detection figures (``amigo detect``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from amigo.errors import InputError
+
+
+def pipeline(
+    ctx: click.Context,
+    sci: tuple[Path, ...],
+    cal: tuple[Path, ...],
+    out: Path,
+    *,
+    model: Path | None = None,
+    detector: str | None = None,
+    knots: int | None = None,
+    knot_spacing: float | None = None,
+    rmax_mas: float = 1000.0,
+    no_hmc: bool = False,
+) -> list[Path]:
+    """Run process -> fit -> detect; return the calvis files that were searched."""
+    from amigo.cli import detect, fit, process
+    from amigo.io.calslope import calslope_name
+    from amigo.progress import step
+
+    overlap = set(sci) & set(cal)
+    if overlap:
+        raise InputError(sorted(overlap)[0], "is given both as --sci and --cal")
+    step(f"run: processing {len(sci) + len(cal)} raw exposures")
+    ctx.invoke(process.command, uncal=(*sci, *cal), out_dir=out)
+    slopes = {path: out / calslope_name(path) for path in (*sci, *cal)}
+    step("run: fitting")
+    ctx.invoke(
+        fit.command,
+        sci=tuple(slopes[p] for p in sci),
+        cal=tuple(slopes[p] for p in cal),
+        out=out,
+        model=model,
+        detector=detector,
+        knots=knots,
+        knot_spacing=knot_spacing,
+    )
+    calvis = sorted(out.glob("*_calvis.fits"))
+    if not calvis:
+        raise InputError(out, "amigo fit wrote no calvis file (no science exposure?)")
+    step(f"run: searching {len(calvis)} calvis file(s) for companions")
+    ctx.invoke(detect.command, files=tuple(calvis), out_dir=out, rmax_mas=rmax_mas, no_hmc=no_hmc)
+    return calvis
+
+
+@click.command("run")
+@click.option(
+    "--sci",
+    "sci",
+    multiple=True,
+    required=True,
+    type=click.Path(path_type=Path),
+    help="Raw science ramp (_uncal.fits; repeat the option for several).",
+)
+@click.option(
+    "--cal",
+    "cal",
+    multiple=True,
+    required=True,
+    type=click.Path(path_type=Path),
+    help="Raw calibrator ramp (_uncal.fits; repeat for several).",
+)
+@click.option("--out", "out", required=True, type=click.Path(path_type=Path), help="Output folder.")
+@click.option(
+    "--model",
+    type=click.Path(path_type=Path),
+    default=None,
+    help="Base model (.npz) or instrument file for the fit (see amigo fit).",
+)
+@click.option(
+    "--detector",
+    type=click.Choice(["full", "linear"]),
+    default=None,
+    help="Detector model of the fit (see amigo fit).",
+)
+@click.option("--knots", type=int, default=None, help="uv knots per axis (see amigo fit).")
+@click.option("--knot-spacing", type=float, default=None, help="uv knot spacing, m.")
+@click.option("--rmax-mas", type=float, default=1000.0, show_default=True, help="Search radius.")
+@click.option("--no-hmc", is_flag=True, help="Skip the NUTS posterior in the companion search.")
+@click.pass_context
+def command(
+    ctx: click.Context,
+    sci: tuple[Path, ...],
+    cal: tuple[Path, ...],
+    out: Path,
+    model: Path | None,
+    detector: str | None,
+    knots: int | None,
+    knot_spacing: float | None,
+    rmax_mas: float,
+    no_hmc: bool,
+) -> None:
+    """Raw ramps to companions: amigo process, amigo fit and amigo detect in one go.
+
+    All outputs go directly under OUT, named as by the individual commands.
+    """
+    pipeline(
+        ctx,
+        sci,
+        cal,
+        out,
+        model=model,
+        detector=detector,
+        knots=knots,
+        knot_spacing=knot_spacing,
+        rmax_mas=rmax_mas,
+        no_hmc=no_hmc,
+    )
