@@ -28,7 +28,7 @@ peak_dn = 1000
 
 
 def test_builtin_scenarios_follow_the_papers_tables():
-    assert builtin_names() == ["cal4481", "com1093", "go1843"]
+    assert builtin_names() == ["cal4481", "com1093", "demo", "go1843"]
     com = load_scenario("com1093")
     table = {
         (e.target.name, e.filter): (e.ngroups, e.nints_full, e.photons_full) for e in com.exposures
@@ -39,6 +39,14 @@ def test_builtin_scenarios_follow_the_papers_tables():
     (companion,) = com.exposures[0].target.companions
     assert (companion.sep_mas, companion.pa_deg) == (329.0, 169.5)
     assert com.exposures[0].stem(com.program) == "jw01093012001_03102_00001_nis"
+
+    # The demo: COM 1093's F480M pair, with AB Dor C at its sky PA in the WCS convention.
+    demo = load_scenario("demo")
+    assert {
+        (e.target.name, e.filter): (e.ngroups, e.nints_full, e.photons_full) for e in demo.exposures
+    } == {k: v for k, v in table.items() if k[1] == "F480M"}
+    (companion,) = demo.exposures[0].target.companions
+    assert (companion.sep_mas, companion.pa_deg) == (329.0, 280.5)
 
     cal = load_scenario("cal4481")
     stars = [e for e in cal.exposures if e.role != "flat"]
