@@ -66,6 +66,7 @@ from amigo.model import (
     OpticsParams,
     SourceParams,
     filter_psfs,
+    float64,
     image_from_psfs,
     locate,
 )
@@ -856,17 +857,6 @@ class LatentInformation:
     seconds: float
 
 
-def _cast64(tree):
-    return jax.tree.map(
-        lambda x: (
-            jnp.asarray(x, jnp.float64)
-            if isinstance(x, jax.Array | np.ndarray) and jnp.issubdtype(x.dtype, jnp.floating)
-            else x
-        ),
-        tree,
-    )
-
-
 def latent_information(fit: FilterFit, params: FitParams, label: str = "fit") -> LatentInformation:
     """Hessians of ``-log L`` w.r.t. the latent visibilities and the nuisance cross terms.
 
@@ -883,7 +873,7 @@ def latent_information(fit: FilterFit, params: FitParams, label: str = "fit") ->
     cal_hessian = np.zeros((n, n))
     w = np.asarray(fit.pixels.inverse_sigma, dtype=np.float64) ** 2
     with jax.enable_x64(True):
-        instrument, setup, params64 = _cast64((fit.instrument, fit.setup, params))
+        instrument, setup, params64 = float64((fit.instrument, fit.setup, params))
         point = eqx.tree_at(
             lambda p: (p.sources.amp, p.sources.phase),
             params64,

@@ -80,23 +80,16 @@ def _read_fit_exposure(path: Path, role: str, level: str):
     return FitExposure(path.name, role, meta.target, image), meta
 
 
+def exposures_option(name: str, text: str):
+    """The repeatable, required ``--sci``/``--cal`` option of ``fit`` and ``run``."""
+    return click.option(
+        f"--{name}", name, multiple=True, required=True, type=click.Path(path_type=Path), help=text
+    )
+
+
 @click.command("fit")
-@click.option(
-    "--sci",
-    "sci",
-    multiple=True,
-    required=True,
-    type=click.Path(path_type=Path),
-    help="Science exposure (repeat the option for several).",
-)
-@click.option(
-    "--cal",
-    "cal",
-    multiple=True,
-    required=True,
-    type=click.Path(path_type=Path),
-    help="Calibrator (PSF reference) exposure (repeat for several).",
-)
+@exposures_option("sci", "Science exposure (repeat the option for several).")
+@exposures_option("cal", "Calibrator (PSF reference) exposure (repeat for several).")
 @click.option("--out", "out", required=True, type=click.Path(path_type=Path), help="Output folder.")
 @click.option(
     "--model",

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import click
 
+from amigo.cli.fit import exposures_option
 from amigo.errors import InputError
 
 
@@ -59,22 +60,8 @@ def pipeline(
 
 
 @click.command("run")
-@click.option(
-    "--sci",
-    "sci",
-    multiple=True,
-    required=True,
-    type=click.Path(path_type=Path),
-    help="Raw science ramp (_uncal.fits; repeat the option for several).",
-)
-@click.option(
-    "--cal",
-    "cal",
-    multiple=True,
-    required=True,
-    type=click.Path(path_type=Path),
-    help="Raw calibrator ramp (_uncal.fits; repeat for several).",
-)
+@exposures_option("sci", "Raw science ramp (_uncal.fits; repeat the option for several).")
+@exposures_option("cal", "Raw calibrator ramp (_uncal.fits; repeat for several).")
 @click.option("--out", "out", required=True, type=click.Path(path_type=Path), help="Output folder.")
 @click.option(
     "--model",
