@@ -70,7 +70,16 @@ from amigo.model import (
     image_from_psfs,
     locate,
 )
-from amigo.newton import NewtonConfig, levenberg_marquardt
+from amigo.newton import (
+    N_LOCAL_SCALARS,
+    NewtonConfig,
+    levenberg_marquardt,
+    local_jacobian,
+    local_vector,
+    optics_jacobian,
+    optics_vector,
+    psfs_of,
+)
 from amigo.progress import step
 
 ROLES = ("science", "calibrator")
@@ -275,6 +284,35 @@ class FilterFit:
             instrument, setup, psfs, source.slope_per_um, exposure, log_amp, phase, anchor
         )
 
+    def local_jacobians(
+        self,
+        params: FitParams,
+        e: int,
+        instrument: Instrument | None = None,
+        setup: FilterSetup | None = None,
+        wavefront: bool = False,
+    ) -> tuple[Array, Array | None]:
+        """Forward-mode Jacobians of exposure ``e``'s image (the columns of
+        :mod:`amigo.newton`).
+
+        Returns the (4 + m, 80, 80) Jacobian with respect to the exposure's local vector
+        ``[x, y, log_flux, slope, latent amp..., latent phase...]`` (wavefront held
+        fixed; see :data:`amigo.newton.N_LOCAL_SCALARS`), and, with ``wavefront=True``,
+        the (71, 80, 80) Jacobian with respect to ``[Zernikes (flattened), defocus]``
+        (else ``None``). Pass a float64 ``instrument``/``setup``/``params`` (inside
+        ``jax.enable_x64``) for float64 Jacobians.
+        """
+        instrument = self.instrument if instrument is None else instrument
+        setup = self.setup if setup is None else setup
+        anchor = self.anchor.astype(setup.wavelengths_m.dtype)
+        theta = local_vector(params, e, int(self.source_index[e]))
+        psfs = psfs_of(instrument, setup, params.optics, anchor)
+        local = local_jacobian(theta, instrument, setup, psfs, anchor)
+        if not wavefront:
+            return local, None
+        optics = optics_jacobian(optics_vector(params), theta, instrument, setup, anchor)
+        return local, optics
+
     def latent_jacobian(
         self,
         params: FitParams,
@@ -283,50 +321,8 @@ class FilterFit:
         setup: FilterSetup | None = None,
     ) -> Float[Array, "m 80 80"]:
         """(m_a + m_p, 80, 80) Jacobian of exposure ``e``'s image w.r.t. its target's
-        latent visibilities ``[amp, phase]``, by forward-mode differentiation.
-
-        Pass a float64 ``instrument``/``setup``/``params`` (inside ``jax.enable_x64``) for
-        a float64 Jacobian.
-        """
-        instrument = self.instrument if instrument is None else instrument
-        setup = self.setup if setup is None else setup
-        s = int(self.source_index[e])
-        n_amp = params.sources.amp.shape[1]
-        n = n_amp + params.sources.phase.shape[1]
-
-        @eqx.filter_jit
-        def columns(params, instrument, setup, index):
-            anchor = self.anchor.astype(setup.wavelengths_m.dtype)
-            psfs = filter_psfs(instrument, setup, params.optics, anchor)
-            latent = jnp.concatenate([params.sources.amp[s], params.sources.phase[s]])
-
-            def image_of(x):
-                sources = eqx.tree_at(
-                    lambda q: (q.amp, q.phase),
-                    params.sources,
-                    (
-                        params.sources.amp.at[s].set(x[:n_amp]),
-                        params.sources.phase.at[s].set(x[n_amp:]),
-                    ),
-                )
-                p = eqx.tree_at(lambda q: q.sources, params, sources)
-                return self._image(p, e, psfs, instrument, setup)
-
-            def one(k):
-                unit = jax.nn.one_hot(k, n, dtype=latent.dtype)
-                return jax.jvp(image_of, (latent,), (unit,))[1]
-
-            return jax.vmap(one)(index)
-
-        chunk = 16
-        out = []
-        for i in range(0, n, chunk):
-            index = np.arange(i, i + chunk)
-            valid = index < n
-            out.append(
-                columns(params, instrument, setup, jnp.asarray(np.minimum(index, n - 1)))[valid]
-            )
-        return jnp.concatenate(out)
+        latent visibilities ``[amp, phase]`` (see :meth:`local_jacobians`)."""
+        return self.local_jacobians(params, e, instrument, setup)[0][N_LOCAL_SCALARS:]
 
     def chi2(
         self,
@@ -387,72 +383,6 @@ class FilterFit:
             ),
             optics=jax.tree.map(lambda x: jnp.asarray(x, jnp.float32), optics),
         )
-
-    def nuisance_jacobian(
-        self,
-        params: FitParams,
-        e: int,
-        instrument: Instrument | None = None,
-        setup: FilterSetup | None = None,
-    ) -> Float[Array, "n 80 80"]:
-        """(73, 80, 80) Jacobian of exposure ``e``'s image w.r.t. the nuisances of
-        :func:`nuisance_names`: 70 Zernikes (nm), log-flux, SED slope (per um), defocus
-        (nm). The wavefront is differentiated whatever the exposure's role."""
-        instrument = self.instrument if instrument is None else instrument
-        setup = self.setup if setup is None else setup
-        s = int(self.source_index[e])
-
-        def pack(p: FitParams) -> Array:
-            return jnp.concatenate(
-                [
-                    jnp.ravel(p.optics.zernikes_nm),
-                    p.exposures.log_flux[e][None],
-                    p.sources.slope_per_um[s][None],
-                    p.optics.defocus_nm[None],
-                ]
-            )
-
-        nz = params.optics.zernikes_nm.size
-        shape = params.optics.zernikes_nm.shape
-
-        @eqx.filter_jit
-        def columns(params, instrument, setup, tangents):
-            def image_of(theta):
-                p = eqx.tree_at(
-                    lambda q: (
-                        q.optics.zernikes_nm,
-                        q.optics.defocus_nm,
-                        q.exposures.log_flux,
-                        q.sources.slope_per_um,
-                    ),
-                    params,
-                    (
-                        theta[:nz].reshape(shape),
-                        theta[nz + 2],
-                        params.exposures.log_flux.at[e].set(theta[nz]),
-                        params.sources.slope_per_um.at[s].set(theta[nz + 1]),
-                    ),
-                )
-                anchor = self.anchor.astype(setup.wavelengths_m.dtype)
-                psfs = filter_psfs(instrument, setup, p.optics, anchor)
-                return self._image(p, e, psfs, instrument, setup)
-
-            theta = pack(params)
-            return jax.vmap(lambda t: jax.jvp(image_of, (theta,), (t,))[1])(tangents)
-
-        n = nz + 3
-        eye = jnp.eye(n, dtype=params.sources.amp.dtype)
-        chunk = 8
-        out = []
-        for i in range(0, n, chunk):
-            block = eye[i : i + chunk]
-            pad = chunk - block.shape[0]
-            out.append(
-                columns(params, instrument, setup, jnp.pad(block, ((0, pad), (0, 0))))[
-                    : chunk - pad
-                ]
-            )
-        return jnp.concatenate(out)
 
     # ------------------------------------------------------------------ Fisher
     def preconditioner(self, params: FitParams, vis_mode: str = "block") -> Preconditioner:
@@ -884,8 +814,11 @@ def latent_information(fit: FilterFit, params: FitParams, label: str = "fit") ->
             jac = np.asarray(fit.latent_jacobian(params64, e, instrument, setup)).reshape(n, -1)
             hessian[fit.source_index[e]] += (jac * w[e].ravel()) @ jac.T
             if fit.is_calibrator[e]:
-                jac0 = np.asarray(fit.latent_jacobian(point, e, instrument, setup)).reshape(n, -1)
-                nuis = np.asarray(fit.nuisance_jacobian(point, e, instrument, setup))
-                cross += (jac0 * w[e].ravel()) @ nuis.reshape(len(names), -1).T
+                local, wave = fit.local_jacobians(point, e, instrument, setup, wavefront=True)
+                jac0 = np.asarray(local[N_LOCAL_SCALARS:]).reshape(n, -1)
+                # Columns in the order of nuisance_names(): Zernikes, log-flux, slope, defocus.
+                nuis = np.concatenate([wave[:-1], local[2:4], wave[-1:]])
+                nuis = np.asarray(nuis).reshape(len(names), -1)
+                cross += (jac0 * w[e].ravel()) @ nuis.T
                 cal_hessian += (jac0 * w[e].ravel()) @ jac0.T
     return LatentInformation(hessian, cross, cal_hessian, time.perf_counter() - start)

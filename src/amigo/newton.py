@@ -179,10 +179,34 @@ class Layout:
 
 
 # ------------------------------------------------------------------------------ images
+#: Scalars before the latent visibilities in an exposure's local vector
+#: ``[x, y, log_flux, slope, latents]``.
+N_LOCAL_SCALARS = 4
+
+
+def local_vector(params: FitParams, e: int, s: int) -> Float[Array, " n"]:
+    """Local vector ``[x, y, log_flux, slope, amp..., phase...]`` of exposure ``e`` of
+    target ``s`` (dtype of ``params``)."""
+    return jnp.concatenate(
+        [
+            params.exposures.position_arcsec[e],
+            params.exposures.log_flux[e][None],
+            params.sources.slope_per_um[s][None],
+            params.sources.amp[s],
+            params.sources.phase[s],
+        ]
+    )
+
+
+def optics_vector(params: FitParams) -> Float[Array, " n"]:
+    """``[Zernikes (flattened), defocus]`` of ``params``."""
+    return jnp.concatenate([jnp.ravel(params.optics.zernikes_nm), params.optics.defocus_nm[None]])
+
+
 def _local_image(theta, instrument, setup, psfs, anchor) -> Float[Array, "80 80"]:
     """Image of one exposure from its local vector ``[x, y, log_flux, slope, latents]``."""
     n_amp = setup.basis.n_amp
-    latent = theta[4:]
+    latent = theta[N_LOCAL_SCALARS:]
     log_amp, phase = setup.basis.grids(latent[:n_amp], latent[n_amp:])
     exposure = ExposureParams(theta[:2], theta[2])
     return image_from_psfs(instrument, setup, psfs, theta[3], exposure, log_amp, phase, anchor)
@@ -201,7 +225,7 @@ def local_jacobian(theta, instrument, setup, psfs, anchor) -> Float[Array, "n 80
 
 
 @eqx.filter_jit
-def optics_jacobian(optics_vector, theta, instrument, setup, anchor) -> Float[Array, "n 80 80"]:
+def optics_jacobian(wavefront, theta, instrument, setup, anchor) -> Float[Array, "n 80 80"]:
     """Jacobian of one exposure's image w.r.t. ``[Zernikes (flattened), defocus]``."""
     shape = instrument.optics.zernikes_nm.shape
 
@@ -210,11 +234,12 @@ def optics_jacobian(optics_vector, theta, instrument, setup, anchor) -> Float[Ar
         psfs = filter_psfs(instrument, setup, optics, anchor)
         return _local_image(theta, instrument, setup, psfs, anchor)
 
-    return _columns(image_of, optics_vector)
+    return _columns(image_of, wavefront)
 
 
 @eqx.filter_jit
-def _psfs(instrument, setup, optics, anchor):
+def psfs_of(instrument, setup, optics, anchor):
+    """:func:`amigo.model.filter_psfs`, compiled."""
     return filter_psfs(instrument, setup, optics, anchor)
 
 
@@ -247,14 +272,14 @@ class _Problem:
             jnp.asarray(vector[lay.optics[:-1]].reshape(lay.zernike_shape), self.dtype),
             jnp.asarray(vector[lay.optics[-1]], self.dtype),
         )
-        return _psfs(self.fit.instrument, self.fit.setup, optics, self.fit.anchor)
+        return psfs_of(self.fit.instrument, self.fit.setup, optics, self.fit.anchor)
 
-    def residuals(self, vector: np.ndarray) -> np.ndarray:
-        """(E, npix) whitened residuals ``(data - model) / sigma`` (0 where masked)."""
+    def residuals(self, vector: np.ndarray, psfs=None) -> np.ndarray:
+        """(E, npix) whitened residuals ``(data - model) / sigma`` (0 where masked);
+        ``psfs`` are those of ``vector``'s wavefront when the caller has them."""
         fit = self.fit
-        models = _images(
-            self.thetas(vector), fit.instrument, fit.setup, self.psfs(vector), fit.anchor
-        )
+        psfs = self.psfs(vector) if psfs is None else psfs
+        models = _images(self.thetas(vector), fit.instrument, fit.setup, psfs, fit.anchor)
         models = np.asarray(models, np.float64).reshape(fit.n_exposures, -1)
         return (self.data - models) * self.weight
 
@@ -269,17 +294,15 @@ class _Problem:
         fisher, grad = np.zeros((n, n)), np.zeros(n)
         psfs = self.psfs(vector)
         thetas = self.thetas(vector)
-        r = self.residuals(vector)
-        optics_vector = jnp.asarray(vector[lay.optics], self.dtype)
+        r = self.residuals(vector, psfs)
+        wavefront = jnp.asarray(vector[lay.optics], self.dtype)
         for e in range(fit.n_exposures):
             step(f"{label}: Jacobian of {fit.exposures[e].name}")
             jac = local_jacobian(thetas[e], fit.instrument, fit.setup, psfs, fit.anchor)
             jac = np.asarray(jac, np.float64).reshape(len(self.locals[e]), -1)
             index = self.locals[e]
             if fit.is_calibrator[e]:
-                jo = optics_jacobian(
-                    optics_vector, thetas[e], fit.instrument, fit.setup, fit.anchor
-                )
+                jo = optics_jacobian(wavefront, thetas[e], fit.instrument, fit.setup, fit.anchor)
                 jac = np.concatenate([jac, np.asarray(jo, np.float64).reshape(len(lay.optics), -1)])
                 index = np.concatenate([index, lay.optics])
             wj = jac * self.weight[e]  # whitened Jacobian
