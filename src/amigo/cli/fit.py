@@ -87,36 +87,49 @@ def exposures_option(name: str, text: str):
     )
 
 
+_MODEL_OPTIONS = [
+    click.option(
+        "--model",
+        "model",
+        type=click.Path(path_type=Path),
+        default=None,
+        help="Base model: a trained base model (.npz, e.g. from 'amigo train'), or an "
+        "instrument file (default: the nominal instrument).",
+    ),
+    click.option(
+        "--detector",
+        type=click.Choice(["full", "linear"]),
+        default=None,
+        help="Detector model; this version fits with 'linear' (the default).",
+    ),
+    click.option(
+        "--knots",
+        type=int,
+        default=None,
+        help="Knots per axis of the uv grid of the latent visibilities (odd; default 51).",
+    ),
+    click.option(
+        "--knot-spacing",
+        type=float,
+        default=None,
+        help="Spacing of the uv knots in metres (default 0.259).",
+    ),
+]
+
+
+def model_options(command):
+    """The fit-model options ``--model``, ``--detector``, ``--knots``, ``--knot-spacing``
+    shared by ``fit`` and ``run``."""
+    for option in reversed(_MODEL_OPTIONS):
+        command = option(command)
+    return command
+
+
 @click.command("fit")
 @exposures_option("sci", "Science exposure (repeat the option for several).")
 @exposures_option("cal", "Calibrator (PSF reference) exposure (repeat for several).")
 @click.option("--out", "out", required=True, type=click.Path(path_type=Path), help="Output folder.")
-@click.option(
-    "--model",
-    "model",
-    type=click.Path(path_type=Path),
-    default=None,
-    help="Base model: a trained base model (.npz, e.g. from 'amigo train'), or an "
-    "instrument file (default: the nominal instrument).",
-)
-@click.option(
-    "--detector",
-    type=click.Choice(["full", "linear"]),
-    default=None,
-    help="Detector model; this version fits with 'linear' (the default).",
-)
-@click.option(
-    "--knots",
-    type=int,
-    default=None,
-    help="Knots per axis of the uv grid of the latent visibilities (odd; default 51).",
-)
-@click.option(
-    "--knot-spacing",
-    type=float,
-    default=None,
-    help="Spacing of the uv knots in metres (default 0.259).",
-)
+@model_options
 @click.option(
     "--max-iterations",
     type=int,

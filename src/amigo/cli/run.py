@@ -12,7 +12,7 @@ from pathlib import Path
 
 import click
 
-from amigo.cli.fit import exposures_option
+from amigo.cli.fit import exposures_option, model_options
 from amigo.errors import InputError
 
 
@@ -63,20 +63,7 @@ def pipeline(
 @exposures_option("sci", "Raw science ramp (_uncal.fits; repeat the option for several).")
 @exposures_option("cal", "Raw calibrator ramp (_uncal.fits; repeat for several).")
 @click.option("--out", "out", required=True, type=click.Path(path_type=Path), help="Output folder.")
-@click.option(
-    "--model",
-    type=click.Path(path_type=Path),
-    default=None,
-    help="Base model (.npz) or instrument file for the fit (see amigo fit).",
-)
-@click.option(
-    "--detector",
-    type=click.Choice(["full", "linear"]),
-    default=None,
-    help="Detector model of the fit (see amigo fit).",
-)
-@click.option("--knots", type=int, default=None, help="uv knots per axis (see amigo fit).")
-@click.option("--knot-spacing", type=float, default=None, help="uv knot spacing, m.")
+@model_options
 @click.option("--rmax-mas", type=float, default=1000.0, show_default=True, help="Search radius.")
 @click.option("--no-hmc", is_flag=True, help="Skip the NUTS posterior in the companion search.")
 @click.pass_context
