@@ -134,7 +134,7 @@ class ImageData:
             support = np.asarray(product.slope_support)[:, ~product.badpix]
             enough = support.size and np.nanmin(support) >= 10 * m
             structure = "full" if enough else "pooled"
-        bad = product.badpix | ~np.all(np.isfinite(slopes), axis=0)
+        bad = product.unusable
         bad[: instrument.N_REFERENCE_ROWS] = True
         noise = SlopeNoise.from_covariance(product.slope_cov_dn2, bad=bad, structure=structure)
         if noise.pixels.size < MIN_PIXELS:

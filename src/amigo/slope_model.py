@@ -73,7 +73,7 @@ class SlopeData(eqx.Module):
         m, ny, nx = product.slope_dn.shape
         if m < 1:
             raise InputError(path, "needs at least 2 groups")
-        bad = product.badpix | ~np.all(np.isfinite(product.slope_dn), axis=0)
+        bad = product.unusable
         noise = SlopeNoise.from_covariance(product.slope_cov_dn2, bad=bad, diagonal=diagonal)
         if noise.pixels.size == 0:
             raise InputError(path, "no usable pixel")

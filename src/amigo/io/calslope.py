@@ -126,6 +126,12 @@ class CalSlope:
     def nsigma(self) -> float:
         return float(self.primary_header["NSIGCLIP"])
 
+    @property
+    def unusable(self) -> np.ndarray:
+        """(ny, nx) True where a likelihood must not use the pixel: flagged in BADPIX, or
+        any of its slopes undefined."""
+        return self.badpix | ~np.all(np.isfinite(self.slope_dn), axis=0)
+
 
 def write_calslope(
     path: str | os.PathLike[str],
