@@ -22,7 +22,9 @@ def _run(args):
     return 0
 
 
-def test_calslope_mixed_with_level2_or_with_detector_full_is_refused(tmp_path, capsys):
+def test_calslope_mixed_with_level2_or_full_detector_without_base_model_is_refused(
+    tmp_path, capsys
+):
     calslope = tmp_path / "x_calslope.fits"
     fits.HDUList([fits.PrimaryHDU(), fits.ImageHDU(np.zeros((2, 80, 80)), name="SLOPE")]).writeto(
         calslope
@@ -36,10 +38,15 @@ def test_calslope_mixed_with_level2_or_with_detector_full_is_refused(tmp_path, c
     fits.HDUList([fits.PrimaryHDU(), fits.ImageHDU(np.zeros((2, 80, 80)), name="SLOPE")]).writeto(
         other
     )
+    # The full detector needs a trained base model, not an instrument file.
+    from amigo.model import Instrument, save_instrument
+
+    instrument = tmp_path / "nominal.eqx"
+    save_instrument(Instrument.nominal(n_wavelengths=3), instrument)
     args = ["fit", "--sci", str(calslope), "--cal", str(other), "--out", str(tmp_path / "o")]
-    assert _run([*args, "--detector", "full"]) == 2
+    assert _run([*args, "--model", str(instrument), "--detector", "full"]) == 2
     err = capsys.readouterr().err
-    assert "--detector full" in err and "--detector linear" in err
+    assert "--detector full needs a trained base model" in err and "nominal.eqx" in err
     assert not (tmp_path / "o").exists()
 
 
@@ -61,7 +68,8 @@ def test_uncal_and_detector_full_are_refused(tmp_path, capsys):
         "full",
     ]
     assert _run(args) == 2
-    assert "--detector full" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "--detector full is not available for level-2 images" in err
     assert _run(["fit", "--sci", str(sci), "--cal", str(sci), "--out", str(tmp_path)]) == 2
 
 

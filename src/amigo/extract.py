@@ -27,6 +27,7 @@ from amigo.basis import BasisInfo, load_basis
 from amigo.fitting import FilterFit, FitConfig, FitExposure, FitResult, latent_information
 from amigo.model import FilterSetup, Instrument
 from amigo.progress import step
+from amigo.ramp_fit import DetectorRecord, RampDetector, fit_through_detector
 from amigo.visibility import UVGrid
 
 
@@ -84,6 +85,7 @@ class FilterProduct:
     products: list[TargetProduct]
     kernel: obs.Kernel
     seconds: float
+    detector: DetectorRecord | None = None
 
 
 def baseline_map(setup: FilterSetup) -> np.ndarray:
@@ -147,22 +149,35 @@ def extract_filter(
     exposures: list[FitExposure],
     config: FitConfig | None = None,
     grid: UVGrid | None = None,
+    detector: RampDetector | None = None,
 ) -> FilterProduct:
     """Fit the exposures of one filter and extract every science target's DISCOs.
 
     ``grid`` is the knot grid of the latent basis (default :class:`UVGrid`'s 51 x 51).
+    ``detector`` puts the base model's ramp and read models in front of the fit of
+    calslope exposures (:mod:`amigo.ramp_fit`); ``None`` fits the images as they are.
     """
     start = time.perf_counter()
+    config = FitConfig() if config is None else config
+    roles = {e.role for e in exposures}
+    if "calibrator" not in roles:
+        raise ValueError(f"{filter_name}: no calibrator exposure")
+    if "science" not in roles:
+        raise ValueError(f"{filter_name}: no science exposure")
     basis, basis_info = load_basis(instrument, filter_name, grid)
     setup = FilterSetup.create(filter_name, instrument, basis)
-    fit = FilterFit(instrument, setup, exposures)
-    if not fit.is_calibrator.any():
-        raise ValueError(f"{filter_name}: no calibrator exposure")
-    if fit.is_calibrator.all():
-        raise ValueError(f"{filter_name}: no science exposure")
     label = f"fit {filter_name}"
-    step(f"{label}: {fit.n_exposures} exposures, {len(fit.targets)} targets")
-    result = fit.fit(config, label=label)
+    step(
+        f"{label}: {len(exposures)} exposures, {len(dict.fromkeys(e.target for e in exposures))} targets"
+    )
+    record = None
+    if detector is None:
+        fit = FilterFit(instrument, setup, exposures)
+        result = fit.fit(config, label=label)
+    else:
+        fit, result, record = fit_through_detector(
+            instrument, setup, exposures, config, detector, label
+        )
     step(
         f"{label}: {'converged' if result.converged else 'NOT converged'} after "
         f"{result.iterations} iterations (loss change {result.loss_change:.3g}, "
@@ -214,4 +229,5 @@ def extract_filter(
         products=products,
         kernel=kernel,
         seconds=seconds,
+        detector=record,
     )

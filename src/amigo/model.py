@@ -86,18 +86,21 @@ class Instrument(eqx.Module):
         )
 
     @classmethod
-    def from_base_model(cls, base, filter_name: str, name: str = "amigo base model") -> Instrument:
+    def from_base_model(
+        cls, base, filter_name: str, name: str = "amigo base model", detector: str = "linear"
+    ) -> Instrument:
         """The image-level instrument of one filter from a trained
         :class:`~amigo.basemodel.BaseModel`: its mask (fitted hole positions), wavefront
-        and defocus of that filter, and linear detector (jitter, rotation, anisotropy).
-        The base model's ramp and read models are not part of it (level-2 images and
-        calslope files fitted with ``--detector linear``)."""
+        and defocus of that filter, and linear detector geometry (jitter, rotation,
+        anisotropy). The base model's ramp and read models are not part of it: they act
+        on calslope data through :mod:`amigo.ramp_fit`; ``detector`` (``"full"`` or
+        ``"linear"``) only names the one in use."""
         optics = base.optics(filter_name, base.pupil_cache())
         return cls(
             optics=optics,
             detector=base.detector,
             n_wavelengths=int(base.config.n_wavelengths),
-            name=f"{name} ({filter_name}; linear detector)",
+            name=f"{name} ({filter_name}; {detector} detector)",
         )
 
     @property
@@ -300,6 +303,32 @@ def filter_psfs(
     return optics.psfs(setup.wavelengths_m, anchor)
 
 
+def illuminance_from_psfs(
+    instrument: Instrument,
+    setup: FilterSetup,
+    psfs: Float[Array, "l 264 264"],
+    slope_per_um: Array,
+    position_arcsec: Float[Array, " 2"],
+    log_amp: Float[Array, "k k"] | None,
+    phase: Float[Array, "k k"] | None,
+    anchor_arcsec: Float[Array, " 2"] | None = None,
+) -> Float[Array, "240 240"]:
+    """Unit-flux, pixel-integrated illuminance (240, 240) on the optical frame's 3x grid,
+    before the detector, from :func:`filter_psfs` and log-visibility grids: the
+    visibilities injected into each wavelength's PSF, shifted to ``position_arcsec``,
+    weighted by the spectrum. :func:`image_from_psfs` is the linear detector applied to
+    it; the ramp model (``amigo fit --detector full``) takes
+    ``instrument.detector.illuminance`` of it."""
+    config = instrument.optics.config
+    pixel_arcsec = config.pixel_scale_arcsec / config.oversample
+    offset = position_arcsec if anchor_arcsec is None else (position_arcsec - anchor_arcsec)
+    spectrum = setup.spectrum(slope_per_um)
+    images = setup.injector(psfs, log_amp, phase, shift_pix=offset / pixel_arcsec)
+    lo = FIELD_MARGIN_PIX * config.oversample
+    images = images[:, lo : lo + instrument.psf_size, lo : lo + instrument.psf_size]
+    return instrument.optics.integrate_pixels(jnp.tensordot(spectrum.weights(), images, 1))
+
+
 def image_from_psfs(
     instrument: Instrument,
     setup: FilterSetup,
@@ -310,19 +339,17 @@ def image_from_psfs(
     phase: Float[Array, "k k"] | None,
     anchor_arcsec: Float[Array, " 2"] | None = None,
 ) -> Float[Array, "80 80"]:
-    """The 80 x 80 detector image from :func:`filter_psfs` and log-visibility grids."""
-    config = instrument.optics.config
-    pixel_arcsec = config.pixel_scale_arcsec / config.oversample
-    offset = (
-        exposure.position_arcsec
-        if anchor_arcsec is None
-        else (exposure.position_arcsec - anchor_arcsec)
+    """The 80 x 80 detector image (DN/s) from :func:`filter_psfs` and log-visibility grids."""
+    illuminance = illuminance_from_psfs(
+        instrument,
+        setup,
+        psfs,
+        slope_per_um,
+        exposure.position_arcsec,
+        log_amp,
+        phase,
+        anchor_arcsec,
     )
-    spectrum = setup.spectrum(slope_per_um)
-    images = setup.injector(psfs, log_amp, phase, shift_pix=offset / pixel_arcsec)
-    lo = FIELD_MARGIN_PIX * config.oversample
-    images = images[:, lo : lo + instrument.psf_size, lo : lo + instrument.psf_size]
-    illuminance = instrument.optics.integrate_pixels(jnp.tensordot(spectrum.weights(), images, 1))
     return instrument.detector(illuminance, jnp.exp(exposure.log_flux))
 
 

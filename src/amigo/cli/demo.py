@@ -50,7 +50,7 @@ def command(ctx: click.Context, out: Path, no_hmc: bool) -> None:
         tuple(cal),
         out,
         model=default_model_path(),
-        detector="linear",
+        detector=None,  # the default: the base model's full detector (network on)
         knots=DEMO_KNOTS,
         knot_spacing=DEMO_KNOT_SPACING_M,
         no_hmc=no_hmc,

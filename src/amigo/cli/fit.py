@@ -10,7 +10,10 @@ from __future__ import annotations
 import json
 import os
 from collections import defaultdict
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import click
 
@@ -46,38 +49,96 @@ def _check_inputs(sci: tuple[Path, ...], cal: tuple[Path, ...], detector: str | 
     if len(levels) > 1:
         raise InputError(None, "mixing raw-ramp products and level-2 images in one call")
     level = levels.pop()
-    if detector == "full":
-        why = (
-            "level-2 images are fitted with the linear detector"
-            if level == "level2"
-            else "this version fits science exposures with the linear detector only (the "
-            "base model's charge-migration network is used in training, not yet in fits)"
+    if detector == "full" and level == "level2":
+        raise InputError(
+            None,
+            "--detector full is not available for level-2 images (their ramps were already "
+            "fitted with a linear detector by the STScI pipeline): give calslope files "
+            "('amigo process') or use --detector linear",
         )
-        raise InputError(None, f"--detector full is not available: {why}; use --detector linear")
     return level
 
 
+@dataclass(frozen=True)
+class FitModel:
+    """What ``--model``/``--detector`` resolve to.
+
+    Attributes
+    ----------
+    instrument
+        Filter -> image-level :class:`~amigo.model.Instrument`.
+    base
+        The base model whose ramp and read models sit in front of calslope fits (with
+        its network for ``full``, without for ``linear``), or ``None`` (images fitted as
+        they are: level-2 files, or calslope files with an instrument file).
+    detector
+        ``"full"`` or ``"linear"`` (``fit_summary.json``).
+    """
+
+    instrument: Callable[[str], Any]
+    base: Any
+    detector: str
+
+
+def _fit_model(model: Path | None, detector: str | None, level: str) -> FitModel:
+    """Resolve the options: calslope files default to the shipped base model with its
+    network; level-2 images to the nominal instrument with the linear detector."""
+    from amigo.model import Instrument, load_instrument
+
+    if model is None and level == "calslope":
+        from amigo.basemodel import default_model_path
+
+        model = default_model_path()
+    if model is None:
+        nominal = Instrument.nominal()
+        return FitModel(lambda filter_name: nominal, None, "linear")
+    if model.suffix.lower() != ".npz":
+        if detector == "full":
+            raise InputError(
+                model, "--detector full needs a trained base model (.npz), not an instrument file"
+            )
+        instrument = load_instrument(model)
+        return FitModel(lambda filter_name: instrument, None, "linear")
+    from amigo.basemodel import load_base_model, read_metadata
+
+    base = load_base_model(model)
+    record = read_metadata(model)
+    trained = record.get("trained_on", "?").split(":")[0]
+    name = f"{model.name} (trained on {record.get('scenario', '?').split(' ')[0]}, {trained})"
+    if level == "level2":
+        mode, ramp = "linear", None
+    else:
+        mode = detector or "full"
+        ramp = base if mode == "full" else base.with_linear_detector()
+    return FitModel(
+        lambda filter_name: Instrument.from_base_model(base, filter_name, name, mode), ramp, mode
+    )
+
+
 def _read_fit_exposure(path: Path, role: str, level: str):
-    """(FitExposure, ExposureMeta) of one input file."""
+    """(FitExposure, ExposureMeta, RampInput or None) of one input file."""
     from amigo.fitting import FitExposure
     from amigo.likelihood import ImageData
 
+    ramp = None
     if level == "calslope":
         from amigo.io.calslope import read_calslope
         from amigo.io.jwst import meta_from_headers
+        from amigo.ramp_fit import RampInput
 
         product = read_calslope(path)
         meta = meta_from_headers(
             path, product.primary_header, product.slope_header, kind="calslope"
         )
-        image = ImageData.from_calslope(product, meta.group_time_s)
+        ramp = RampInput(product, meta.group_time_s)
+        image = ramp.image(None)
     else:
         from amigo.io.jwst import read_exposure
 
         exposure = read_exposure(path)
         meta = exposure.meta
         image = ImageData.from_exposure(exposure)
-    return FitExposure(path.name, role, meta.target, image), meta
+    return FitExposure(path.name, role, meta.target, image), meta, ramp
 
 
 def exposures_option(name: str, text: str):
@@ -94,13 +155,15 @@ _MODEL_OPTIONS = [
         type=click.Path(path_type=Path),
         default=None,
         help="Base model: a trained base model (.npz, e.g. from 'amigo train'), or an "
-        "instrument file (default: the nominal instrument).",
+        "instrument file (default: the shipped base model for calslope files, the nominal "
+        "instrument for level-2 images).",
     ),
     click.option(
         "--detector",
         type=click.Choice(["full", "linear"]),
         default=None,
-        help="Detector model; this version fits with 'linear' (the default).",
+        help="Detector model for calslope files: 'full' (the base model's charge-migration "
+        "network; the default) or 'linear' (network off). Level-2 images: 'linear' only.",
     ),
     click.option(
         "--knots",
@@ -173,12 +236,14 @@ def command(
     from amigo.fitting import FitConfig
     from amigo.progress import step
 
-    instruments = _instruments(model)
+    fit_model = _fit_model(model, detector, level)
     by_filter: dict[str, list] = defaultdict(list)
+    ramps = {}
     for role, paths in (("science", sci), ("calibrator", cal)):
         for path in paths:
-            fit_exposure, meta = _read_fit_exposure(path, role, level)
+            fit_exposure, meta, ramp = _read_fit_exposure(path, role, level)
             by_filter[meta.filter].append((fit_exposure, meta))
+            ramps[fit_exposure.name] = ramp
     for filter_name, items in by_filter.items():
         roles = {e.role for e, _ in items}
         if "calibrator" not in roles:
@@ -189,6 +254,11 @@ def command(
     config = FitConfig(polish_steps=polish)
     if max_iterations is not None:
         config = dataclasses.replace(config, max_iterations=max_iterations)
+    detector_model = None
+    if fit_model.base is not None:
+        from amigo.ramp_fit import RampDetector
+
+        detector_model = RampDetector(fit_model.base, ramps)
 
     out.mkdir(parents=True, exist_ok=True)
     summary_exposures = []
@@ -197,12 +267,18 @@ def command(
     for filter_name, items in sorted(by_filter.items()):
         if not any(e.role == "science" for e, _ in items):
             continue
-        instrument = instruments(filter_name)
+        instrument = fit_model.instrument(filter_name)
         names.append(instrument.name)
-        product = _run_filter(instrument, filter_name, items, config, out, grid)
+        product = _run_filter(instrument, filter_name, items, config, out, grid, detector_model)
         summary_exposures.extend(product["exposures"])
         filters_summary[filter_name] = product["filter"]
-    _write_summary(out, "; ".join(dict.fromkeys(names)), summary_exposures, filters_summary)
+    _write_summary(
+        out,
+        "; ".join(dict.fromkeys(names)),
+        fit_model.detector,
+        summary_exposures,
+        filters_summary,
+    )
     step(f"wrote {out / 'fit_summary.json'}")
 
 
@@ -219,24 +295,6 @@ def _grid(knots: int | None, spacing: float | None):
         )
     except ValueError as error:
         raise InputError(None, f"--knots/--knot-spacing: {error}") from None
-
-
-def _instruments(model: Path | None):
-    """A function filter -> :class:`~amigo.model.Instrument` for the ``--model`` option."""
-    from amigo.model import Instrument, load_instrument
-
-    if model is None:
-        nominal = Instrument.nominal()
-        return lambda filter_name: nominal
-    if model.suffix.lower() == ".npz":
-        from amigo.basemodel import load_base_model, read_metadata
-
-        base = load_base_model(model)
-        record = read_metadata(model)
-        name = f"{model.name} (trained on {record.get('scenario', '?').split(' ')[0]}, {record.get('trained_on', '?').split(':')[0]})"
-        return lambda filter_name: Instrument.from_base_model(base, filter_name, name)
-    instrument = load_instrument(model)
-    return lambda filter_name: instrument
 
 
 def _check_orientations(items) -> None:
@@ -257,7 +315,9 @@ def _check_orientations(items) -> None:
             )
 
 
-def _run_filter(instrument, filter_name, items, config, out: Path, grid=None) -> dict:
+def _run_filter(
+    instrument, filter_name, items, config, out: Path, grid=None, detector=None
+) -> dict:
     import numpy as np
 
     from amigo import instrument as nis
@@ -271,7 +331,9 @@ def _run_filter(instrument, filter_name, items, config, out: Path, grid=None) ->
 
     exposures = [e for e, _ in items]
     metas = {e.name: m for e, m in items}
-    product = extract_filter(instrument, filter_name, exposures, config, grid=grid)
+    product = extract_filter(
+        instrument, filter_name, exposures, config, grid=grid, detector=detector
+    )
     fit = product.fit
     plots = out / "plots"
     save_figure(spectrum_figure(product.basis_info), plots / f"basis_{filter_name}.png")
@@ -341,6 +403,18 @@ def _run_filter(instrument, filter_name, items, config, out: Path, grid=None) ->
         )
         step(f"wrote {oifits_path}")
     info = product.basis_info
+    record = product.detector
+    detector_summary = {}
+    if record is not None:
+        detector_summary = {
+            "detector": {
+                "mode": record.mode,
+                "rounds": len(record.changes),
+                "correction_changes_sigma": [round(c, 5) for c in record.changes],
+                "converged": record.converged,
+                "seconds": round(record.seconds, 2),
+            }
+        }
     return {
         "exposures": [
             {
@@ -366,18 +440,21 @@ def _run_filter(instrument, filter_name, items, config, out: Path, grid=None) ->
             "kernel_amplitudes": int(product.kernel.amp.shape[0]),
             "kernel_phases": int(product.kernel.phase.shape[0]),
             "seconds": round(product.seconds, 2),
+            **detector_summary,
         },
     }
 
 
-def _write_summary(out: Path, model_name: str, exposures: list[dict], filters: dict) -> None:
+def _write_summary(
+    out: Path, model_name: str, detector: str, exposures: list[dict], filters: dict
+) -> None:
     from amigo._version import __version__
     from amigo.io.atomic import write_text
 
     summary = {
         "amigo_version": __version__,
         "model": model_name,
-        "detector": "linear",
+        "detector": detector,
         "exposures": exposures,
         "filters": filters,
     }

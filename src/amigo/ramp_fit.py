@@ -1,0 +1,279 @@
+"""Science fits through the base model's ramp and read models (``amigo fit --detector``).
+
+The fitting engine (:mod:`amigo.fitting`, :mod:`amigo.newton`) models an exposure as an
+image ``M(theta)`` in DN/s: optics -> latent visibilities -> linear detector. A calslope
+file holds ``m = ngroups - 1`` mean slopes ``y`` per pixel (DN per group) and their
+covariance; with linear charge accumulation every slope expects ``t_g M`` (``t_g`` the
+group time) and :meth:`amigo.likelihood.ImageData.from_calslope` reduces the slope
+likelihood to an image likelihood exactly.
+
+The base model's detector (:meth:`amigo.basemodel.BaseModel.slopes`: charge-migration
+network, flat field, intra-pixel response, dark, IPC, non-linearity, gain) predicts
+instead ``S(theta) = R(I(theta))`` from the same sub-pixel illuminance ``I``. Write ::
+
+    S(theta) = t_g M(theta) + D(theta),     D = S - t_g M,
+
+``D`` (m, 80, 80) being the detector's departure from linear accumulation: brighter-fatter
+charge migration, the flat and IPC, the non-linearity. It is a few per cent of the signal
+and changes slowly with ``theta``. :func:`fit_through_detector` alternates
+
+1. ``D_k = D(theta_k)``: one forward pass of the ramp model per exposure, no gradient;
+2. ``theta_{k+1}``: the linear-detector fit of the corrected slopes ``y - D_k``
+   (Levenberg-Marquardt from ``theta_k``),
+
+until ``D`` stops changing (whitened rms change below a tolerance). At the fixed point the
+residuals ``y - D(theta) - t_g M(theta) = y - S(theta)`` are those of the full model, so
+``fit_summary.json``'s chi2 and z-scores are the full model's, at the slope level.
+
+What the iteration leaves out is ``D``'s own derivative in the normal equations: the step
+uses ``t_g dM/dtheta`` where the full model has ``t_g dM/dtheta + dD/dtheta``, as in a
+Gauss-Newton method with an approximate Jacobian. The fixed point then differs from the
+full-model optimum by ``F^-1 (dD/dtheta)^T W r`` (``r`` the whitened residuals), whose
+size relative to the statistical error is that of ``dD/dtheta`` relative to ``t_g
+dM/dtheta``, a few per cent; the latent covariances (from ``dM/dtheta``) carry the same
+relative approximation. The network is evaluated, never differentiated, which keeps a
+science fit at the cost of a linear-detector fit plus one Gauss-Newton refit per round.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from amigo.basemodel import BaseModel
+from amigo.detector.linear import bin_pixels
+from amigo.fitting import FilterFit, FitConfig, FitExposure, FitParams, FitResult
+from amigo.io.calslope import CalSlope
+from amigo.likelihood import ImageData
+from amigo.model import FilterSetup, Instrument, illuminance_from_psfs
+from amigo.newton import N_LOCAL_SCALARS, levenberg_marquardt, local_vector, psfs_of
+from amigo.progress import step
+
+#: Stop when the whitened rms change of the correction between rounds is below this.
+DEFAULT_TOLERANCE = 0.05
+#: Rounds of (correction, refit) at most.
+DEFAULT_MAX_ROUNDS = 4
+#: Gauss-Newton iterations of each refit: a round's change of the correction is a small
+#: fraction of the noise, so a few steps from the last optimum absorb it.
+DEFAULT_REFIT_ITERATIONS = 3
+
+
+@dataclass(frozen=True)
+class RampInput:
+    """A calslope exposure kept whole, for the full detector.
+
+    Attributes
+    ----------
+    product
+        The file's content.
+    group_time_s
+        Time between group reads (s), from the headers.
+    """
+
+    product: CalSlope
+    group_time_s: float
+
+    @property
+    def ngroups(self) -> int:
+        return int(self.product.slope_dn.shape[0]) + 1
+
+    def image(self, correction_dn: np.ndarray | None) -> ImageData:
+        """The exposure reduced to an image after subtracting ``correction_dn``
+        (m, ny, nx) DN per group from its slopes (``None``: none)."""
+        product = self.product
+        if correction_dn is not None:
+            product = dataclasses.replace(product, slope_dn=product.slope_dn - correction_dn)
+        return ImageData.from_calslope(product, self.group_time_s)
+
+
+@eqx.filter_jit
+def _slopes_and_image(
+    base: BaseModel,
+    instrument: Instrument,
+    setup: FilterSetup,
+    psfs: Array,
+    anchor: Array,
+    theta: Float[Array, " n"],
+    electrons_per_dn_s: Array,
+    ngroups: int,
+) -> tuple[Float[Array, "m 80 80"], Float[Array, "80 80"]]:
+    """The base model's slopes (DN per group) and the fit's linear image (DN/s) of one
+    exposure with local vector ``theta = [x, y, log_flux, slope, latents]``."""
+    n_amp = setup.basis.n_amp
+    latent = theta[N_LOCAL_SCALARS:]
+    log_amp, phase = setup.basis.grids(latent[:n_amp], latent[n_amp:])
+    optical = illuminance_from_psfs(
+        instrument, setup, psfs, theta[3], theta[:2], log_amp, phase, anchor
+    )
+    unit = instrument.detector.illuminance(optical)  # sums to the in-field fraction
+    flux = jnp.exp(theta[2])
+    image = flux * bin_pixels(unit, instrument.detector.oversample)
+    slopes = base.slopes(unit * (flux * electrons_per_dn_s), ngroups)
+    return slopes, image
+
+
+class RampDetector:
+    """The base model's detector in front of a filter's image fit (see module notes).
+
+    Parameters
+    ----------
+    base
+        Base model whose ramp and read models predict the slopes; with its network, or
+        without (``with_linear_detector``: linear charge accumulation, flat, IPC and
+        non-linearity kept) for ``--detector linear``.
+    inputs
+        The calslope exposures by :attr:`FitExposure.name`.
+    tolerance, max_rounds, refit_iterations
+        Convergence of the correction and Gauss-Newton iterations per refit (see
+        :func:`fit_through_detector`).
+    """
+
+    def __init__(
+        self,
+        base: BaseModel,
+        inputs: dict[str, RampInput],
+        tolerance: float = DEFAULT_TOLERANCE,
+        max_rounds: int = DEFAULT_MAX_ROUNDS,
+        refit_iterations: int = DEFAULT_REFIT_ITERATIONS,
+    ) -> None:
+        self.base = base
+        self.inputs = inputs
+        self.tolerance = tolerance
+        self.max_rounds = max_rounds
+        self.refit_iterations = refit_iterations
+
+    @property
+    def mode(self) -> str:
+        """``"full"`` with the charge-migration network, ``"linear"`` without."""
+        return "linear" if self.base.linear else "full"
+
+    def corrections(self, fit: FilterFit, params: FitParams) -> list[np.ndarray]:
+        """(m, 80, 80) ``D = S - t_g M`` of every exposure at ``params`` (DN per group)."""
+        setup, instrument = fit.setup, fit.instrument
+        anchor = fit.anchor.astype(setup.wavelengths_m.dtype)
+        psfs = psfs_of(instrument, setup, params.optics, anchor)
+        gain = self.base.read.gain_e_per_dn
+        out = []
+        for e, exposure in enumerate(fit.exposures):
+            ramp = self.inputs[exposure.name]
+            # Electrons per integration for 1 DN/s: reads at t_g, 2 t_g, ... ngroups t_g.
+            scale = jnp.asarray(gain * ramp.ngroups * ramp.group_time_s, setup.wavelengths_m.dtype)
+            theta = local_vector(params, e, int(fit.source_index[e]))
+            slopes, image = _slopes_and_image(
+                self.base, instrument, setup, psfs, anchor, theta, scale, ramp.ngroups
+            )
+            slopes = np.asarray(slopes, np.float64)
+            linear = np.asarray(image, np.float64) * ramp.group_time_s
+            out.append(slopes - linear[None])
+        return out
+
+    def corrected(
+        self, exposures: list[FitExposure], corrections: list[np.ndarray]
+    ) -> list[FitExposure]:
+        """The exposures with their slopes corrected and reduced to images again."""
+        return [
+            dataclasses.replace(e, image=self.inputs[e.name].image(d))
+            for e, d in zip(exposures, corrections, strict=True)
+        ]
+
+    def change(
+        self, exposures: list[FitExposure], old: list[np.ndarray], new: list[np.ndarray]
+    ) -> float:
+        """Whitened rms of ``new - old`` over the slopes in the likelihood (the largest
+        over exposures), in units of each slope's own standard deviation."""
+        worst = 0.0
+        for exposure, a, b in zip(exposures, old, new, strict=True):
+            product = self.inputs[exposure.name].product
+            m = product.slope_dn.shape[0]
+            variance = np.einsum("iiyx->iyx", product.slope_cov_dn2)
+            used = np.broadcast_to(exposure.image.mask, (m, *exposure.image.mask.shape))
+            with np.errstate(divide="ignore", invalid="ignore"):
+                z = (b - a)[used] / np.sqrt(variance[used])
+            z = z[np.isfinite(z)]
+            worst = max(worst, float(np.sqrt(np.mean(z * z))) if z.size else 0.0)
+        return worst
+
+
+@dataclass(frozen=True)
+class DetectorRecord:
+    """How the correction converged (``fit_summary.json``'s per-filter record).
+
+    Attributes
+    ----------
+    mode
+        ``"full"`` or ``"linear"``.
+    changes
+        Whitened rms change of the correction in each round.
+    converged
+        Whether the last change was below the tolerance.
+    seconds
+        Wall time of the ramp-model passes and refits.
+    """
+
+    mode: str
+    changes: tuple[float, ...]
+    converged: bool
+    seconds: float
+
+
+def fit_through_detector(
+    instrument: Instrument,
+    setup: FilterSetup,
+    exposures: list[FitExposure],
+    config: FitConfig,
+    detector: RampDetector,
+    label: str = "fit",
+) -> tuple[FilterFit, FitResult, DetectorRecord]:
+    """Fit a filter's exposures with the base model's detector (see module notes).
+
+    The first correction is taken at the starting point (point sources at their
+    cross-correlation positions), the full fit runs on the corrected slopes, and each
+    later round recomputes the correction at the current optimum and refits from it by
+    Levenberg-Marquardt (``detector.refit_iterations`` steps at most). Returns the fit
+    whose data carry the correction at the final parameters (so its residuals are the
+    full model's), the result, and the record.
+    """
+    start = time.perf_counter()
+    fit = FilterFit(instrument, setup, exposures)
+    corrections = detector.corrections(fit, fit.initial_params())
+    step(f"{label}: {detector.mode} detector: correction at the starting point computed")
+    fit = FilterFit(instrument, setup, detector.corrected(exposures, corrections))
+    result = fit.fit(config, label=label)
+    changes: list[float] = []
+    refit = dataclasses.replace(
+        config.newton,
+        max_iterations=min(config.newton.max_iterations, detector.refit_iterations),
+    )
+    for round_ in range(1, detector.max_rounds + 1):
+        new = detector.corrections(fit, result.params)
+        changes.append(detector.change(fit.exposures, corrections, new))
+        corrections = new
+        fit = FilterFit(instrument, setup, detector.corrected(exposures, corrections))
+        step(f"{label}: detector round {round_}: correction changed by {changes[-1]:.3g} sigma")
+        last = round_ == detector.max_rounds or config.newton.max_iterations == 0
+        if changes[-1] < detector.tolerance or last:
+            break  # the data now carry the correction at the final parameters
+        newton = levenberg_marquardt(fit, result.params, refit, f"{label} round {round_}")
+        result = FitResult(
+            params=newton.params,
+            converged=newton.converged,
+            iterations=result.iterations + newton.iterations,
+            loss_history=np.concatenate([result.loss_history, newton.loss_history]),
+            loss_change=float(newton.loss_history[0] - min(newton.loss_history)) / fit.n_exposures,
+            newton_decrement=float(newton.decrement),
+            seconds=result.seconds + newton.seconds,
+        )
+    converged = bool(changes) and changes[-1] < detector.tolerance
+    record = DetectorRecord(
+        mode=detector.mode,
+        changes=tuple(changes),
+        converged=converged,
+        seconds=time.perf_counter() - start,
+    )
+    return fit, result, record
