@@ -123,3 +123,21 @@ def test_null_data_give_no_detection(tmp_path):
         for curve in result.limits:
             assert np.all(np.isfinite(curve.ruffio_dmag)) and curve.sep_mas.size > 5
             assert curve.ruffio_dmag[-1] > curve.ruffio_dmag[0] - 0.5
+
+
+def test_a_companion_beyond_the_search_radius_is_not_reported(tmp_path):
+    """A companion just outside ``rmax`` pulls the edge of the grid; the joint fit then
+    follows it outside the searched field: not a detection, but a note. Searched with a
+    radius that includes it, it is found where it is."""
+    rng = np.random.default_rng(4)
+    truth = (-560.0, 280.0, {"F480M": 0.02})  # 626 mas
+    block = obs.load(
+        write_sim_calvis(tmp_path / "S_F480M_calvis.fits", "F480M", [(*truth[:2], 0.02)], rng)
+    )
+    dataset = obs.Dataset.from_blocks([block])
+    result = detect(dataset, SearchSettings(rmax_mas=560.0, hmc=False))
+    assert all(c.estimate.sep_mas <= 560.0 for c in result.companions)
+    assert any("beyond the search radius" in w for w in result.warnings)
+    wide = detect(dataset, SearchSettings(rmax_mas=700.0, hmc=False))
+    assert len(wide.companions) == 1
+    _check(wide.companions[0].estimate, truth, ("F480M",))

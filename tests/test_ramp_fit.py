@@ -200,5 +200,4 @@ def test_fixed_point_fit_leaves_pure_noise_with_the_network(setting):
         variance = np.einsum("iiyx->iyx", inputs[name].product.slope_cov_dn2)
         mask = exposures[e].image.mask
         signal = ((with_network - without) ** 2 / variance)[:, mask].sum()
-        print(name, "brighter-fatter signal chi2", signal, "full-model chi2", product.stats[e].chi2)
         assert signal > 5 * 3 * np.sqrt(2 * product.stats[e].dof)  # 5x the band tested above

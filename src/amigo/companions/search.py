@@ -272,6 +272,8 @@ def _beam_search(
                     step(
                         f"  best candidate at dRA={dra:.1f} dDec={ddec:.1f} mas: {sigma:.1f} sigma"
                     )
+                if sigma >= settings.threshold_sigma and _outside(cand.fit, settings, notes):
+                    continue
                 if sigma >= settings.threshold_sigma:
                     expansions.append(
                         _Hypothesis(
@@ -305,6 +307,25 @@ def _beam_search(
                 f"well (chi2 larger by {other.chi2 - best.chi2:.1f}); see detection_maps.png"
             )
     return best
+
+
+def _outside(fit: fitting.FitResult, settings: SearchSettings, notes: list[str]) -> bool:
+    """Whether the joint fit of a candidate scene put a companion beyond the search
+    radius (the grid starts inside it, but the least-squares fit is unbounded); if so,
+    say so in ``notes``: signal from outside the searched field is not a detection."""
+    separations = np.hypot(*fit.offsets_mas.T)
+    if separations.max() <= settings.rmax_mas:
+        return False
+    dra, ddec = fit.offsets_mas[int(np.argmax(separations))]
+    note = (
+        f"a candidate moved to (dRA, dDec) = ({dra:.0f}, {ddec:.0f}) mas "
+        f"({separations.max():.0f} mas) in the joint fit, beyond the search radius "
+        f"({settings.rmax_mas:.0f} mas): not reported; search a larger radius (--rmax-mas) "
+        "to test it"
+    )
+    if note not in notes:
+        notes.append(note)
+    return True
 
 
 def _estimate_from_samples(dra, ddec, log10c, filters) -> Estimate:
