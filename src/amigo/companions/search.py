@@ -309,6 +309,52 @@ def _beam_search(
     return best
 
 
+def _prune(
+    dataset: Dataset, scene: _Hypothesis, settings: SearchSettings, notes: list[str]
+) -> _Hypothesis:
+    """Backward elimination on the final scene: every companion must stand at the
+    threshold *given all the others*.
+
+    The beam search adds companions one at a time and keeps the deepest scene; following
+    an alias, it can reach a scene in which a companion accepted early is no longer needed
+    once a later one is in (the later one explaining the same signal). For each
+    companion, the scene is refitted without it and its chi2 gain converted to a
+    significance, with the error scales of the whole scene; the weakest one below the
+    threshold is dropped and the test repeated. The significances returned are these
+    conditional ones.
+    """
+    diameter = settings.primary_diameter_mas
+    fit = scene.fit
+    while fit is not None:
+        k = fit.n_companions
+        scales = np.maximum(
+            1.0, fitting.estimate_scales(dataset, fit.offsets_mas, fit.contrasts, diameter)
+        )
+        full = _chi2(dataset, fit.offsets_mas, fit.log10_contrasts, scales, diameter)
+        sigmas, rests = [], []
+        for i in range(k):
+            keep = [j for j in range(k) if j != i]
+            if keep:
+                rest = fitting.fit_companions(
+                    dataset, fit.offsets_mas[keep], fit.log10_contrasts[keep], scales, diameter
+                )
+                without = _chi2(dataset, rest.offsets_mas, rest.log10_contrasts, scales, diameter)
+            else:
+                rest, without = None, fitting.background_chi2(dataset, scales, diameter)
+            sigmas.append(float(sigma_from_chi2(max(without - full, 0.0), dataset.n_filters)))
+            rests.append(rest)
+        weakest = int(np.argmin(sigmas))
+        if sigmas[weakest] >= settings.threshold_sigma:
+            return _Hypothesis(fit, _unit_chi2(dataset, fit, diameter), tuple(sigmas), scene.maps)
+        dra, ddec = fit.offsets_mas[weakest]
+        notes.append(
+            f"the companion found at (dRA, dDec) = ({dra:.0f}, {ddec:.0f}) mas is only "
+            f"{sigmas[weakest]:.1f} sigma given the others: dropped"
+        )
+        fit = rests[weakest]
+    return _Hypothesis(None, _unit_chi2(dataset, None, diameter), (), scene.maps)
+
+
 def _outside(fit: fitting.FitResult, settings: SearchSettings, notes: list[str]) -> bool:
     """Whether the joint fit of a candidate scene put a companion beyond the search
     radius (the grid starts inside it, but the least-squares fit is unbounded); if so,
@@ -389,7 +435,7 @@ def _detect(dataset: Dataset, settings: SearchSettings) -> DetectionResult:
     step_mas = settings.step_mas or default_step_mas(dataset)
     grid = Grid.square(settings.rmax_mas, step_mas)
     notes: list[str] = []
-    path = _beam_search(dataset, grid, settings, notes)
+    path = _prune(dataset, _beam_search(dataset, grid, settings, notes), settings, notes)
     current = path.fit
     significances = list(path.significances)
     maps = list(path.maps)
