@@ -114,7 +114,10 @@ def _slopes_and_image(
     unit = instrument.detector.illuminance(optical)  # sums to the in-field fraction
     flux = jnp.exp(theta[2])
     image = flux * bin_pixels(unit, instrument.detector.oversample)
-    slopes = base.slopes(unit * (flux * electrons_per_dn_s), ngroups)
+    # The ramp model runs in the base model's precision (its network is float32), whatever
+    # the precision of the optics (float64 when x64 is on).
+    electrons = (unit * (flux * electrons_per_dn_s)).astype(base.ramp.flat.dtype)
+    slopes = base.slopes(electrons, ngroups)
     return slopes, image
 
 

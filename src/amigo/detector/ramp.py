@@ -247,8 +247,12 @@ class RampModel(eqx.Module):
         )
 
     def charge_states(self, illuminance_e: Float[Array, "ny3 nx3"]) -> Float[Array, "n ny nx"]:
-        """Charge after each sub-step, including the empty start: (n_substeps + 1, ny, nx)."""
+        """Charge after each sub-step, including the empty start: (n_substeps + 1, ny, nx),
+        in the illuminance's precision (constants promoted to float64 when x64 is on must
+        not change the type of the recurrent state)."""
+        dtype = illuminance_e.dtype
         step = to_subpixels(illuminance_e) * self.intra_pixel()[None, None] / self.n_substeps
+        step = step.astype(dtype)
         ny, nx = step.shape[:2]
 
         def advance(charge: Array, _: None) -> tuple[Array, Array]:
@@ -257,10 +261,10 @@ class RampModel(eqx.Module):
             else:
                 kernels = migration_kernels(self.network(charge), self.max_shift_pix)
                 collected = transport(step, kernels)
-            charge = charge + self.flat * collected
+            charge = charge + (self.flat * collected).astype(dtype)
             return charge, charge
 
-        start = jnp.zeros((ny, nx), illuminance_e.dtype)
+        start = jnp.zeros((ny, nx), dtype)
         _, states = jax.lax.scan(advance, start, None, length=self.n_substeps)
         return jnp.concatenate([start[None], states])
 
