@@ -40,7 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from amigo.model import ExposureParams, OpticsParams, filter_psfs, image_from_psfs
+from amigo.model import OpticsParams, filter_psfs, illuminance_from_psfs
 from amigo.progress import step
 
 if TYPE_CHECKING:
@@ -203,13 +203,22 @@ def optics_vector(params: FitParams) -> Float[Array, " n"]:
     return jnp.concatenate([jnp.ravel(params.optics.zernikes_nm), params.optics.defocus_nm[None]])
 
 
-def _local_image(theta, instrument, setup, psfs, anchor) -> Float[Array, "80 80"]:
-    """Image of one exposure from its local vector ``[x, y, log_flux, slope, latents]``."""
+def local_illuminance(theta, instrument, setup, psfs, anchor) -> Float[Array, "240 240"]:
+    """Unit-flux optical illuminance (:func:`amigo.model.illuminance_from_psfs`) of one
+    exposure from its local vector ``[x, y, log_flux, slope, latents]`` (the flux,
+    ``theta[2]``, is applied by the detector)."""
     n_amp = setup.basis.n_amp
     latent = theta[N_LOCAL_SCALARS:]
     log_amp, phase = setup.basis.grids(latent[:n_amp], latent[n_amp:])
-    exposure = ExposureParams(theta[:2], theta[2])
-    return image_from_psfs(instrument, setup, psfs, theta[3], exposure, log_amp, phase, anchor)
+    return illuminance_from_psfs(
+        instrument, setup, psfs, theta[3], theta[:2], log_amp, phase, anchor
+    )
+
+
+def _local_image(theta, instrument, setup, psfs, anchor) -> Float[Array, "80 80"]:
+    """Image (DN/s) of one exposure from its local vector (as :func:`image_from_psfs`)."""
+    optical = local_illuminance(theta, instrument, setup, psfs, anchor)
+    return instrument.detector(optical, jnp.exp(theta[2]))
 
 
 def _columns(function, x: Array) -> Array:

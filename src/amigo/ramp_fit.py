@@ -51,8 +51,8 @@ from amigo.detector.linear import bin_pixels
 from amigo.fitting import FilterFit, FitConfig, FitExposure, FitParams, FitResult
 from amigo.io.calslope import CalSlope
 from amigo.likelihood import ImageData
-from amigo.model import FilterSetup, Instrument, illuminance_from_psfs
-from amigo.newton import N_LOCAL_SCALARS, levenberg_marquardt, local_vector, psfs_of
+from amigo.model import FilterSetup, Instrument
+from amigo.newton import levenberg_marquardt, local_illuminance, local_vector, psfs_of
 from amigo.progress import step
 
 #: Stop when the whitened rms change of the correction between rounds is below this.
@@ -105,12 +105,7 @@ def _slopes_and_image(
 ) -> tuple[Float[Array, "m 80 80"], Float[Array, "80 80"]]:
     """The base model's slopes (DN per group) and the fit's linear image (DN/s) of one
     exposure with local vector ``theta = [x, y, log_flux, slope, latents]``."""
-    n_amp = setup.basis.n_amp
-    latent = theta[N_LOCAL_SCALARS:]
-    log_amp, phase = setup.basis.grids(latent[:n_amp], latent[n_amp:])
-    optical = illuminance_from_psfs(
-        instrument, setup, psfs, theta[3], theta[:2], log_amp, phase, anchor
-    )
+    optical = local_illuminance(theta, instrument, setup, psfs, anchor)
     unit = instrument.detector.illuminance(optical)  # sums to the in-field fraction
     flux = jnp.exp(theta[2])
     image = flux * bin_pixels(unit, instrument.detector.oversample)

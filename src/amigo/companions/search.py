@@ -272,9 +272,7 @@ def _beam_search(
                     step(
                         f"  best candidate at dRA={dra:.1f} dDec={ddec:.1f} mas: {sigma:.1f} sigma"
                     )
-                if sigma >= settings.threshold_sigma and _outside(cand.fit, settings, notes):
-                    continue
-                if sigma >= settings.threshold_sigma:
+                if sigma >= settings.threshold_sigma and not _outside(cand.fit, settings, notes):
                     expansions.append(
                         _Hypothesis(
                             cand.fit,
