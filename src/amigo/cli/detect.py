@@ -111,8 +111,45 @@ def command(
     """
     import jax
 
-    jax.config.update("jax_enable_x64", True)  # fits, Hessians and HMC need float64
+    # Fits, Hessians and HMC need float64. A context rather than the global switch, so a
+    # process that calls this command (tests, notebooks) keeps its own precision after.
+    with jax.enable_x64(True):
+        _detect(
+            files,
+            out_dir,
+            rmax_mas,
+            threshold,
+            step_mas,
+            max_companions,
+            observables,
+            cp_correlation,
+            primary_diameter_mas,
+            no_hmc,
+            no_per_filter,
+            warmup,
+            samples,
+            chains,
+            seed,
+        )
 
+
+def _detect(
+    files,
+    out_dir,
+    rmax_mas,
+    threshold,
+    step_mas,
+    max_companions,
+    observables,
+    cp_correlation,
+    primary_diameter_mas,
+    no_hmc,
+    no_per_filter,
+    warmup,
+    samples,
+    chains,
+    seed,
+) -> None:
     from amigo.companions import observables as obs
     from amigo.companions import plots, products
     from amigo.companions.search import SearchSettings, detect
