@@ -23,6 +23,8 @@ from amigo.optics import (
     box_fir_taps,
     cubic_upsample_taps,
     integrate_pixels,
+    mft,
+    mft_symmetric,
     pixel_transfer,
 )
 from amigo.optics.aperture import zernike_basis
@@ -88,6 +90,43 @@ def test_polygon_ft_reference_is_right():
     qx, qy = np.array([1.3, -4.0]), np.array([2.1, 0.7])
     expected = np.sinc(qx / (2 * np.pi)) * np.sinc(qy / (2 * np.pi))
     np.testing.assert_allclose(polygon_ft(square, qx, qy), expected, atol=1e-12)
+
+
+def test_symmetric_mft_equals_a_direct_fourier_sum():
+    # Random complex field on an asymmetric pupil grid; the symmetric real-arithmetic
+    # transform against the plain sum exp(-2 pi i (x tx + y ty) / lambda) written here.
+    rng = np.random.default_rng(3)
+    ny, nx, m = 9, 12, 10
+    x = (np.arange(nx) - 3.7) * 0.05
+    y = (np.arange(ny) - 6.2) * 0.05
+    theta = (np.arange(m) - 0.5 * (m - 1)) * 1e-7
+    field = rng.normal(size=(ny, nx)) + 1j * rng.normal(size=(ny, nx))
+    wavelength = 4.3e-6
+    k = 2 * np.pi / wavelength
+    direct = np.einsum(
+        "yx,ay,bx->ab",
+        field,
+        np.exp(-1j * k * np.outer(theta, y)),
+        np.exp(-1j * k * np.outer(theta, x)),
+    )
+    half = theta[m // 2 :]
+    re, im = mft_symmetric(
+        jnp.asarray(field.real), jnp.asarray(field.imag), x, y, wavelength, half, half
+    )
+    np.testing.assert_allclose(np.asarray(re) + 1j * np.asarray(im), direct, atol=1e-12)
+    general = mft(jnp.asarray(field), x, y, wavelength, theta, theta)
+    np.testing.assert_allclose(np.asarray(general), direct, atol=1e-12)
+
+
+def test_odd_focal_grid_uses_the_general_transform():
+    # An odd number of focal samples (a zero angle) cannot use the symmetric transform;
+    # the PSF must still be centred and agree with the even grid's where both sample.
+    config = OpticsConfig(npix_detector=9, oversample=3, fresnel=False)  # 27 samples
+    optics = NRMOptics.create(config)
+    psf = np.asarray(optics.psfs(jnp.array([WAVELENGTH]), jnp.zeros(2))[0])
+    assert psf.shape == (27, 27)
+    np.testing.assert_allclose(psf, psf[::-1, ::-1], rtol=1e-9, atol=1e-12 * psf.max())
+    assert np.unravel_index(psf.argmax(), psf.shape) == (13, 13)
 
 
 # ------------------------------------------------------------------------------------

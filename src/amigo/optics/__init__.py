@@ -28,6 +28,7 @@ from amigo.optics.propagation import (
     fresnel_defocus,
     integrate_pixels,
     mft,
+    mft_symmetric,
     pixel_transfer,
 )
 from amigo.optics.spectrum import AbstractSpectrum, LinearSpectrum, SEDSpectrum, monochromatic
@@ -49,6 +50,7 @@ __all__ = [
     "fresnel_defocus",
     "integrate_pixels",
     "mft",
+    "mft_symmetric",
     "monochromatic",
     "n_polynomial_terms",
     "pixel_transfer",

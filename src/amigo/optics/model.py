@@ -234,33 +234,55 @@ class NRMOptics(eqx.Module):
         the gradient cheap).
         """
         c = self.config
-        amplitude, opd_m, power = self._pupil_and_power()
-        x, y = self.grid.x_m, self.grid.y_m
-        pos = jnp.asarray(position_arcsec) * ARCSEC_TO_RAD
-        opd_m = opd_m + x[None, :] * pos[0] + y[:, None] * pos[1]
-        defocus_in_pupil = c.fresnel and c.defocus_method == "pupil"
-        if defocus_in_pupil:
-            opd_m = opd_m + defocus_opd_m(self.grid, self.defocus_nm, 0.5 * c.pupil_diameter_m)
-        theta = jax.lax.stop_gradient(self.focal_grid_rad())
-        # Parseval: sum |E|^2 dtheta^2 over the plane = lambda^2 dx^2 * (power in pupil).
-
-        def one(wavelength):
-            wavelength = jax.lax.stop_gradient(wavelength)
-            field = amplitude * jnp.exp((2j * jnp.pi / wavelength) * opd_m)
-            e = propagation.mft(field, x, y, wavelength, theta, theta)
-            e = e * (self.grid.pixel_m * c.psf_pixel_rad / (wavelength * jnp.sqrt(power)))
-            if c.fresnel and not defocus_in_pupil:
-                e = propagation.fresnel_defocus(
-                    e,
+        re, im = self._fraunhofer_parts(wavelengths_m, position_arcsec)
+        e = jax.lax.complex(re, im)
+        if c.fresnel and c.defocus_method != "pupil":
+            wavelengths = jax.lax.stop_gradient(jnp.asarray(wavelengths_m))
+            e = jax.vmap(
+                lambda field, wavelength: propagation.fresnel_defocus(
+                    field,
                     c.psf_pixel_rad,
                     wavelength,
                     self.defocus_nm,
                     0.5 * c.pupil_diameter_m,
                     c.fresnel_pad,
                 )
-            return e
+            )(e, wavelengths)
+        return e
 
-        return jax.lax.map(one, jnp.asarray(wavelengths_m))
+    def _fraunhofer_parts(
+        self, wavelengths_m: Float[Array, " n"], position_arcsec: Float[Array, " 2"]
+    ) -> tuple[Float[Array, "n m m"], Float[Array, "n m m"]]:
+        """Real and imaginary parts of the normalised focal fields before any
+        angular-spectrum defocus (with the "pupil" defocus method, the final fields)."""
+        c = self.config
+        amplitude, opd_m, power = self._pupil_and_power()
+        x, y = self.grid.x_m, self.grid.y_m
+        pos = jnp.asarray(position_arcsec) * ARCSEC_TO_RAD
+        opd_m = opd_m + x[None, :] * pos[0] + y[:, None] * pos[1]
+        if c.fresnel and c.defocus_method == "pupil":
+            opd_m = opd_m + defocus_opd_m(self.grid, self.defocus_nm, 0.5 * c.pupil_diameter_m)
+        theta = jax.lax.stop_gradient(self.focal_grid_rad())
+        half = c.npix_psf // 2
+        symmetric = c.npix_psf % 2 == 0  # the grid holds -t with every t (and no zero)
+
+        def one(wavelength):
+            # The MFT matrices depend on the wavelength only: constants of the gradient.
+            wavelength = jax.lax.stop_gradient(wavelength)
+            phase = (2.0 * jnp.pi / wavelength) * opd_m
+            re, im = amplitude * jnp.cos(phase), amplitude * jnp.sin(phase)
+            if symmetric:
+                e_re, e_im = propagation.mft_symmetric(
+                    re, im, x, y, wavelength, theta[half:], theta[half:]
+                )
+            else:
+                e = propagation.mft(jax.lax.complex(re, im), x, y, wavelength, theta, theta)
+                e_re, e_im = e.real, e.imag
+            # Parseval: sum |E|^2 dtheta^2 over the plane = lambda^2 dx^2 * (pupil power).
+            norm = self.grid.pixel_m * c.psf_pixel_rad / (wavelength * jnp.sqrt(power))
+            return e_re * norm, e_im * norm
+
+        return jax.vmap(one)(jnp.asarray(wavelengths_m))
 
     def psfs(
         self, wavelengths_m: Float[Array, " n"], position_arcsec: Float[Array, " 2"]
@@ -271,8 +293,12 @@ class NRMOptics(eqx.Module):
         per unit sample area: its sum over the infinite plane is one (over the SUB80
         field it is a little less). Not pixel integrated: see :meth:`integrate_pixels`.
         """
-        e = self.focal_fields(wavelengths_m, position_arcsec)
-        return e.real**2 + e.imag**2
+        c = self.config
+        if c.fresnel and c.defocus_method != "pupil":
+            e = self.focal_fields(wavelengths_m, position_arcsec)
+            return e.real**2 + e.imag**2
+        re, im = self._fraunhofer_parts(wavelengths_m, position_arcsec)
+        return re**2 + im**2
 
     def integrate_pixels(self, image: Float[Array, "... m m"]) -> Float[Array, "... m m"]:
         """Point samples -> integrals over the oversampled sub-pixels (config method)."""

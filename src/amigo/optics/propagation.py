@@ -48,6 +48,52 @@ def mft(
     return ty @ (field @ tx.T)
 
 
+def mft_symmetric(
+    field_re: Float[Array, "ny nx"],
+    field_im: Float[Array, "ny nx"],
+    x_m: Float[Array, " nx"],
+    y_m: Float[Array, " ny"],
+    wavelength_m: Array | float,
+    theta_x_rad: Float[Array, " hx"],
+    theta_y_rad: Float[Array, " hy"],
+) -> tuple[Float[Array, "2hy 2hx"], Float[Array, "2hy 2hx"]]:
+    """:func:`mft` on a focal grid symmetric about zero, in real arithmetic.
+
+    ``theta_x_rad`` and ``theta_y_rad`` are the *positive half* ``t`` of the grids; the
+    output is on ``concatenate([-t[::-1], t])`` along each axis, e.g. the upper 120 of the
+    240 samples of :func:`centred_axis`. Returns the real and imaginary parts of the
+    same field as :func:`mft`, each (2 hy, 2 hx).
+
+    Why: ``exp(-i k t x) = cos(k t x) - i sin(k t x)`` and the grid holds ``-t`` with
+    every ``t``, so one real cosine and one real sine matrix of half the outputs serve
+    both signs. A complex field times a real matrix is two real products instead of four
+    (and XLA's real matrix products are faster than its complex ones): about 3x faster
+    than :func:`mft` forward and 2.5x with the gradient on a CPU, agreeing to float
+    rounding (tested). The pupil grid need not be symmetric.
+    """
+    k = 2.0 * jnp.pi / wavelength_m
+    phase_x = k * jnp.outer(theta_x_rad, x_m)  # (hx, nx)
+    phase_y = k * jnp.outer(theta_y_rad, y_m)  # (hy, ny)
+    ny, hx, hy = field_re.shape[0], theta_x_rad.shape[0], theta_y_rad.shape[0]
+    # Along x, in one product: [a; b] @ [cos | sin]^T = [[a c, a s], [b c, b s]].
+    q = jnp.concatenate([field_re, field_im]) @ jnp.concatenate(
+        [jnp.cos(phase_x), jnp.sin(phase_x)]
+    ).T
+    ac, as_, bc, bs = q[:ny, :hx], q[:ny, hx:], q[ny:, :hx], q[ny:, hx:]
+    # (a + ib)(c -+ is) at +-t: real a c +- b s, imaginary b c -+ a s.
+    g_re = jnp.concatenate([(ac - bs)[:, ::-1], ac + bs], axis=1)  # (ny, 2 hx)
+    g_im = jnp.concatenate([(bc + as_)[:, ::-1], bc - as_], axis=1)
+    # Along y, the same with the complex intermediate g = g_re + i g_im on the right.
+    m = 2 * hx
+    r = jnp.concatenate([jnp.cos(phase_y), jnp.sin(phase_y)]) @ jnp.concatenate(
+        [g_re, g_im], axis=1
+    )
+    c_re, c_im, s_re, s_im = r[:hy, :m], r[:hy, m:], r[hy:, :m], r[hy:, m:]
+    e_re = jnp.concatenate([(c_re - s_im)[::-1], c_re + s_im])
+    e_im = jnp.concatenate([(c_im + s_re)[::-1], c_im - s_re])
+    return e_re, e_im
+
+
 def fresnel_defocus(
     field: Complex[Array, "m m"],
     pixel_rad: float,
