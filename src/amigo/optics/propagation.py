@@ -76,9 +76,10 @@ def mft_symmetric(
     phase_y = k * jnp.outer(theta_y_rad, y_m)  # (hy, ny)
     ny, hx, hy = field_re.shape[0], theta_x_rad.shape[0], theta_y_rad.shape[0]
     # Along x, in one product: [a; b] @ [cos | sin]^T = [[a c, a s], [b c, b s]].
-    q = jnp.concatenate([field_re, field_im]) @ jnp.concatenate(
-        [jnp.cos(phase_x), jnp.sin(phase_x)]
-    ).T
+    q = (
+        jnp.concatenate([field_re, field_im])
+        @ jnp.concatenate([jnp.cos(phase_x), jnp.sin(phase_x)]).T
+    )
     ac, as_, bc, bs = q[:ny, :hx], q[:ny, hx:], q[ny:, :hx], q[ny:, hx:]
     # (a + ib)(c -+ is) at +-t: real a c +- b s, imaginary b c -+ a s.
     g_re = jnp.concatenate([(ac - bs)[:, ::-1], ac + bs], axis=1)  # (ny, 2 hx)
