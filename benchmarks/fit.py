@@ -5,7 +5,11 @@ knot grid) are made with the optics of issue 3: a single-star calibrator and a b
 science target. Prints a table of wall times on this machine: basis (load or build),
 Fisher information, natural-gradient iterations, float64 Hessians, the whole pair.
 
-    python benchmarks/fit.py [--filter F480M] [--iterations 150]
+    python benchmarks/fit.py [--filter F480M] [--iterations N]
+
+The fit settings are ``amigo fit``'s defaults (:class:`amigo.fitting.FitConfig`) unless
+``--iterations`` changes the number of natural-gradient iterations before the
+Levenberg-Marquardt finish.
 """
 
 from __future__ import annotations
@@ -43,7 +47,7 @@ def scene(instrument, filter_name, sources, photons, rng):
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--filter", default="F480M")
-    parser.add_argument("--iterations", type=int, default=150)
+    parser.add_argument("--iterations", type=int, default=FitConfig().max_iterations)
     args = parser.parse_args()
     rng = np.random.default_rng(0)
     instrument = Instrument.nominal()

@@ -105,3 +105,27 @@ def test_fourier_shift_matches_analytic_shift_inside_the_field():
     # for this reason (tests/test_model.py).
     inner = slice(20, -20)
     np.testing.assert_allclose(out[inner, inner], truth[inner, inner], atol=1e-4 * truth.max())
+
+
+def test_broadband_injection_equals_the_weighted_monochromatic_images():
+    # One inverse FFT of the weighted spectra against one per wavelength, then weighted.
+    n = 96
+    wavelengths = np.array([3.9e-6, 4.3e-6, 4.7e-6])
+    weights = np.array([0.2, 0.5, 0.3])
+    psfs = np.stack([analytic_nrm_psf(n, wl) for wl in wavelengths])
+    grid = UVGrid()
+    log_amp, phase = binary_log_visibility(
+        grid.knots_m(), wavelengths, weights, np.array([120.0, 60.0]) * MAS, 0.05
+    )
+    injector = Injector.build(grid, wavelengths, PIXEL_RAD, n)
+    args = (
+        jnp.asarray(log_amp.reshape(51, 51), jnp.float32),
+        jnp.asarray(phase.reshape(51, 51), jnp.float32),
+        jnp.asarray([0.7, -1.2], jnp.float32),
+    )
+    per_wavelength = np.asarray(injector(jnp.asarray(psfs, jnp.float32), *args))
+    expected = np.tensordot(weights, per_wavelength, 1)
+    got = np.asarray(
+        injector.broadband(jnp.asarray(psfs, jnp.float32), jnp.asarray(weights), *args)
+    )
+    np.testing.assert_allclose(got, expected, atol=1e-6 * expected.max())

@@ -183,7 +183,9 @@ def extract_filter(
         f"{result.iterations} iterations (loss change {result.loss_change:.3g}, "
         f"Newton decrement {result.newton_decrement:.3g} per exposure)"
     )
-    information = latent_information(fit, result.params, label)
+    information = latent_information(
+        fit, result.params, label, result.fisher, result.exact_exposures
+    )
     params = result.params
     latents = np.concatenate(
         [np.asarray(params.sources.amp, float), np.asarray(params.sources.phase, float)], axis=1

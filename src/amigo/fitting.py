@@ -23,19 +23,23 @@ calibrator cannot pin down.
 
 Optimiser
 ---------
-Natural (Fisher-preconditioned) gradient descent: the gradient of ``L = chi2 / 2`` is
-divided by the diagonal of the Fisher matrix ``F_ii = sum_pixels (dm/dtheta_i)^2 /
-sigma^2``, then passed to optax's Nesterov momentum with one learning rate for every
-parameter (1 would be a Newton step for independent parameters). The diagonal is exact
-(forward-mode Jacobians) for positions, fluxes, slopes, Zernikes and defocus. For the
-latent visibilities it comes from the basis: its eigenvalues are the Fisher diagonal of
-a unit-flux image with unit pixel weights, scaled here by ``flux^2`` and the exposure's
-mean inverse variance weighted by the squared image (where the modes act). Groups start
-in stages (positions -> flux -> aberrations -> spectra -> visibilities). Convergence is
-measured, not assumed: the change of ``L`` over the last :attr:`FitConfig.window`
-iterations and the Newton decrement ``g^T F^-1 g`` (the decrease a Newton step would
-give, in units of ``L``) must both fall below tolerances. An optional optimistix BFGS
-polish follows in Fisher-whitened coordinates.
+By default, damped Gauss-Newton (Levenberg-Marquardt) steps with the full Fisher matrix
+of every exposure (:mod:`amigo.newton`): the calibrators first, with the wavefront, then
+the science exposures with the wavefront held at the calibrators' optimum; between two
+sets of Jacobians, chord steps reuse the Fisher matrix with fresh gradients; the
+Jacobians that confirm convergence are float64 and their Fisher matrix gives the latent
+Hessians. The natural gradient with the full Fisher matrix and a unit step *is* the
+Gauss-Newton step.
+
+Optionally (``FitConfig.max_iterations > 0``) a first-order stage runs before it:
+natural (Fisher-preconditioned) gradient descent. The gradient of ``L = chi2 / 2`` is
+preconditioned by Fisher blocks from forward-mode Jacobians (the full block of the
+positions, fluxes, slopes, Zernikes and defocus, and each target's latent block or its
+diagonal), then passed to optax's Nesterov momentum with one learning rate. Groups start
+in stages (positions -> flux -> aberrations -> spectra -> visibilities). Its convergence
+is measured: the change of ``L`` over the last :attr:`FitConfig.window` iterations and
+the Newton decrement ``g^T F^-1 g`` must both fall below tolerances. An optional
+optimistix BFGS polish follows in Fisher-whitened coordinates.
 
 Uncertainties
 -------------
@@ -72,6 +76,7 @@ from amigo.model import (
 )
 from amigo.newton import (
     N_LOCAL_SCALARS,
+    Layout,
     NewtonConfig,
     levenberg_marquardt,
     local_jacobian,
@@ -118,7 +123,10 @@ class FitConfig:
     Attributes
     ----------
     max_iterations
-        Upper bound on natural-gradient iterations.
+        Natural-gradient iterations before the Levenberg-Marquardt finish. 0 (default):
+        none; the Levenberg-Marquardt solver with chord steps converges from the
+        cross-correlation start in a few Jacobian evaluations, and the natural gradient's
+        Fisher blocks would cost as much as one of them.
     learning_rate, momentum
         Step scale on the Fisher-preconditioned gradient, and Nesterov momentum.
     starts
@@ -143,7 +151,7 @@ class FitConfig:
         ``"diagonal"`` (its diagonal only).
     """
 
-    max_iterations: int = 20
+    max_iterations: int = 0
     learning_rate: float = 0.3
     momentum: float = 0.6
     starts: dict[str, int] = field(
@@ -195,6 +203,12 @@ class FitResult:
         ``g^T F^-1 g`` at the end (per exposure).
     seconds
         Wall time of the fit.
+    fisher, exact_exposures
+        The float64 Fisher matrix of the global parameter vector
+        (:class:`amigo.newton.Layout`) at ``params`` summed over the exposures
+        ``exact_exposures``, whose convergence the Levenberg-Marquardt finish confirmed
+        with float64 Jacobians there (``None`` and ``()`` if none):
+        :func:`latent_information` reads their latent Hessians from it.
     """
 
     params: FitParams
@@ -204,6 +218,8 @@ class FitResult:
     loss_change: float
     newton_decrement: float
     seconds: float
+    fisher: np.ndarray | None = None
+    exact_exposures: tuple[int, ...] = ()
 
 
 class FilterFit:
@@ -474,8 +490,14 @@ class FilterFit:
         config = FitConfig() if config is None else config
         start = time.perf_counter()
         params = self.initial_params() if params is None else params
-        precond = self.preconditioner(params, config.vis_preconditioner)
-        step(f"{label}: Fisher information computed ({time.perf_counter() - start:.0f} s)")
+        precond = None
+        if (
+            config.max_iterations > 0
+            or config.polish_steps > 0
+            or config.newton.max_iterations == 0
+        ):
+            precond = self.preconditioner(params, config.vis_preconditioner)
+            step(f"{label}: Fisher information computed ({time.perf_counter() - start:.0f} s)")
         starts = jnp.array([config.starts[g] for g in _GROUP_NAMES])
         momentum = optax.trace(decay=config.momentum, nesterov=True)
         state = momentum.init(params)
@@ -552,21 +574,28 @@ class FilterFit:
         if config.polish_steps > 0:
             best, n_polish = self.polish(best, precond, config.polish_steps)
             iteration += n_polish
+        fisher, exact = None, ()
         if config.newton.max_iterations > 0:
             # The full-Fisher finish decides convergence (see amigo.newton).
             newton = levenberg_marquardt(self, best, config.newton, label)
-            best, converged = newton.params, newton.converged
+            best, converged, fisher = newton.params, newton.converged, newton.fisher
+            exact = newton.exact_exposures
             iteration += newton.iterations
             history.extend(newton.loss_history[1:])
-        final_loss, final_grad = eqx.filter_jit(eqx.filter_value_and_grad(self.loss))(
-            best, self.instrument, self.setup, self.pixels
-        )
-        all_active = jnp.ones(len(_GROUP_NAMES), bool)
-        final_decrement = float(_tree_dot(final_grad, precond.natural(final_grad, all_active)))
         if config.newton.max_iterations > 0:
+            final_loss = newton.loss
             final_decrement = newton.decrement * per_exposure
-        window = min(config.window, len(history) - 1)
-        change = (min(history[:-window]) - min(history)) / per_exposure if window > 0 else np.inf
+            change = newton.loss_change
+        else:
+            final_loss, final_grad = eqx.filter_jit(eqx.filter_value_and_grad(self.loss))(
+                best, self.instrument, self.setup, self.pixels
+            )
+            all_active = jnp.ones(len(_GROUP_NAMES), bool)
+            final_decrement = float(_tree_dot(final_grad, precond.natural(final_grad, all_active)))
+            window = min(config.window, len(history) - 1)
+            change = (
+                (min(history[:-window]) - min(history)) / per_exposure if window > 0 else np.inf
+            )
         return FitResult(
             params=best,
             converged=converged,
@@ -575,6 +604,8 @@ class FilterFit:
             loss_change=float(change),
             newton_decrement=final_decrement / per_exposure,
             seconds=time.perf_counter() - start,
+            fisher=fisher,
+            exact_exposures=exact,
         )
 
     def polish(
@@ -787,13 +818,21 @@ class LatentInformation:
     seconds: float
 
 
-def latent_information(fit: FilterFit, params: FitParams, label: str = "fit") -> LatentInformation:
+def latent_information(
+    fit: FilterFit,
+    params: FitParams,
+    label: str = "fit",
+    fisher: np.ndarray | None = None,
+    exact_exposures: tuple[int, ...] = (),
+) -> LatentInformation:
     """Hessians of ``-log L`` w.r.t. the latent visibilities and the nuisance cross terms.
 
     Everything is evaluated in float64 (``jax.enable_x64``): the model, its Jacobians
     (forward mode, exact) and the sums. Covariances use the Hessians at the optimum; the
     kernel's terms are taken at the calibrators' point-source state (see
-    :class:`LatentInformation`).
+    :class:`LatentInformation`). ``fisher``: the float64 Fisher matrix of the global
+    vector at ``params`` summed over ``exact_exposures`` (:attr:`FitResult.fisher`):
+    the latent blocks of those exposures' targets are read from it, the others computed.
     """
     start = time.perf_counter()
     n = params.sources.amp.shape[1] + params.sources.phase.shape[1]
@@ -809,11 +848,24 @@ def latent_information(fit: FilterFit, params: FitParams, label: str = "fit") ->
             params64,
             (jnp.zeros_like(params64.sources.amp), jnp.zeros_like(params64.sources.phase)),
         )
+        source = np.asarray(fit.source_index)
+        known = set()  # targets whose every exposure is in `fisher`
+        if fisher is not None:
+            layout = Layout.of(params)
+            for s in range(len(fit.targets)):
+                members = np.nonzero(source == s)[0]
+                if set(members.tolist()) <= set(exact_exposures):
+                    latent = layout.local(int(members[0]), s)[N_LOCAL_SCALARS:]
+                    hessian[s] = fisher[np.ix_(latent, latent)]
+                    known.add(s)
         for e in range(fit.n_exposures):
-            step(f"{label}: Hessian of {fit.exposures[e].name} ({n} latent visibilities)")
-            jac = np.asarray(fit.latent_jacobian(params64, e, instrument, setup)).reshape(n, -1)
-            hessian[fit.source_index[e]] += (jac * w[e].ravel()) @ jac.T
+            if source[e] not in known:
+                step(f"{label}: Hessian of {fit.exposures[e].name} ({n} latent visibilities)")
+                jac = fit.latent_jacobian(params64, e, instrument, setup)
+                jac = np.asarray(jac).reshape(n, -1)
+                hessian[fit.source_index[e]] += (jac * w[e].ravel()) @ jac.T
             if fit.is_calibrator[e]:
+                step(f"{label}: kernel Jacobians of {fit.exposures[e].name} (point source)")
                 local, wave = fit.local_jacobians(point, e, instrument, setup, wavefront=True)
                 jac0 = np.asarray(local[N_LOCAL_SCALARS:]).reshape(n, -1)
                 # Columns in the order of nuisance_names(): Zernikes, log-flux, slope, defocus.

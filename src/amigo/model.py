@@ -323,10 +323,12 @@ def illuminance_from_psfs(
     pixel_arcsec = config.pixel_scale_arcsec / config.oversample
     offset = position_arcsec if anchor_arcsec is None else (position_arcsec - anchor_arcsec)
     spectrum = setup.spectrum(slope_per_um)
-    images = setup.injector(psfs, log_amp, phase, shift_pix=offset / pixel_arcsec)
+    image = setup.injector.broadband(
+        psfs, spectrum.weights(), log_amp, phase, shift_pix=offset / pixel_arcsec
+    )
     lo = FIELD_MARGIN_PIX * config.oversample
-    images = images[:, lo : lo + instrument.psf_size, lo : lo + instrument.psf_size]
-    return instrument.optics.integrate_pixels(jnp.tensordot(spectrum.weights(), images, 1))
+    image = image[lo : lo + instrument.psf_size, lo : lo + instrument.psf_size]
+    return instrument.optics.integrate_pixels(image)
 
 
 def image_from_psfs(

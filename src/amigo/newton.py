@@ -26,6 +26,19 @@ visibilities (S, m_a + m_p)]``, float64. Science exposures see the wavefront as 
 
 Convergence is the Newton decrement ``g^T F^+ g`` (twice the decrease of ``L = chi2/2``
 that a full step would give) per exposure, below :attr:`NewtonConfig.tolerance`.
+
+Cost
+----
+A set of Jacobians (~1100 forward-mode columns per exposure) costs seconds; a gradient
+(one reverse-mode pass over all exposures) a fraction of a second. So between two
+Jacobian evaluations the solver takes *chord steps*: the Fisher matrix of the last
+Jacobians is kept and only the gradient is recomputed at each new point (the frozen-
+Jacobian, or chord, Gauss-Newton method; it converges linearly at the rate at which the
+Fisher matrix changes, which near the optimum is slow). When a chord step's decrement
+estimate falls below the tolerance, the next Jacobians are evaluated in float64: if they
+confirm convergence, that exact float64 Fisher matrix at the final point is returned with
+the result, and the Hessians of the latent visibilities are read from it instead of being
+computed again (:func:`amigo.fitting.latent_information`).
 """
 
 from __future__ import annotations
@@ -41,6 +54,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from amigo.model import OpticsParams, filter_psfs, illuminance_from_psfs
+from amigo.model import float64 as _float64
 from amigo.progress import step
 
 if TYPE_CHECKING:
@@ -73,16 +87,33 @@ class NewtonConfig:
         so does the tolerance.
     damping
         Initial Levenberg-Marquardt damping ``mu`` (relative to unit diagonal).
+    chord_steps
+        Most steps taken with the Fisher matrix of the last Jacobians and fresh gradients
+        before new Jacobians are computed (0: plain Levenberg-Marquardt).
+    float64_check
+        Evaluate the Jacobians that are expected to confirm convergence in float64 (and
+        return their Fisher matrix, see :class:`NewtonResult`).
     """
 
     max_iterations: int = 12
     tolerance: float = 1.0
     damping: float = 1e-3
+    chord_steps: int = 10
+    float64_check: bool = True
 
 
 @dataclass
 class NewtonResult:
-    """Outcome of :func:`levenberg_marquardt` (``loss`` is ``L = chi2 / 2``)."""
+    """Outcome of :func:`levenberg_marquardt` (``loss`` is ``L = chi2 / 2``).
+
+    ``iterations`` counts Jacobian evaluations, ``chord_steps`` the steps taken with a
+    reused Fisher matrix. ``loss`` is ``L`` of all exposures at the end, ``loss_change``
+    the fall of ``L`` per exposure over the last iteration of the last stage.
+
+    ``fisher`` is the float64 Fisher matrix ``F`` of the global vector (:class:`Layout`)
+    evaluated exactly at ``params``, summed over the exposures ``exact_exposures``: those
+    of the stages whose convergence float64 Jacobians confirmed (``None`` if none).
+    """
 
     params: FitParams
     converged: bool
@@ -90,6 +121,11 @@ class NewtonResult:
     loss_history: list[float]
     decrement: float
     seconds: float
+    chord_steps: int = 0
+    fisher: np.ndarray | None = None
+    exact_exposures: tuple[int, ...] = ()
+    loss: float = float("nan")
+    loss_change: float = float("nan")
 
 
 # ------------------------------------------------------------------------------ layout
@@ -257,79 +293,280 @@ def _images(thetas, instrument, setup, psfs, anchor) -> Float[Array, "e 80 80"]:
     return jax.vmap(lambda t: _local_image(t, instrument, setup, psfs, anchor))(thetas)
 
 
+@eqx.filter_jit
+def _gradient(thetas, wavefront, instrument, setup, anchor, data, weight, members, calibrator):
+    """Gradient of ``L = sum_e |W_e (d_e - m_e)|^2 / 2`` over the exposures with
+    ``members[e] = 1`` w.r.t. every exposure's local vector (E, n) and the wavefront
+    ``[Zernikes, defocus]``, by reverse mode.
+
+    Only exposures with ``calibrator[e] = 1`` inform the wavefront (science exposures see
+    it as a constant, as in :meth:`amigo.fitting.FilterFit.models`).
+    """
+    shape = instrument.optics.zernikes_nm.shape
+
+    def psfs_of_wavefront(vector):
+        optics = OpticsParams(vector[:-1].reshape(shape), vector[-1])
+        return filter_psfs(instrument, setup, optics, anchor)
+
+    psfs, pullback = jax.vjp(psfs_of_wavefront, wavefront)
+
+    def loss(thetas, psfs, mask):
+        images = jax.vmap(lambda t: _local_image(t, instrument, setup, psfs, anchor))(thetas)
+        r = (data - images.reshape(data.shape)) * weight
+        return 0.5 * jnp.sum(mask[:, None] * r * r)
+
+    g_thetas = jax.grad(loss)(thetas, psfs, members)
+    g_psfs = jax.grad(loss, argnums=1)(thetas, psfs, calibrator)
+    return g_thetas, pullback(g_psfs)[0]
+
+
 # ------------------------------------------------------------------------------ solver
 class _Problem:
-    """The fit's data and structure as float64 NumPy, with the model as JAX calls."""
+    """The fit's data and structure as float64 NumPy, with the model as JAX calls.
 
-    def __init__(self, fit: FilterFit, params: FitParams) -> None:
+    ``members`` are the exposures in this problem (the solver fits the calibrators, then
+    the science exposures; see :func:`levenberg_marquardt`). ``float64`` switches the
+    model, its gradients and Jacobians to 64-bit (the solver does so near the optimum,
+    where float32 rounding of the loss and of the Jacobians hides the last fractions of
+    chi2 that the convergence test asks about).
+    """
+
+    def __init__(self, fit: FilterFit, params: FitParams, members: np.ndarray) -> None:
         self.fit = fit
         self.layout = Layout.of(params)
+        self.members = np.asarray(members, int)
         self.data = np.asarray(fit.pixels.data, np.float64).reshape(fit.n_exposures, -1)
         self.weight = np.asarray(fit.pixels.inverse_sigma, np.float64).reshape(fit.n_exposures, -1)
         self.locals = [
             self.layout.local(e, int(fit.source_index[e])) for e in range(fit.n_exposures)
         ]
-        self.dtype = params.sources.amp.dtype
-        self.n_values = float(np.count_nonzero(self.weight))
+        self.n_values = float(np.count_nonzero(self.weight[self.members]))
+        self.member_mask = np.isin(np.arange(fit.n_exposures), self.members)
+        self.float64 = False
+        self._models64 = None
 
-    def thetas(self, vector: np.ndarray) -> jax.Array:
-        return jnp.asarray(np.stack([vector[i] for i in self.locals]), self.dtype)
+    def _models(self):
+        if not self.float64:
+            return self.fit.instrument, self.fit.setup, jnp.float32
+        if self._models64 is None:
+            self._models64 = _float64((self.fit.instrument, self.fit.setup))
+        return (*self._models64, jnp.float64)
 
-    def psfs(self, vector: np.ndarray):
+    def precision(self):
+        """Context in which the model runs in the current precision."""
+        return jax.enable_x64(self.float64)
+
+    def _inputs(self, vector: np.ndarray):
+        instrument, setup, dtype = self._models()
         lay = self.layout
-        optics = OpticsParams(
-            jnp.asarray(vector[lay.optics[:-1]].reshape(lay.zernike_shape), self.dtype),
-            jnp.asarray(vector[lay.optics[-1]], self.dtype),
-        )
-        return psfs_of(self.fit.instrument, self.fit.setup, optics, self.fit.anchor)
+        wavefront = jnp.asarray(vector[lay.optics], dtype)
+        thetas = jnp.asarray(np.stack([vector[i] for i in self.locals]), dtype)
+        anchor = jnp.asarray(self.fit.anchor, dtype)
+        return instrument, setup, dtype, wavefront, thetas, anchor
 
-    def residuals(self, vector: np.ndarray, psfs=None) -> np.ndarray:
-        """(E, npix) whitened residuals ``(data - model) / sigma`` (0 where masked);
-        ``psfs`` are those of ``vector``'s wavefront when the caller has them."""
-        fit = self.fit
-        psfs = self.psfs(vector) if psfs is None else psfs
-        models = _images(self.thetas(vector), fit.instrument, fit.setup, psfs, fit.anchor)
-        models = np.asarray(models, np.float64).reshape(fit.n_exposures, -1)
-        return (self.data - models) * self.weight
+    def _psfs(self, instrument, setup, wavefront, anchor):
+        optics = OpticsParams(wavefront[:-1].reshape(self.layout.zernike_shape), wavefront[-1])
+        return psfs_of(instrument, setup, optics, anchor)
 
     def loss(self, vector: np.ndarray) -> float:
-        r = self.residuals(vector)
+        """``L = chi2 / 2`` of the member exposures at ``vector``."""
+        with self.precision():
+            instrument, setup, _, wavefront, thetas, anchor = self._inputs(vector)
+            psfs = self._psfs(instrument, setup, wavefront, anchor)
+            models = _images(thetas, instrument, setup, psfs, anchor)
+            models = np.asarray(models, np.float64).reshape(self.fit.n_exposures, -1)
+        r = ((self.data - models) * self.weight)[self.members]
         return 0.5 * float(np.sum(r * r))
 
+    def gradient(self, vector: np.ndarray) -> np.ndarray:
+        """``g = -grad L`` at ``vector`` (one reverse-mode pass)."""
+        fit, lay = self.fit, self.layout
+        with self.precision():
+            instrument, setup, dtype, wavefront, thetas, anchor = self._inputs(vector)
+            g_thetas, g_wave = _gradient(
+                thetas,
+                wavefront,
+                instrument,
+                setup,
+                anchor,
+                jnp.asarray(self.data, dtype),
+                jnp.asarray(self.weight, dtype),
+                jnp.asarray(self.member_mask, dtype),
+                jnp.asarray(self.member_mask & np.asarray(fit.is_calibrator, bool), dtype),
+            )
+            g_thetas = np.asarray(g_thetas, np.float64)
+            g_wave = np.asarray(g_wave, np.float64)
+        grad = np.zeros(lay.size)
+        for e in self.members:
+            np.add.at(grad, self.locals[e], g_thetas[e])
+        grad[lay.optics] += g_wave
+        return -grad
+
     def normal_equations(self, vector: np.ndarray, label: str) -> tuple[np.ndarray, np.ndarray]:
-        """Fisher matrix ``F`` and ``g = -grad L`` at ``vector`` (float64)."""
+        """Fisher matrix ``F`` and ``g = -grad L`` at ``vector`` (float64 sums of the
+        Jacobians and residuals of the current precision)."""
         fit, lay = self.fit, self.layout
         n = lay.size
         fisher, grad = np.zeros((n, n)), np.zeros(n)
-        psfs = self.psfs(vector)
-        thetas = self.thetas(vector)
-        r = self.residuals(vector, psfs)
-        wavefront = jnp.asarray(vector[lay.optics], self.dtype)
-        for e in range(fit.n_exposures):
-            step(f"{label}: Jacobian of {fit.exposures[e].name}")
-            jac = local_jacobian(thetas[e], fit.instrument, fit.setup, psfs, fit.anchor)
-            jac = np.asarray(jac, np.float64).reshape(len(self.locals[e]), -1)
-            index = self.locals[e]
-            if fit.is_calibrator[e]:
-                jo = optics_jacobian(wavefront, thetas[e], fit.instrument, fit.setup, fit.anchor)
-                jac = np.concatenate([jac, np.asarray(jo, np.float64).reshape(len(lay.optics), -1)])
-                index = np.concatenate([index, lay.optics])
-            wj = jac * self.weight[e]  # whitened Jacobian
-            fisher[np.ix_(index, index)] += wj @ wj.T
-            grad[index] += wj @ r[e]
+        with self.precision():
+            instrument, setup, _, wavefront, thetas, anchor = self._inputs(vector)
+            psfs = self._psfs(instrument, setup, wavefront, anchor)
+            models = _images(thetas, instrument, setup, psfs, anchor)
+            models = np.asarray(models, np.float64).reshape(fit.n_exposures, -1)
+            r = (self.data - models) * self.weight
+            for e in self.members:
+                precision = "float64 " if self.float64 else ""
+                step(f"{label}: {precision}Jacobian of {fit.exposures[e].name}")
+                jac = local_jacobian(thetas[e], instrument, setup, psfs, anchor)
+                jac = np.asarray(jac, np.float64).reshape(len(self.locals[e]), -1)
+                index = self.locals[e]
+                if fit.is_calibrator[e]:
+                    jo = optics_jacobian(wavefront, thetas[e], instrument, setup, anchor)
+                    jo = np.asarray(jo, np.float64).reshape(len(lay.optics), -1)
+                    jac = np.concatenate([jac, jo])
+                    index = np.concatenate([index, lay.optics])
+                wj = jac * self.weight[e]  # whitened Jacobian
+                fisher[np.ix_(index, index)] += wj @ wj.T
+                grad[index] += wj @ r[e]
         return fisher, grad
 
 
+class _Solver:
+    """``(F_s + mu I)^-1 g_s`` for one Fisher matrix and any gradient and damping.
+
+    In Jacobi-scaled coordinates (``F_s = D^-1 F D^-1``, ``D = sqrt(diag F)``), on the
+    parameters with information (``diag F > 0``; the others get no step), with exact
+    degeneracies (eigenvalues below :data:`EIGEN_FLOOR` of the largest) dropped. The
+    eigendecomposition is done once: a Levenberg-Marquardt iteration solves with the same
+    matrix for several dampings and, in chord steps, several gradients.
+    """
+
+    def __init__(self, fisher: np.ndarray) -> None:
+        diag = np.diag(fisher)
+        self.active = np.nonzero(diag > 0)[0]
+        self.size = fisher.shape[0]
+        self.root = np.sqrt(diag[self.active])
+        scaled = fisher[np.ix_(self.active, self.active)] / np.outer(self.root, self.root)
+        evals, self.evecs = np.linalg.eigh(scaled)
+        self.keep = evals > EIGEN_FLOOR * evals.max() if evals.size else evals > 0
+        self.evals = np.where(self.keep, evals, 1.0)
+
+    def __call__(self, grad: np.ndarray, damping: float = 0.0) -> np.ndarray:
+        inv = np.where(self.keep, 1.0 / (self.evals + damping), 0.0)
+        scaled = self.evecs @ (inv * (self.evecs.T @ (grad[self.active] / self.root)))
+        step = np.zeros(self.size)
+        step[self.active] = scaled / self.root
+        return step
+
+
 def _solve(fisher: np.ndarray, grad: np.ndarray, damping: float) -> np.ndarray:
-    """``(F_s + mu I)^-1 g_s`` in Jacobi-scaled coordinates, degenerate directions dropped."""
-    diag = np.diag(fisher)
-    root = np.sqrt(np.where(diag > 0, diag, 1.0))
-    scaled = fisher / np.outer(root, root)
-    evals, evecs = np.linalg.eigh(scaled)
-    keep = evals > EIGEN_FLOOR * evals.max()
-    inv = np.where(keep, 1.0 / (np.where(keep, evals, 1.0) + damping), 0.0)
-    step_scaled = evecs @ (inv * (evecs.T @ (grad / root)))
-    return np.where(diag > 0, step_scaled / root, 0.0)
+    """``(F_s + mu I)^-1 g_s`` in Jacobi-scaled coordinates, degenerate directions dropped
+    (one-off form of :class:`_Solver`)."""
+    return _Solver(fisher)(grad, damping)
+
+
+@dataclass
+class _Stage:
+    """Outcome of :func:`_minimise` on one group of exposures."""
+
+    vector: np.ndarray
+    converged: bool
+    iterations: int
+    chord_steps: int
+    decrement: float
+    history: list[float]
+    fisher: np.ndarray | None
+
+
+def _minimise(problem: _Problem, vector: np.ndarray, config: NewtonConfig, label: str) -> _Stage:
+    """Levenberg-Marquardt with chord steps on one problem (see module notes)."""
+    n_exposures = float(len(problem.members))
+    loss = problem.loss(vector)
+    history = [loss]
+    damping = config.damping
+    decrement = np.inf
+    estimate = np.inf  # decrement predicted with the last Fisher matrix
+    converged = False
+    iteration = chords = 0
+    fisher = None
+    exact = False  # whether `fisher` is float64 and was evaluated at `vector`
+
+    def tolerance() -> float:
+        return config.tolerance * max(1.0, 2.0 * loss / problem.n_values)
+
+    def damped_step(solver, grad) -> float | None:
+        """A Levenberg-Marquardt step from ``vector``: the fall of the loss, or None if
+        no damping makes the loss fall."""
+        nonlocal vector, loss, damping
+        for _ in range(12):
+            trial = vector + solver(grad, damping)
+            trial_loss = problem.loss(trial)
+            if np.isfinite(trial_loss) and trial_loss < loss:
+                fall = loss - trial_loss
+                vector, loss = trial, trial_loss
+                damping = max(damping / 3.0, 1e-9)
+                history.append(loss)
+                return fall
+            damping *= 4.0
+        return None
+
+    def to_float64() -> None:
+        """From here on the model runs in float64 (the loss is re-evaluated in it)."""
+        nonlocal loss
+        if config.float64_check and not problem.float64:
+            problem.float64 = True
+            loss = problem.loss(vector)
+            history.append(loss)
+
+    for iteration in range(1, config.max_iterations + 1):
+        if estimate < tolerance():
+            to_float64()  # these Jacobians are expected to confirm convergence
+        fisher, grad = problem.normal_equations(vector, label)
+        exact = problem.float64
+        solver = _Solver(fisher)
+        decrement = float(grad @ solver(grad)) / n_exposures
+        step(
+            f"{label}: Gauss-Newton {iteration}: chi2 {2 * loss:.2f}, "
+            f"Newton decrement {decrement:.3g} per exposure"
+        )
+        if decrement < tolerance():
+            converged = True
+            break
+        if damped_step(solver, grad) is None:
+            if problem.float64 or not config.float64_check:
+                step(f"{label}: no damped step lowers the loss; stopping")
+                break
+            # float32 may not resolve the remaining fall of the loss: go on in float64.
+            to_float64()
+            step(f"{label}: continuing in float64")
+            estimate = np.inf
+            continue
+        exact = False
+        estimate = np.inf
+        for _ in range(config.chord_steps):
+            grad = problem.gradient(vector)
+            estimate = float(grad @ solver(grad)) / n_exposures
+            if estimate < tolerance():
+                break  # new Jacobians (float64) to confirm
+            fall = damped_step(solver, grad)
+            if fall is None:
+                break
+            chords += 1
+            if fall < 0.25 * 0.5 * estimate * n_exposures:
+                break  # the stale Fisher matrix no longer predicts the fall: new Jacobians
+        step(
+            f"{label}: {chords} chord steps so far, chi2 {2 * loss:.2f}, "
+            f"decrement estimate {estimate:.3g} per exposure"
+        )
+    return _Stage(
+        vector=vector,
+        converged=converged,
+        iterations=iteration,
+        chord_steps=chords,
+        decrement=decrement,
+        history=history,
+        fisher=fisher if (converged and exact) else None,
+    )
 
 
 def levenberg_marquardt(
@@ -340,48 +577,60 @@ def levenberg_marquardt(
 ) -> NewtonResult:
     """Damped Gauss-Newton iterations from ``params`` until the Newton decrement is small.
 
-    Each iteration costs one set of Jacobians (the model differentiated with respect to
-    every parameter of every exposure); rejected steps only cost a model evaluation.
+    The calibrator exposures are fitted first (with the wavefront), then the science
+    exposures with the wavefront held at the calibrators' optimum. This is exactly the
+    optimum of the joint fit in which the science exposures see the wavefront as a
+    constant (:meth:`amigo.fitting.FilterFit.models`), but, unlike a joint step, each
+    stage minimises a proper function: a joint step cannot anticipate how a move of the
+    wavefront changes the science images (their Jacobians have no wavefront columns), so
+    near the optimum its line search on the total loss refuses steps whose gradient is
+    right. Each stage costs one set of Jacobians per iteration and takes up to
+    ``config.chord_steps`` chord steps between them (see module notes).
+
+    ``loss_history`` is ``L`` of the calibrators' stage, then ``L`` of all exposures
+    during the science stage.
     """
     config = NewtonConfig() if config is None else config
     start = time.perf_counter()
-    problem = _Problem(fit, params)
-    per_exposure = float(fit.n_exposures)
-    vector = problem.layout.pack(params)
-    loss = problem.loss(vector)
-    history = [loss]
-    damping = config.damping
-    decrement = np.inf
-    converged = False
-    iteration = 0
-    for iteration in range(1, config.max_iterations + 1):
-        fisher, grad = problem.normal_equations(vector, label)
-        decrement = float(grad @ _solve(fisher, grad, 0.0)) / per_exposure
-        step(
-            f"{label}: Gauss-Newton {iteration}: chi2 {2 * loss:.2f}, "
-            f"Newton decrement {decrement:.3g} per exposure"
-        )
-        scale = max(1.0, 2.0 * loss / problem.n_values)
-        if decrement < config.tolerance * scale:
-            converged = True
-            break
-        for _ in range(12):
-            trial = vector + _solve(fisher, grad, damping)
-            trial_loss = problem.loss(trial)
-            if np.isfinite(trial_loss) and trial_loss < loss:
-                vector, loss = trial, trial_loss
-                damping = max(damping / 3.0, 1e-9)
-                break
-            damping *= 4.0
-        else:
-            step(f"{label}: no damped step lowers the loss; stopping")
-            break
-        history.append(loss)
+    layout = Layout.of(params)
+    vector = layout.pack(params)
+    calibrator = np.asarray(fit.is_calibrator, bool)
+    stages = [
+        (np.nonzero(calibrator)[0], f"{label} calibrators"),
+        (np.nonzero(~calibrator)[0], f"{label} science"),
+    ]
+    converged, iterations, chords, history, change = True, 0, 0, [], 0.0
+    decrement = 0.0
+    fisher = np.zeros((layout.size, layout.size))
+    exact: list[int] = []
+    cal_loss = 0.0
+    for members, stage_label in stages:
+        if len(members) == 0:
+            continue
+        problem = _Problem(fit, params, members)
+        result = _minimise(problem, vector, config, stage_label)
+        vector = result.vector
+        converged &= result.converged
+        iterations += result.iterations
+        chords += result.chord_steps
+        history.extend(np.asarray(result.history) + cal_loss)
+        cal_loss = history[-1]
+        steps = result.history
+        change = (steps[-2] - steps[-1]) / len(members) if len(steps) > 1 else 0.0
+        decrement = max(decrement, result.decrement)
+        if result.fisher is not None:
+            fisher += result.fisher
+            exact.extend(int(e) for e in members)
     return NewtonResult(
-        params=problem.layout.unpack(params, vector),
-        converged=converged,
-        iterations=iteration,
+        params=layout.unpack(params, vector),
+        converged=bool(converged),
+        iterations=iterations,
         loss_history=history,
         decrement=decrement,
         seconds=time.perf_counter() - start,
+        chord_steps=chords,
+        fisher=fisher if exact else None,
+        exact_exposures=tuple(sorted(exact)),
+        loss=_Problem(fit, params, np.arange(fit.n_exposures)).loss(vector),
+        loss_change=float(change),
     )

@@ -263,9 +263,13 @@ def fit_through_detector(
             converged=newton.converged,
             iterations=result.iterations + newton.iterations,
             loss_history=np.concatenate([result.loss_history, newton.loss_history]),
-            loss_change=float(newton.loss_history[0] - min(newton.loss_history)) / fit.n_exposures,
+            loss_change=newton.loss_change,
             newton_decrement=float(newton.decrement),
             seconds=result.seconds + newton.seconds,
+            # The Fisher matrix depends on the parameters and the noise, not on the
+            # corrected data: it stays valid for the final round's fit.
+            fisher=newton.fisher,
+            exact_exposures=newton.exact_exposures,
         )
     converged = bool(changes) and changes[-1] < detector.tolerance
     record = DetectorRecord(
