@@ -62,6 +62,11 @@ if TYPE_CHECKING:
 
 #: Columns differentiated together (memory: each holds the visibility FFTs of one image).
 JVP_BATCH = 16
+#: A chord step whose fall of ``L`` is below this fraction of the fall the stale Fisher
+#: matrix predicts (half the decrement estimate) calls for new Jacobians. Low on purpose:
+#: far from the noise the Gauss-Newton model itself over-predicts every step (fresh
+#: Jacobians predict no better), and a chord step costs ~1/50 of a Jacobian.
+CHORD_EFFICIENCY = 0.05
 #: Eigenvalues of the Jacobi-scaled Fisher matrix below this fraction of the largest are
 #: treated as exact degeneracies: the Jacobians are float32 (~1e-7 relative noise), so
 #: smaller eigenvalues are set by rounding, and the gradient's rounding noise along them
@@ -98,7 +103,7 @@ class NewtonConfig:
     max_iterations: int = 12
     tolerance: float = 1.0
     damping: float = 1e-3
-    chord_steps: int = 10
+    chord_steps: int = 20
     float64_check: bool = True
 
 
@@ -552,7 +557,7 @@ def _minimise(problem: _Problem, vector: np.ndarray, config: NewtonConfig, label
             if fall is None:
                 break
             chords += 1
-            if fall < 0.25 * 0.5 * estimate * n_exposures:
+            if fall < CHORD_EFFICIENCY * 0.5 * estimate * n_exposures:
                 break  # the stale Fisher matrix no longer predicts the fall: new Jacobians
         step(
             f"{label}: {chords} chord steps so far, chi2 {2 * loss:.2f}, "
