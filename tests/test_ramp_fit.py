@@ -183,13 +183,20 @@ def test_fixed_point_fit_leaves_pure_noise_with_the_network(setting):
     assert product.detector is not None and product.detector.converged
     assert product.detector.mode == "full"
     params = product.result.params
+    positions = np.asarray(params.exposures.position_arcsec, float)
     for e, name in enumerate(("sci", "cal")):
         stats = product.stats[e]
         tolerance = 3 * np.sqrt(2 / stats.dof)
         assert abs(stats.chi2 / stats.dof - 1) < tolerance, stats
-        position = np.asarray(params.exposures.position_arcsec[e])
-        np.testing.assert_allclose(position, truth[name], atol=5e-4)  # 0.5 mas
+        # Absolute positions share the calibrator's wavefront tilt, which trades with the
+        # calibrator's position (marginal errors 0.36 / 0.55 mas in x / y from the fit's
+        # Fisher matrix, measured): within 3 of those.
+        np.testing.assert_allclose(positions[e], truth[name], atol=1.6e-3)
         assert float(params.exposures.log_flux[e]) == pytest.approx(log_fluxes[name], abs=5e-3)
+    # The offset between the two stars does not depend on the tilt (error ~0.1 mas;
+    # measured -0.08 / -0.15 mas): within 0.3 mas.
+    offset = np.subtract(truth["sci"], truth["cal"])
+    np.testing.assert_allclose(positions[0] - positions[1], offset, atol=3e-4)
     # The test has teeth: the charge migration in these data is far above the noise.
     # Network on minus network off at the truth, whitened by the slopes' variances: a
     # linear detector would leave this in the residuals (unless other parameters
