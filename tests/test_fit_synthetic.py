@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from amigo.extract import extract_filter
-from amigo.fitting import FitConfig, FitExposure
+from amigo.fitting import FitConfig, FitExposure, latent_information
 from amigo.likelihood import ImageData
 from amigo.model import Instrument
 from amigo.optics import LinearSpectrum, NRMOptics
@@ -102,3 +102,12 @@ def test_synthetic_single_and_binary(tmp_path, monkeypatch):
     assert abs(binary_chi2 - 1) < 3 * np.sqrt(2 / n)
     # ... and the companion is detected: a point source is strongly rejected.
     assert point_chi2 > 2.0
+
+    # The latent Hessians read from the solver's float64 confirmation are those a direct
+    # float64 evaluation at the optimum gives (the covariances rest on them).
+    result = product.result
+    assert result.fisher is not None and set(result.exact_exposures) == {0, 1, 2}
+    reused = latent_information(product.fit, result.params, "test", result.fisher, (0, 1, 2))
+    direct = latent_information(product.fit, result.params, "test")
+    for a, b in zip(reused.hessian, direct.hessian, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9 * np.abs(b).max())

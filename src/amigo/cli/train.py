@@ -166,6 +166,7 @@ def command(
             fail_input(InputError(provenance_file, "must hold a JSON object"))
             return
         provenance.update(extra)
+    _warn_about_memory_maps()
     with jax.enable_x64(float64):
         import jax.numpy as jnp
 
@@ -203,3 +204,27 @@ def command(
         f"last losses (chi2/2 per value): cal {final['cal_loss'][-1]:.4g}, "
         f"val {final['val_loss'][-1]:.4g}"
     )
+
+
+#: Memory mappings that training on full-size calibration data has been seen to need.
+#: XLA's CPU backend maps every compiled kernel separately, and the steps with the
+#: network compile into tens of thousands of kernels: on 2026-11-23 one run held 32,000
+#: mappings after its first network-on compilation and crashed (LLVM "Cannot allocate
+#: memory", then a segfault) at the Linux default limit of 65,530.
+MAP_COUNT_NEEDED = 262_144
+
+
+def _warn_about_memory_maps() -> None:
+    """Tell the user, before hours of training, if the kernel's mapping limit is low."""
+    path = Path("/proc/sys/vm/max_map_count")
+    try:
+        limit = int(path.read_text().strip())
+    except (OSError, ValueError):
+        return  # not Linux, or not readable: nothing to say
+    if limit < MAP_COUNT_NEEDED:
+        click.echo(
+            f"note: vm.max_map_count is {limit}; training can exhaust it (XLA maps each "
+            f"compiled kernel separately) and crash. Raise it first, as root: "
+            f"sysctl -w vm.max_map_count={MAP_COUNT_NEEDED}",
+            err=True,
+        )
