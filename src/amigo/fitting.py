@@ -251,7 +251,20 @@ class FilterFit:
         self.pixels = jax.tree.map(
             lambda *x: jnp.stack(x), *[PixelData.from_image(e.image) for e in exposures]
         )
+        # Offset (x, y, arcsec) at which every exposure's PSFs are computed before the
+        # exposure's own offset from it is applied; set by :meth:`initial_params`.
         self.anchor = jnp.zeros(2, jnp.float32)
+
+    def with_exposures(self, exposures: list[FitExposure]) -> FilterFit:
+        """The same fit on other data of the same exposures (e.g. slopes corrected by the
+        detector model), keeping the PSF anchor: parameters of this fit mean the same
+        model there."""
+        names = [e.name for e in exposures]
+        if names != [e.name for e in self.exposures]:
+            raise ValueError(f"other exposures: {names}")
+        other = FilterFit(self.instrument, self.setup, exposures)
+        other.anchor = self.anchor
+        return other
 
     # ------------------------------------------------------------------ model
     @property

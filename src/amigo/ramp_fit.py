@@ -241,7 +241,7 @@ def fit_through_detector(
     fit = FilterFit(instrument, setup, exposures)
     corrections = detector.corrections(fit, fit.initial_params())
     step(f"{label}: {detector.mode} detector: correction at the starting point computed")
-    fit = FilterFit(instrument, setup, detector.corrected(exposures, corrections))
+    fit = fit.with_exposures(detector.corrected(exposures, corrections))
     result = fit.fit(config, label=label)
     changes: list[float] = []
     refit = dataclasses.replace(
@@ -252,7 +252,9 @@ def fit_through_detector(
         new = detector.corrections(fit, result.params)
         changes.append(detector.change(fit.exposures, corrections, new))
         corrections = new
-        fit = FilterFit(instrument, setup, detector.corrected(exposures, corrections))
+        # Same anchor: a fit that recomputed the PSFs elsewhere would not be the model
+        # whose parameters `result` holds (it doubled the chi2 of the refits).
+        fit = fit.with_exposures(detector.corrected(exposures, corrections))
         step(f"{label}: detector round {round_}: correction changed by {changes[-1]:.3g} sigma")
         last = round_ == detector.max_rounds or config.newton.max_iterations == 0
         if changes[-1] < detector.tolerance or last:
