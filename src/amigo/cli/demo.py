@@ -2,8 +2,8 @@
 
 Simulates the built-in ``demo`` scenario (an AB Dor-like binary, 329 mas at PA 280.5 deg,
 delta-mag 4.38 in F480M, and a calibrator; raw ramps with the simulator's physical
-detector, seed 0; the shipped base model was trained on seed 0 of an earlier version of
-the simulator, see docs/detector.md), then runs ``amigo run`` on it with the shipped base
+detector, seed 0, the same simulated telescope and detector the shipped base model was
+trained on, see docs/detector.md), then runs ``amigo run`` on it with the shipped base
 model and its full detector model, and prints the companion found
 next to the simulated truth. Simulated files go to ``DIR/raw``; everything else is
 written as by ``amigo run`` under ``DIR``.
