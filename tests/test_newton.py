@@ -8,7 +8,7 @@ import pytest
 
 from amigo.fitting import FitParams
 from amigo.model import ExposureParams, OpticsParams, SourceParams
-from amigo.newton import Layout, _solve
+from amigo.newton import Layout, _Solver
 
 
 def _params(rng, n_exposures=3, n_targets=2, n_amp=4, n_phase=5):
@@ -51,14 +51,14 @@ def test_undamped_step_is_the_newton_step_and_degeneracies_get_none():
     rng = np.random.default_rng(1)
     a = rng.normal(size=(30, 6)) * np.array([1e3, 1, 1e-2, 5, 1, 1])  # mixed units
     fisher, grad = a.T @ a, rng.normal(size=6)
-    np.testing.assert_allclose(_solve(fisher, grad, 0.0), np.linalg.solve(fisher, grad), rtol=1e-8)
+    np.testing.assert_allclose(_Solver(fisher)(grad, 0.0), np.linalg.solve(fisher, grad), rtol=1e-8)
     # Two exactly degenerate parameters (one column duplicated): no step along the
     # degenerate direction, and the step solves the system on the rest.
     b = np.column_stack([a, a[:, 1]])
     fisher = b.T @ b
     grad = b.T @ rng.normal(size=30)
-    d = _solve(fisher, grad, 0.0)
+    d = _Solver(fisher)(grad, 0.0)
     np.testing.assert_allclose(fisher @ d, grad, rtol=1e-6, atol=1e-8 * np.abs(grad).max())
     assert d[1] * np.sqrt(fisher[1, 1]) == pytest.approx(d[6] * np.sqrt(fisher[6, 6]), rel=1e-6)
     # Damping shortens the step.
-    assert np.linalg.norm(_solve(fisher, grad, 10.0)) < np.linalg.norm(d)
+    assert np.linalg.norm(_Solver(fisher)(grad, 10.0)) < np.linalg.norm(d)

@@ -595,7 +595,6 @@ class FilterFit:
             exact = newton.exact_exposures
             iteration += newton.iterations
             history.extend(newton.loss_history[1:])
-        if config.newton.max_iterations > 0:
             final_loss = newton.loss
             final_decrement = newton.decrement * per_exposure
             change = newton.loss_change

@@ -373,14 +373,19 @@ class _Problem:
         optics = OpticsParams(wavefront[:-1].reshape(self.layout.zernike_shape), wavefront[-1])
         return psfs_of(instrument, setup, optics, anchor)
 
+    def _residuals(self, instrument, setup, thetas, psfs, anchor) -> np.ndarray:
+        """(E, npix) whitened residuals ``(data - model) / sigma`` of every exposure
+        (0 where masked), in float64 from the model of the current precision."""
+        models = _images(thetas, instrument, setup, psfs, anchor)
+        models = np.asarray(models, np.float64).reshape(self.fit.n_exposures, -1)
+        return (self.data - models) * self.weight
+
     def loss(self, vector: np.ndarray) -> float:
         """``L = chi2 / 2`` of the member exposures at ``vector``."""
         with self.precision():
             instrument, setup, _, wavefront, thetas, anchor = self._inputs(vector)
             psfs = self._psfs(instrument, setup, wavefront, anchor)
-            models = _images(thetas, instrument, setup, psfs, anchor)
-            models = np.asarray(models, np.float64).reshape(self.fit.n_exposures, -1)
-        r = ((self.data - models) * self.weight)[self.members]
+            r = self._residuals(instrument, setup, thetas, psfs, anchor)[self.members]
         return 0.5 * float(np.sum(r * r))
 
     def gradient(self, vector: np.ndarray) -> np.ndarray:
@@ -416,9 +421,7 @@ class _Problem:
         with self.precision():
             instrument, setup, _, wavefront, thetas, anchor = self._inputs(vector)
             psfs = self._psfs(instrument, setup, wavefront, anchor)
-            models = _images(thetas, instrument, setup, psfs, anchor)
-            models = np.asarray(models, np.float64).reshape(fit.n_exposures, -1)
-            r = (self.data - models) * self.weight
+            r = self._residuals(instrument, setup, thetas, psfs, anchor)
             for e in self.members:
                 precision = "float64 " if self.float64 else ""
                 step(f"{label}: {precision}Jacobian of {fit.exposures[e].name}")
@@ -462,12 +465,6 @@ class _Solver:
         step = np.zeros(self.size)
         step[self.active] = scaled / self.root
         return step
-
-
-def _solve(fisher: np.ndarray, grad: np.ndarray, damping: float) -> np.ndarray:
-    """``(F_s + mu I)^-1 g_s`` in Jacobi-scaled coordinates, degenerate directions dropped
-    (one-off form of :class:`_Solver`)."""
-    return _Solver(fisher)(grad, damping)
 
 
 @dataclass
@@ -636,6 +633,8 @@ def levenberg_marquardt(
         chord_steps=chords,
         fisher=fisher if exact else None,
         exact_exposures=tuple(sorted(exact)),
-        loss=_Problem(fit, params, np.arange(fit.n_exposures)).loss(vector),
+        # The science stage leaves the calibrators' loss unchanged: its history already
+        # holds the loss of all exposures.
+        loss=float(history[-1]),
         loss_change=float(change),
     )
