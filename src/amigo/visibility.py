@@ -312,17 +312,10 @@ class Injector(eqx.Module):
         centre knot is fixed, so ``V(0) = 1``).
         """
         otf = self.otf(psfs)
-        if log_amp is not None or phase is not None:
-            log_amp = jnp.zeros(self.w_y.shape[-1:] * 2) if log_amp is None else log_amp
-            phase = jnp.zeros_like(log_amp) if phase is None else phase
-            amp, pha = self.log_visibility(log_amp, phase)
-            # V = 1 outside the band: add OTF (V - 1) on the band only.
-            otf = otf + jax.vmap(self._embed)(self._band(otf) * jnp.expm1(amp + 1j * pha))
-        if shift_pix is not None:
-            ramp_x = jnp.exp(-2j * jnp.pi * self.freq_x * shift_pix[0])
-            ramp_y = jnp.exp(-2j * jnp.pi * self.freq_y * shift_pix[1])
-            otf = otf * ramp_y[:, None] * ramp_x[None, :]
-        images = jnp.fft.irfft2(otf, s=(self.fft_size, self.fft_size))
+        excess = self._excess(otf, log_amp, phase)
+        if excess is not None:
+            otf = otf + jax.vmap(self._embed)(excess)
+        images = jnp.fft.irfft2(self._shifted(otf, shift_pix), s=(self.fft_size, self.fft_size))
         return images[:, : self.psf_size, : self.psf_size]
 
     def broadband(
@@ -351,35 +344,50 @@ class Injector(eqx.Module):
         otf = self.otf(psfs)
         weights = weights.astype(otf.real.dtype)
         spectrum = jnp.tensordot(weights, otf, 1)
-        if log_amp is not None or phase is not None:
-            log_amp = jnp.zeros(self.w_y.shape[-1:] * 2) if log_amp is None else log_amp
-            phase = jnp.zeros_like(log_amp) if phase is None else phase
-            amp, pha = self.log_visibility(log_amp, phase)
-            band = self._band(otf)
-            excess = jnp.tensordot(weights, band * jnp.expm1(amp + 1j * pha), 1)
-            spectrum = spectrum + self._embed(excess)
-        if shift_pix is not None:
-            ramp_x = jnp.exp(-2j * jnp.pi * self.freq_x * shift_pix[0])
-            ramp_y = jnp.exp(-2j * jnp.pi * self.freq_y * shift_pix[1])
-            spectrum = spectrum * ramp_y[:, None] * ramp_x[None, :]
+        excess = self._excess(otf, log_amp, phase)
+        if excess is not None:
+            spectrum = spectrum + self._embed(jnp.tensordot(weights, excess, 1))
+        spectrum = self._shifted(spectrum, shift_pix)
         image = jnp.fft.irfft2(spectrum, s=(self.fft_size, self.fft_size))
         return image[: self.psf_size, : self.psf_size]
+
+    def _excess(self, otf: Array, log_amp: Array | None, phase: Array | None) -> Array | None:
+        """(n_lambda, ny_band, nx_band) ``OTF (V - 1)`` on the band (``V = 1`` outside
+        it), or ``None`` when no visibility is given."""
+        if log_amp is None and phase is None:
+            return None
+        log_amp = jnp.zeros(self.w_y.shape[-1:] * 2) if log_amp is None else log_amp
+        phase = jnp.zeros_like(log_amp) if phase is None else phase
+        amp, pha = self.log_visibility(log_amp, phase)
+        return self._band(otf) * jnp.expm1(amp + 1j * pha)
+
+    def _shifted(self, spectrum: Array, shift_pix: Array | None) -> Array:
+        """``spectrum`` (..., fft, fft // 2 + 1) times the phase ramp of a ``(dx, dy)``
+        shift in oversampled pixels (unchanged for ``None``)."""
+        if shift_pix is None:
+            return spectrum
+        ramp_x = jnp.exp(-2j * jnp.pi * self.freq_x * shift_pix[0])
+        ramp_y = jnp.exp(-2j * jnp.pi * self.freq_y * shift_pix[1])
+        return spectrum * ramp_y[:, None] * ramp_x[None, :]
+
+    @property
+    def _n_positive_rows(self) -> int:
+        """Band rows at non-negative frequencies (the first ones of :attr:`rows`)."""
+        return int(np.count_nonzero(np.asarray(self.rows) < self.fft_size // 2))
 
     def _band(self, otf: Array) -> Array:
         """The band's rows and leading columns of an rfft grid ``(..., fft, fft // 2 + 1)``:
         the non-negative rows ``0..k`` then the negative ones, as :attr:`rows` lists them."""
-        rows = np.asarray(self.rows)
-        n_pos = int(np.count_nonzero(rows < self.fft_size // 2))
-        n_neg = len(rows) - n_pos
+        n_pos = self._n_positive_rows
+        n_neg = len(self.rows) - n_pos
         top = otf[..., :n_pos, : self.nx_band]
         bottom = otf[..., self.fft_size - n_neg :, : self.nx_band]
         return jnp.concatenate([top, bottom], axis=-2)
 
     def _embed(self, band: Array) -> Array:
         """Zero-pad a band array (ny_band, nx_band) to the rfft grid (inverse of :meth:`_band`)."""
-        rows = np.asarray(self.rows)
-        n_pos = int(np.count_nonzero(rows < self.fft_size // 2))
-        gap = self.fft_size - len(rows)
+        n_pos = self._n_positive_rows
+        gap = self.fft_size - len(self.rows)
         full = jnp.concatenate(
             [band[:n_pos], jnp.zeros((gap, self.nx_band), band.dtype), band[n_pos:]], axis=0
         )
