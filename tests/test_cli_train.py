@@ -95,6 +95,25 @@ def test_train_writes_a_model_with_its_record_and_resumes(files):
     assert "resumed" in again.stderr
     assert read_metadata(out)["history"] == record["history"]
 
+    # Fine-tuning: training continues from the model, network included (no network-off
+    # stage, no restart), and the new file records where it started.
+    tuned_path = files["folder"] / "tuned.npz"
+    tuned_args = [*args[:7], "--out", str(tuned_path), "--steps", "1", "--batches", "1"]
+    tuned_run = run_amigo(*tuned_args, "--init", str(out))
+    assert tuned_run.returncode == 0, tuned_run.stderr
+    assert "fine-tuning the network" in tuned_run.stderr
+    tuned_record = read_metadata(tuned_path)
+    assert tuned_record["initial_model"]["path"] == str(out)
+    assert tuned_record["initial_model"]["date"] == read_metadata(out)["date"]
+    assert tuned_record["settings"]["init"] == str(out)
+    assert tuned_record["history"]["stage"] == [1]
+    # One Adam step moves each weight by at most about the learning rate (3e-3): the
+    # network is the initial model's, not new random weights.
+    start, tuned = load_base_model(out).ramp.network, load_base_model(tuned_path).ramp.network
+    for a, b in zip(start.layers, tuned.layers, strict=True):
+        assert float(jnp.max(jnp.abs(a.weight - b.weight))) <= 3.5e-3
+        assert not np.array_equal(np.asarray(a.weight), np.asarray(b.weight))
+
 
 def test_bad_inputs_exit_2_with_one_line(tmp_path, files):
     missing = run_amigo(
@@ -109,3 +128,7 @@ def test_bad_inputs_exit_2_with_one_line(tmp_path, files):
     stages = run_amigo("train", "--cal", str(files["cal"]), "--out", str(tmp_path / "m.npz"),
                        "--steps", "3", "--stages", "1,1")  # fmt: skip
     assert stages.returncode == 2 and "--stages" in stages.stderr
+    init = run_amigo("train", "--cal", str(files["cal"]), "--out", str(tmp_path / "m.npz"),
+                     "--init", str(not_fits))  # fmt: skip
+    assert init.returncode == 2 and "x_calslope.fits" in init.stderr
+    assert "Traceback" not in init.stderr

@@ -314,11 +314,17 @@ class TrainSettings:
     ``steps`` batch steps in all; ``stage_steps`` the steps of each stage (stage 0 with
     the network off, then one stage per network restart); by default a fifth of the
     steps with the network off and the rest split over two network restarts.
+
+    ``init`` (the path of a base model, recorded here): fine-tuning. Training starts
+    from that model, network included, so stage 0 is empty: ``stage_steps`` (default all
+    ``steps``) then lists the stages with the network on, the first continuing the
+    model's network and every later one restarting it.
     """
 
     steps: int = 200
     n_batches: int = 5
     stage_steps: tuple[int, ...] = ()
+    init: str | None = None
     physical_lr: float = 0.5
     pixel_lr: float = 0.8
     exposure_lr: float = 0.5
@@ -330,6 +336,8 @@ class TrainSettings:
     diagonal: bool = False
 
     def stages(self) -> list[int]:
+        if self.init is not None:
+            return [0, *(self.stage_steps or (self.steps,))]
         if self.stage_steps:
             return list(self.stage_steps)
         first = max(1, self.steps // 5)
@@ -422,7 +430,8 @@ CHECKPOINT_FORMAT = "amigo-train-checkpoint"
 class Trainer:
     """The staged optimisation of the module docstring, one epoch at a time.
 
-    ``Trainer(data, settings)`` starts from an untrained model; :meth:`run` trains
+    ``Trainer(data, settings)`` starts from an untrained model, or from ``initial``
+    (fine-tuning, with ``settings.init`` naming it); :meth:`run` trains
     ``settings.steps`` steps (checkpointing after each epoch when given a path);
     :meth:`result` is the best model. :func:`train` wraps it for the CLI.
     """
@@ -433,14 +442,26 @@ class Trainer:
         settings: TrainSettings,
         config: BaseModelConfig | None = None,
         cache: PupilCache | None = None,
+        initial: BaseModel | None = None,
     ) -> None:
         self.data = data
         self.settings = settings
+        if (initial is None) != (settings.init is None):
+            raise ValueError("settings.init names the initial model: give both or neither")
+        where = "--cal" if initial is None else settings.init
+        if initial is not None:
+            config = initial.config
+            if initial.linear:
+                raise InputError(where, "has no network to fine-tune (a linear model)")
+            if tuple(config.shape) != tuple(data.cal[0].shape):
+                raise InputError(
+                    where, f"models {config.shape} pixels, the data have {data.cal[0].shape}"
+                )
         config = config or BaseModelConfig(filters=data.filters, shape=data.cal[0].shape)
         missing = [f for f in data.filters if f not in config.filters]
         if missing:
-            raise InputError("--cal", f"the model configuration has no optics for {missing}")
-        base = BaseModel.create(config, linear=True)
+            raise InputError(where, f"the model configuration has no optics for {missing}")
+        base = BaseModel.create(config, linear=True) if initial is None else initial
         self.cache = base.pupil_cache() if cache is None else cache
         self.rng = np.random.default_rng(settings.seed)
         self.history = History()
@@ -456,7 +477,7 @@ class Trainer:
         cal = tuple(initial_params(base, d) for d in self.data.cal)
         flats = tuple(initial_params(base, d) for d in self.data.flats)
         val = tuple(initial_params(base, d) for d in self.data.val)
-        network = self._fresh_network(base, 1)
+        network = self._fresh_network(base, 1) if base.linear else base.ramp.network
         return TrainState(
             base=base,
             cal_params=cal,
@@ -706,7 +727,8 @@ class Trainer:
     # -------------------------------------------------------------- stages, epochs
     def start_stage(self, stage: int) -> None:
         """Stage >= 1: a new network from new random weights (and a fresh Adam state) on
-        the best physical state so far (stage 1: the end of the network-off stage)."""
+        the best physical state so far (stage 1: the end of the network-off stage). When
+        fine-tuning, stage 1 keeps the initial model's network (fresh Adam state)."""
         if stage == 0:
             return
         state = self.state
@@ -715,7 +737,8 @@ class Trainer:
         )
         mask = physical_mask(source)
         base = merge(state.base, split(source, mask), mask)
-        network = self._fresh_network(base, stage)
+        keep = stage == 1 and self.settings.init is not None
+        network = state.base.ramp.network if keep else self._fresh_network(base, stage)
         s = self.settings
         self.state = eqx.tree_at(
             lambda st: (st.base, st.adam_state, st.physical_opt),
@@ -726,7 +749,10 @@ class Trainer:
                 FisherMomentum.init(ravel_pytree(split(base, mask))[0], s.physical_lr, s.momentum),
             ),
         )
-        report_step(f"train: stage {stage}: network restarted from new weights (seed {stage})")
+        if keep:
+            report_step(f"train: stage 1: fine-tuning the network of {self.settings.init}")
+        else:
+            report_step(f"train: stage {stage}: network restarted from new weights (seed {stage})")
 
     def epoch(self) -> dict[str, float]:
         """One pass over the calibration batches (stopping at ``settings.steps``), then
@@ -902,14 +928,16 @@ def train(
     provenance: dict[str, Any] | None = None,
     progress: bool = True,
     time_limit_s: float | None = None,
+    initial: BaseModel | None = None,
 ) -> tuple[BaseModel, dict[str, Any]]:
-    """Train a base model and write it to ``out`` (checkpoint: ``out`` + ``.ckpt.npz``).
+    """Train a base model and write it to ``out`` (checkpoint: ``out`` + ``.ckpt.npz``);
+    from ``initial`` when fine-tuning (``settings.init`` names its file).
 
     Returns the model and the metadata written with it.
     """
     out = Path(out)
     checkpoint = checkpoint_path(out)
-    trainer = Trainer(data, settings, config)
+    trainer = Trainer(data, settings, config, initial=initial)
     if resume and checkpoint.is_file():
         trainer.load_checkpoint(checkpoint)
         report_step(f"train: resumed from {checkpoint} at step {trainer.step}")

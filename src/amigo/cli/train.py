@@ -113,6 +113,15 @@ class _ManyValues(click.Option):
     help="Stop after this many minutes of training (at the end of an epoch).",
 )
 @click.option("--resume", is_flag=True, help="Continue from MODEL.ckpt.npz if it exists.")
+@click.option(
+    "--init",
+    "init",
+    default=None,
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    help="Fine-tune this base model (e.g. the shipped one) instead of starting afresh: "
+    "no network-off stage; --stages then lists network-on stages, the first keeping "
+    "the model's network.",
+)
 @click.option("--float64", "float64", is_flag=True, help="Train in float64 (default float32).")
 @click.option(
     "--provenance",
@@ -135,6 +144,7 @@ def command(
     diagonal: bool,
     time_limit: float | None,
     resume: bool,
+    init: Path | None,
     float64: bool,
     provenance_file: Path | None,
 ) -> None:
@@ -170,11 +180,16 @@ def command(
     with jax.enable_x64(float64):
         import jax.numpy as jnp
 
+        from amigo.basemodel import load_base_model, read_metadata
         from amigo.calibration import TrainingData, TrainSettings, train
 
         dtype = jnp.float64 if float64 else jnp.float32
+        initial = None
         try:
             data = TrainingData.read(cal, flats, val, diagonal=diagonal, dtype=dtype)
+            if init is not None:
+                initial = _as_dtype(load_base_model(init), dtype)
+                provenance["initial_model"] = _summary(init, read_metadata(init))
         except InputError as error:
             fail_input(error)
             return
@@ -185,6 +200,7 @@ def command(
             network_lr=network_lr,
             seed=seed,
             diagonal=diagonal,
+            init=None if init is None else str(init),
         )
         try:
             _, metadata = train(
@@ -194,6 +210,7 @@ def command(
                 resume=resume,
                 time_limit_s=None if time_limit is None else 60.0 * time_limit,
                 provenance=provenance,
+                initial=initial,
             )
         except InputError as error:
             fail_input(error)
@@ -204,6 +221,24 @@ def command(
         f"last losses (chi2/2 per value): cal {final['cal_loss'][-1]:.4g}, "
         f"val {final['val_loss'][-1]:.4g}"
     )
+
+
+def _as_dtype(model, dtype):
+    """``model`` with its floating-point arrays in ``dtype`` (the training precision)."""
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    def cast(x):
+        return x.astype(dtype) if eqx.is_array(x) and jnp.issubdtype(x.dtype, jnp.floating) else x
+
+    return jax.tree.map(cast, model)
+
+
+def _summary(path: Path, metadata: dict) -> dict:
+    """What the fine-tuned model's metadata records of the model it started from."""
+    keys = ("date", "command", "trained_on", "steps_done", "amigo_version", "dtype")
+    return {"path": str(path), **{k: metadata[k] for k in keys if k in metadata}}
 
 
 #: Memory mappings that training on full-size calibration data has been seen to need.
