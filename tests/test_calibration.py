@@ -22,6 +22,7 @@ from amigo.calibration import (
     split,
 )
 from amigo.io.calslope import CalSlope
+from amigo.likelihood import SlopeNoise, auto_structure
 from amigo.slope_model import (
     FlatParams,
     PointSourceParams,
@@ -42,14 +43,16 @@ def cache():
     return BaseModel.create(SMALL, linear=True).pupil_cache()
 
 
-def _calslope(slopes: np.ndarray, cov: np.ndarray, filter_name: str = "F430M") -> CalSlope:
+def _calslope(
+    slopes: np.ndarray, cov: np.ndarray, filter_name: str = "F430M", support: float = 100.0
+) -> CalSlope:
     m, ny, nx = slopes.shape
     header = fits.Header()
     header["FILTER"] = filter_name
     return CalSlope(
         slope_dn=slopes,
         slope_cov_dn2=cov,
-        slope_support=np.full(slopes.shape, 10.0),
+        slope_support=np.full(slopes.shape, support),
         ramp_dn=np.zeros((m + 1, ny, nx)),
         ramp_cov_dn2=np.zeros((m + 1, m + 1, ny, nx)),
         ramp_support=np.full((m + 1, ny, nx), 10.0),
@@ -89,6 +92,26 @@ def test_slope_chi2_matches_a_direct_per_pixel_solve():
     keep = np.ones((ny, nx), bool)
     keep[1, 2] = False
     assert ours_diag == pytest.approx(float((((data - model) ** 2 / var)[:, keep]).sum()), rel=1e-6)
+
+
+def test_training_data_trusts_a_full_covariance_only_with_enough_integrations():
+    """As ``amigo fit``: >= 10 m integrations per slope for the full sample covariance,
+    the pooled estimate below (its inverse would be biased high and noisy)."""
+    m = 4
+    a = np.random.default_rng(1).normal(size=(15, m, m))
+    per_pixel = np.einsum("pij,pkj->pik", a, a) + m * np.eye(m)
+    cov = per_pixel.transpose(1, 2, 0).reshape(m, m, 3, 5)
+    data = np.zeros((m, 3, 5))
+    assert auto_structure(_calslope(data, cov.copy(), support=10 * m)) == "full"
+    few = _calslope(data, cov.copy(), support=10 * m - 1)
+    assert auto_structure(few) == "pooled"
+    pooled = SlopeNoise.from_covariance(cov, structure="pooled")
+    whitening = np.asarray(SlopeData.from_calslope(few, "calibrator", dtype=jnp.float64).whitening)
+    np.testing.assert_allclose(whitening[pooled.pixels], pooled.whitening, rtol=1e-6)
+    full = _calslope(data, cov.copy(), support=10 * m)
+    whitening = np.asarray(SlopeData.from_calslope(full, "calibrator", dtype=jnp.float64).whitening)
+    np.testing.assert_allclose(whitening, SlopeNoise.from_covariance(cov).whitening, rtol=1e-6)
+    assert not np.allclose(pooled.whitening, SlopeNoise.from_covariance(cov).whitening)
 
 
 def _synthetic(base, params, ngroups: int, sigma_dn: float, seed: int, cache, flat=False):

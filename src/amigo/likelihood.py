@@ -131,9 +131,7 @@ class ImageData:
         slopes = np.asarray(product.slope_dn, dtype=np.float64)
         m, ny, nx = slopes.shape
         if structure == "auto":
-            support = np.asarray(product.slope_support)[:, ~product.badpix]
-            enough = support.size and np.nanmin(support) >= 10 * m
-            structure = "full" if enough else "pooled"
+            structure = auto_structure(product)
         bad = product.unusable
         bad[: instrument.N_REFERENCE_ROWS] = True
         noise = SlopeNoise.from_covariance(product.slope_cov_dn2, bad=bad, structure=structure)
@@ -213,6 +211,16 @@ def chi2(model: Float[Array, "ny nx"], pixels: PixelData) -> Float[Array, ""]:
 def log_likelihood(model: Float[Array, "ny nx"], pixels: PixelData) -> Float[Array, ""]:
     """Gaussian log-likelihood up to a constant: ``-chi2 / 2``."""
     return -0.5 * chi2(model, pixels)
+
+
+def auto_structure(product: CalSlope) -> str:
+    """The covariance structure a calslope product supports: ``"full"`` when every slope
+    was averaged over at least ``10 m`` integrations (``m`` slopes per pixel), else
+    ``"pooled"`` (a sample covariance from fewer is too noisy to invert; see
+    :meth:`SlopeNoise.from_covariance`)."""
+    m = np.asarray(product.slope_dn).shape[0]
+    support = np.asarray(product.slope_support)[:, ~product.badpix]
+    return "full" if support.size and np.nanmin(support) >= 10 * m else "pooled"
 
 
 @dataclass(frozen=True)

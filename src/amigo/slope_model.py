@@ -31,7 +31,7 @@ from amigo import instrument
 from amigo.basemodel import BaseModel, PupilCache
 from amigo.errors import InputError
 from amigo.io.calslope import CalSlope, read_calslope
-from amigo.likelihood import SlopeNoise
+from amigo.likelihood import SlopeNoise, auto_structure
 
 ROLES = ("calibrator", "flat", "validation")
 
@@ -65,8 +65,10 @@ class SlopeData(eqx.Module):
     def from_calslope(
         cls, product: CalSlope, role: str, diagonal: bool = False, dtype=jnp.float32
     ) -> SlopeData:
-        """Build from a :class:`~amigo.io.calslope.CalSlope` (``diagonal=True`` ignores
-        the covariances between a pixel's slopes)."""
+        """Build from a :class:`~amigo.io.calslope.CalSlope`: the full slope covariance
+        where the file averages enough integrations, the pooled estimate otherwise (as
+        ``amigo fit``, :func:`~amigo.likelihood.auto_structure`); ``diagonal=True``
+        ignores the covariances between a pixel's slopes."""
         if role not in ROLES:
             raise ValueError(f"role {role!r} not in {ROLES}")
         path = product.path or "<calslope>"
@@ -74,7 +76,8 @@ class SlopeData(eqx.Module):
         if m < 1:
             raise InputError(path, "needs at least 2 groups")
         bad = product.unusable
-        noise = SlopeNoise.from_covariance(product.slope_cov_dn2, bad=bad, diagonal=diagonal)
+        structure = "diagonal" if diagonal else auto_structure(product)
+        noise = SlopeNoise.from_covariance(product.slope_cov_dn2, bad=bad, structure=structure)
         if noise.pixels.size == 0:
             raise InputError(path, "no usable pixel")
         whitening = np.zeros((ny * nx, m, m))

@@ -102,8 +102,9 @@ class _ManyValues(click.Option):
 @click.option(
     "--diagonal",
     is_flag=True,
-    help="Ignore the covariances between a pixel's slopes (use when the files have "
-    "few integrations compared with their groups).",
+    help="Ignore the covariances between a pixel's slopes [default: the full sample "
+    "covariance where a file averages >= 10 integrations per slope, else a pooled "
+    "estimate, as amigo fit].",
 )
 @click.option(
     "--time-limit",
