@@ -45,7 +45,7 @@ def test_parameter_count_of_the_full_model():
         + 8640  # network (tests/test_ramp.py checks the architecture)
         + 80 * 80  # flat
         + 5  # intra-pixel
-        + 1  # dark
+        + 80 * 80  # dark current per pixel
         + 25  # IPC kernel (fixed)
         + 80 * 80  # non-linearity
     )
@@ -94,6 +94,23 @@ def test_load_rejects_bad_files(tmp_path):
     np.savez(tmp_path / "cut.npz", **arrays)
     with pytest.raises(InputError, match="do not match"):
         load_base_model(tmp_path / "cut.npz")
+
+
+def test_a_version_1_file_with_one_dark_current_loads_with_it_in_every_pixel(tmp_path):
+    path = save_base_model(BaseModel.create(SMALL), tmp_path / "m.npz")
+    with np.load(path) as data:
+        arrays = dict(data)
+    record = json.loads(str(arrays["__metadata__"]))
+    arrays["__metadata__"] = np.asarray(json.dumps({**record, "format_version": 1}))
+    arrays[".read.dark_e_per_group"] = np.asarray(0.45, np.float32)
+    np.savez(tmp_path / "v1.npz", **arrays)
+    dark = np.asarray(load_base_model(tmp_path / "v1.npz").read.dark_e_per_group)
+    assert dark.shape == SMALL.shape and np.all(dark == np.float32(0.45))
+    # In a current file, a scalar is a damaged file, not an old one.
+    arrays["__metadata__"] = np.asarray(json.dumps(record))
+    np.savez(tmp_path / "v2.npz", **arrays)
+    with pytest.raises(InputError, match="dark_e_per_group has shape"):
+        load_base_model(tmp_path / "v2.npz")
 
 
 def test_linear_detector_slopes_match_a_direct_calculation():

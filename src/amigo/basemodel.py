@@ -14,7 +14,7 @@ Parameters and what trains them (see :mod:`amigo.calibration`)::
     hole_centres_m         (7, 2)   hole centres on the mask, m            physical
     detector               LinearDetector: jitter, rotation, anisotropy   physical
     ramp.intra_pixel       (5,)     quadratic intra-pixel response         physical
-    read.dark_e_per_group  ()       dark current, e- per group             physical
+    read.dark_e_per_group  (80, 80) dark current per pixel, e- per group   dark (calibrators)
     ramp.network           8,640 CNN weights                               network
     ramp.flat              (80, 80) inter-pixel sensitivity                pixel (flats only)
     read.nonlinearity      (80, 80) quadratic non-linearity, 1/e-          pixel (flats only)
@@ -68,8 +68,10 @@ from amigo.optics.model import NRMOptics, OpticsConfig
 from amigo.optics.spectrum import LinearSpectrum
 
 FORMAT = "amigo-base-model"
-FORMAT_VERSION = 1
+#: 2: the dark current is a per-pixel map (version 1 held one value for all pixels).
+FORMAT_VERSION = 2
 METADATA_KEY = "__metadata__"
+DARK_KEY = ".read.dark_e_per_group"
 #: Package-data location of the shipped base model.
 DEFAULT_MODEL_RESOURCE = ("data", "base_model", "amigo_base_model.npz")
 
@@ -231,7 +233,7 @@ class BaseModel(eqx.Module):
             max_shift_pix=config.max_shift_pix,
         )
         read = ReadModel(
-            dark_e_per_group=jnp.asarray(0.0),
+            dark_e_per_group=jnp.zeros(config.shape),
             ipc_kernel=jnp.asarray(default_ipc_kernel()),
             nonlinearity=jnp.zeros(config.shape),
             gain_e_per_dn=config.gain_e_per_dn,
@@ -370,9 +372,10 @@ def leaf_paths(tree: Any) -> dict[str, Array]:
     return {jax.tree_util.keystr(path): leaf for path, leaf in flat}
 
 
-def fill_leaves(path: Path, skeleton: Any, data) -> Any:
+def fill_leaves(path: Path, skeleton: Any, data, broadcast: tuple[str, ...] = ()) -> Any:
     """``skeleton`` with every array leaf replaced by the array stored under its path in
-    ``data`` (an open npz); :class:`InputError` if paths or shapes differ."""
+    ``data`` (an open npz); :class:`InputError` if paths or shapes differ. A 0-d array
+    stored under a path in ``broadcast`` fills the leaf's whole shape (older formats)."""
     expected = leaf_paths(skeleton)
     stored = set(data.files) - {METADATA_KEY}
     if stored != set(expected):
@@ -382,6 +385,8 @@ def fill_leaves(path: Path, skeleton: Any, data) -> Any:
     values = {}
     for name, leaf in expected.items():
         array = data[name]
+        if name in broadcast and array.shape == ():
+            array = np.broadcast_to(array, leaf.shape)
         if array.shape != tuple(leaf.shape):
             raise InputError(path, f"{name} has shape {array.shape}, expected {leaf.shape}")
         values[name] = array
@@ -457,7 +462,9 @@ def load_base_model(path: str | os.PathLike[str] | None = None) -> BaseModel:
         record = _metadata(path, data)
         config = BaseModelConfig.from_json(record["config"])
         skeleton = BaseModel.create(config, linear=not record.get("network", True))
-        return fill_leaves(path, skeleton, data)
+        # Files before format 2 hold one dark current for all pixels: spread it.
+        spread = (DARK_KEY,) if record.get("format_version", 1) < 2 else ()
+        return fill_leaves(path, skeleton, data, broadcast=spread)
 
 
 def default_model_path() -> Path:

@@ -5,10 +5,12 @@ The paper's "Base Model Training and Calibration", as code:
 * **Joint fit.** Every parameter of :class:`~amigo.basemodel.BaseModel` is trained
   together with the per-exposure source parameters (position, flux) of the calibration
   exposures, on the slope likelihood (:mod:`amigo.slope_model`).
-* **Three groups of parameters, three data sets.** *Physical* parameters (aberrations,
-  defocus, hole positions, jitter, rotation, anisotropy, intra-pixel response, dark) and
-  the *network* learn from the calibration exposures; the *pixel* parameters (flat field
-  and per-pixel non-linearity) learn only from the flat-field exposures; *validation*
+* **Four groups of parameters, three data sets.** *Physical* parameters (aberrations,
+  defocus, hole positions, jitter, rotation, anisotropy, intra-pixel response), the
+  per-pixel *dark* current and the *network* learn from the calibration exposures; the
+  *pixel* parameters (flat field and per-pixel non-linearity) learn only from the
+  flat-field exposures (whose uniform light cannot tell a pixel's dark current from its
+  sensitivity; the calibrators' background pixels can); *validation*
   exposures get their own positions and fluxes fitted every epoch but never touch the
   instrument (their loss is only reported, and selects the best network).
 * **Optimisers.** Physical and per-exposure parameters take Fisher-preconditioned
@@ -16,8 +18,8 @@ The paper's "Base Model Training and Calibration", as code:
   diagonal ``F_ii = sum (dz/dtheta_i)^2`` (z: whitened residuals), computed from the
   Jacobian of the linear-detector model by forward-mode autodiff, so that a learning
   rate of order one is a Newton step per parameter whatever the data's signal level
-  (a diagonal natural gradient). The pixel parameters do the same with a per-pixel
-  Fisher diagonal. The network uses Adam.
+  (a diagonal natural gradient). The pixel and dark parameters do the same with a
+  per-pixel Fisher diagonal. The network uses Adam.
 * **Batches and stages.** Calibration exposures are split into batches visited in a
   random order every epoch. Stage 0 trains the physical parameters with the network
   off (linear charge accumulation); every later stage restarts the network from new
@@ -70,6 +72,7 @@ from amigo.slope_model import (
     fit_statistics,
     initial_params,
     model_slopes,
+    whiten,
     whitened_residuals,
 )
 
@@ -94,7 +97,6 @@ def _physical_leaves(m: BaseModel) -> tuple:
         m.detector.rotation_deg,
         m.detector.anisotropy,
         m.ramp.intra_pixel.coefficients,
-        m.read.dark_e_per_group,
     )
 
 
@@ -117,7 +119,6 @@ def physical_mask(base: BaseModel, filter_name: str | None = None) -> BaseModel:
             True,
             True,
             True,
-            True,
         ),
     )
 
@@ -126,7 +127,7 @@ def physical_step_limits(base: BaseModel) -> BaseModel:
     """Largest move of each physical parameter in one step (the trust region), shaped
     like ``split(base, physical_mask(base))``: 2 nm of aberration, 5 nm of defocus, 2 mm
     of hole position, 1 mas of jitter, 0.05 deg of rotation, 5e-4 of anisotropy, 0.05 of
-    intra-pixel response, 0.2 e- of dark per group."""
+    intra-pixel response."""
     physical = split(base, physical_mask(base))
     limits = (
         {k: jnp.full_like(v, 2.0) for k, v in physical.zernikes_nm.items()},
@@ -136,7 +137,6 @@ def physical_step_limits(base: BaseModel) -> BaseModel:
         jnp.full_like(physical.detector.rotation_deg, 0.05),
         jnp.full_like(physical.detector.anisotropy, 5e-4),
         jnp.full_like(physical.ramp.intra_pixel.coefficients, 0.05),
-        jnp.full_like(physical.read.dark_e_per_group, 0.2),
     )
     return eqx.tree_at(
         _physical_leaves,
@@ -152,6 +152,13 @@ def pixel_mask(base: BaseModel) -> BaseModel:
     return eqx.tree_at(
         lambda m: (m.ramp.flat, m.read.nonlinearity), _false_like(linear), (True, True)
     )
+
+
+def dark_mask(base: BaseModel) -> BaseModel:
+    """Boolean pytree over the linear view: True on the per-pixel dark current (trained
+    on the calibrators)."""
+    linear = base.with_linear_detector()
+    return eqx.tree_at(lambda m: m.read.dark_e_per_group, _false_like(linear), True)
 
 
 def split(tree: BaseModel, mask: BaseModel) -> BaseModel:
@@ -247,10 +254,30 @@ def pixel_fisher(base: BaseModel, params: FlatParams, data: SlopeData) -> BaseMo
             jnp.ones_like(p) if i == index else jnp.zeros_like(p) for i, p in enumerate(primals)
         )
         _, dslopes = jax.jvp(slopes, primals, tangents)
-        dz = whitened_residuals(-dslopes, data)  # derivative of W (data - model)
+        dz = whiten(dslopes, data)  # the derivative of W (data - model), up to its sign
         out.append(jnp.sum(dz**2, axis=1).reshape(data.shape))
     mask = pixel_mask(base)
     return eqx.tree_at(lambda m: (m.ramp.flat, m.read.nonlinearity), split(base, mask), tuple(out))
+
+
+@eqx.filter_jit
+def dark_fisher(
+    base: BaseModel, params: PointSourceParams, data: SlopeData, cache: PupilCache
+) -> BaseModel:
+    """Per-pixel Fisher diagonal of the dark current from one calibration exposure,
+    shaped like ``split(base, dark_mask(base))`` (one forward-mode pass with a tangent
+    of ones, as :func:`pixel_fisher`; the dark charge of a pixel, IPC aside, reaches only
+    that pixel's slopes)."""
+
+    def slopes(dark):
+        b = eqx.tree_at(lambda m: m.read.dark_e_per_group, base, dark)
+        return model_slopes(b, cache, params, data)
+
+    dark = base.read.dark_e_per_group
+    _, dslopes = jax.jvp(slopes, (dark,), (jnp.ones_like(dark),))
+    dz = whiten(dslopes, data)
+    per_pixel = jnp.sum(dz**2, axis=1).reshape(data.shape)
+    return eqx.tree_at(lambda m: m.read.dark_e_per_group, split(base, dark_mask(base)), per_pixel)
 
 
 # ---------------------------------------------------------------------------- optimiser
@@ -400,6 +427,7 @@ class TrainState(eqx.Module):
     val_params: tuple[PointSourceParams, ...]
     physical_opt: FisherMomentum
     pixel_opt: FisherMomentum
+    dark_opt: FisherMomentum
     cal_opt: FisherMomentum
     flat_opt: FisherMomentum
     val_opt: FisherMomentum
@@ -487,6 +515,7 @@ class Trainer:
                 ravel_pytree(split(base, physical_mask(base)))[0], s.physical_lr, s.momentum
             ),
             pixel_opt=FisherMomentum.init(split(base, pixel_mask(base)), s.pixel_lr, s.momentum),
+            dark_opt=FisherMomentum.init(split(base, dark_mask(base)), s.pixel_lr, s.momentum),
             cal_opt=FisherMomentum.init(cal, s.exposure_lr, s.momentum),
             flat_opt=FisherMomentum.init(flats, s.exposure_lr, s.momentum),
             val_opt=FisherMomentum.init(val, s.exposure_lr, s.momentum),
@@ -593,9 +622,16 @@ class Trainer:
             pixel = jax.tree.map(jnp.add, pixel, pixel_fisher(base, p, d))
         # A pixel no flat constrains keeps its value (infinite Fisher: no step).
         pixel = jax.tree.map(lambda f: jnp.where(f > 0, f, jnp.inf), pixel)
+        # The dark current: every calibration exposure's pixels (the batch gradient is
+        # scaled up to the whole set, so its Fisher is the whole set's too).
+        dark = jax.tree.map(jnp.zeros_like, split(base, dark_mask(base)))
+        for p, d in zip(state.cal_params, self.data.cal, strict=True):
+            dark = jax.tree.map(jnp.add, dark, dark_fisher(base, p, d, cache))
+        dark = jax.tree.map(lambda f: jnp.where(f > 0, f, jnp.inf), dark)
         self.fisher = {
             "physical": jnp.asarray(inverse, vector.dtype),
             "pixel": pixel,
+            "dark": dark,
             "cal": tuple(cal_fisher),
             "val": tuple(val_fisher),
             "flat": tuple(flat_fisher),
@@ -609,6 +645,7 @@ class Trainer:
         return {
             "physical": jnp.zeros((n, n), state.base.hole_centres_m.dtype),
             "pixel": zeros(split(state.base, pixel_mask(state.base))),
+            "dark": zeros(split(state.base, dark_mask(state.base))),
             "cal": zeros(state.cal_params),
             "val": zeros(state.val_params),
             "flat": zeros(state.flat_params),
@@ -655,6 +692,11 @@ class Trainer:
             ravel_pytree(physical_step_limits(base))[0],
         )
         base = merge(base, unravel(moved_vector), mask)
+        # The dark current of every pixel, from the same batch gradient.
+        mask = dark_mask(base)
+        g_dark = jax.tree.map(lambda g: g * scale, split(grad_base, mask))
+        dark, dark_opt = state.dark_opt.update(split(base, mask), g_dark, self.fisher["dark"])
+        base = merge(base, dark, mask)
         adam_state = state.adam_state
         if use_network and base.ramp.network is not None:
             weights = eqx.filter(base.ramp.network, eqx.is_array)
@@ -667,9 +709,9 @@ class Trainer:
             lambda m: m.detector.jitter_arcsec, base, jnp.abs(base.detector.jitter_arcsec)
         )
         self.state = eqx.tree_at(
-            lambda s: (s.base, s.cal_params, s.cal_opt, s.physical_opt, s.adam_state),
+            lambda s: (s.base, s.cal_params, s.cal_opt, s.physical_opt, s.dark_opt, s.adam_state),
             state,
-            (base, cal_params, cal_opt, physical_opt, adam_state),
+            (base, cal_params, cal_opt, physical_opt, dark_opt, adam_state),
         )
         return loss / max(values, 1)
 
@@ -842,7 +884,7 @@ class Trainer:
         """Write the whole training state (atomically) to ``path``."""
         record = {
             "format": CHECKPOINT_FORMAT,
-            "format_version": 1,
+            "format_version": 2,
             "step": self.step,
             "seconds": self.seconds,
             "settings": asdict(self.settings),

@@ -190,6 +190,13 @@ def whitened_residuals(model_dn: Float[Array, "m ny nx"], data: SlopeData) -> Ar
     return jnp.einsum("nij,nj->ni", data.whitening, residual)
 
 
+def whiten(values_dn: Float[Array, "m ny nx"], data: SlopeData) -> Array:
+    """(ny * nx, m) ``W v`` per pixel (zero rows for unused pixels): a change ``v`` of
+    the model slopes in units of the noise (``-W v`` is the change of the residuals)."""
+    m = data.slopes_dn.shape[0]
+    return jnp.einsum("nij,nj->ni", data.whitening, values_dn.reshape(m, -1).T)
+
+
 def chi2(model_dn: Array, data: SlopeData) -> Array:
     """Chi-square of the slopes (the log-likelihood is ``-chi2 / 2`` + a constant)."""
     return jnp.sum(whitened_residuals(model_dn, data) ** 2)

@@ -64,7 +64,8 @@ class ReadModel(eqx.Module):
     Attributes
     ----------
     dark_e_per_group
-        Dark current per group time (electrons), the same for all pixels.
+        (ny, nx) dark current per group time (electrons) of each pixel; a 0-d value
+        applies to all pixels.
     ipc_kernel
         (5, 5) IPC kernel (see :func:`default_ipc_kernel`).
     nonlinearity
@@ -76,7 +77,7 @@ class ReadModel(eqx.Module):
         per-group offset in the normalised row coordinate.
     """
 
-    dark_e_per_group: Float[Array, ""]
+    dark_e_per_group: Float[Array, "ny nx"] | Float[Array, ""]
     ipc_kernel: Float[Array, "5 5"]
     nonlinearity: Float[Array, "ny nx"]
     gain_e_per_dn: float = eqx.field(static=True, default=instrument.GAIN_E_PER_DN)
@@ -86,7 +87,7 @@ class ReadModel(eqx.Module):
     def create(cls, shape: tuple[int, int] = (80, 80)) -> ReadModel:
         """Defaults: no dark, the default IPC kernel, linear response, the NIRISS gain."""
         return cls(
-            dark_e_per_group=jnp.asarray(0.0),
+            dark_e_per_group=jnp.zeros(shape),
             ipc_kernel=jnp.asarray(default_ipc_kernel()),
             nonlinearity=jnp.zeros(shape),
         )
