@@ -21,6 +21,7 @@ from amigo.calibration import (
     physical_mask,
     pixel_fisher,
     pixel_mask,
+    pixel_newton,
     split,
 )
 from amigo.io.calslope import CalSlope
@@ -32,6 +33,7 @@ from amigo.slope_model import (
     chi2,
     flat_slopes,
     point_source_slopes,
+    whiten,
 )
 
 SMALL = BaseModelConfig(
@@ -182,12 +184,59 @@ def test_fisher_of_the_flat_field_matches_the_analytic_value():
     base = BaseModel.create(SMALL, linear=True)
     params = FlatParams(jnp.asarray(3e4))
     data = _synthetic(base, params, 4, 5.0, 0, None, flat=True)
-    fisher = np.asarray(pixel_fisher(base, params, data).ramp.flat)
+    fisher = np.asarray(pixel_fisher(base, params, data)[0].ramp.flat)
     model = np.asarray(flat_slopes(base, params, data), np.float64)
     sigma = 1.0 / np.asarray(data.whitening)[:, np.arange(3), np.arange(3)].T.reshape(3, 16, 16)
     expected = np.sum((model / sigma) ** 2, axis=0)
     inner = (slice(2, -2), slice(2, -2))
     np.testing.assert_allclose(fisher[inner], expected[inner], rtol=1e-4)
+
+
+def test_pixel_fisher_matrix_matches_a_direct_jacobian_and_its_newton_step_a_solve():
+    """Without IPC a pixel's (flat, non-linearity) act on its slopes only: the per-pixel
+    2 x 2 Fisher matrix from the tangent-of-ones pass equals J^T J of one pixel's
+    whitened slopes, J from forward-mode autodiff of that pixel alone."""
+    base = BaseModel.create(SMALL, linear=True)
+    base = eqx.tree_at(
+        lambda m: (m.read.ipc_kernel, m.read.nonlinearity),
+        base,
+        (jnp.zeros((5, 5)).at[2, 2].set(1.0), jnp.full((16, 16), -2e-6)),
+    )
+    params = FlatParams(jnp.asarray(3e4))
+    data = _synthetic(base, params, 5, 5.0, 0, None, flat=True)
+    diagonal, cross = pixel_fisher(base, params, data)
+    y, x = 7, 9
+
+    def pixel_slopes(theta):
+        b = eqx.tree_at(
+            lambda m: (m.ramp.flat, m.read.nonlinearity),
+            base,
+            (base.ramp.flat.at[y, x].set(theta[0]), base.read.nonlinearity.at[y, x].set(theta[1])),
+        )
+        return whiten(flat_slopes(b, params, data), data)[y * 16 + x]
+
+    jac = np.asarray(jax.jacfwd(pixel_slopes)(jnp.array([1.0, -2e-6])), np.float64)
+    direct = jac.T @ jac
+    ours = np.array(
+        [
+            [diagonal.ramp.flat[y, x], cross[y, x]],
+            [cross[y, x], diagonal.read.nonlinearity[y, x]],
+        ],
+        np.float64,
+    )
+    np.testing.assert_allclose(ours, direct, rtol=2e-3)
+    assert abs(direct[0, 1]) / np.sqrt(direct[0, 0] * direct[1, 1]) > 0.5  # correlated
+    # The Newton direction solves the damped 2 x 2 system, pixel by pixel.
+    grad = eqx.tree_at(
+        lambda m: (m.ramp.flat, m.read.nonlinearity),
+        diagonal,
+        (jnp.full((16, 16), 3.0), jnp.full((16, 16), -5.0)),
+    )
+    step = pixel_newton(grad, {"diag": diagonal, "cross": cross}, 0.1)
+    damped = ours + 0.1 * np.diag(np.diag(ours))
+    expected = np.linalg.solve(damped, [3.0, -5.0])
+    got = [float(step.ramp.flat[y, x]), float(step.read.nonlinearity[y, x])]
+    np.testing.assert_allclose(got, expected, rtol=2e-3)
 
 
 def test_fisher_momentum_on_a_quadratic():
@@ -265,3 +314,28 @@ def test_training_decreases_the_loss_on_a_tiny_synthetic_problem(cache):
     assert trainer.state.base.ramp.network is not None
     assert trainer.history.stage[-1] == 1
     assert not trainer.result().linear
+
+
+@pytest.mark.slow
+def test_fine_tuning_learns_a_per_pixel_dark_current(cache):
+    """Fine-tuning (``initial``) a model that is right but for its dark current: the
+    network stage learns each pixel's dark from the calibrators' slopes."""
+    rng = np.random.default_rng(5)
+    dark = 30.0 + 20.0 * rng.normal(size=(16, 16))  # e- per group: ~5 sigma per pixel
+    truth = BaseModel.create(SMALL, jax.random.PRNGKey(1), network_init_scale=0.01)
+    truth = eqx.tree_at(lambda m: m.read.dark_e_per_group, truth, jnp.asarray(dark, jnp.float32))
+    cal = [
+        _synthetic(truth, PointSourceParams(jnp.array(p), jnp.asarray(4e5)), 4, 4.0, i, cache)
+        for i, p in enumerate([[0.02, 0.0], [-0.01, 0.02], [0.0, -0.015]])
+    ]
+    flats = [_synthetic(truth, FlatParams(jnp.asarray(3e4)), 4, 4.0, 9, cache, flat=True)]
+    start = eqx.tree_at(lambda m: m.read.dark_e_per_group, truth, jnp.zeros((16, 16)))
+    settings = TrainSettings(steps=6, n_batches=1, init="truth-without-dark")
+    trainer = Trainer(TrainingData(cal, flats, []), settings, cache=cache, initial=start)
+    first = trainer.epoch()
+    for _ in range(5):
+        losses = trainer.epoch()
+    assert trainer.history.stage == [1] * 6  # no network-off stage when fine-tuning
+    learned = np.asarray(trainer.state.base.read.dark_e_per_group)
+    assert np.corrcoef(learned.ravel(), dark.ravel())[0, 1] > 0.9
+    assert losses["cal"] < 0.2 * first["cal"]

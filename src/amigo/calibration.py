@@ -49,6 +49,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 from jax.flatten_util import ravel_pytree
+from jaxtyping import Array, Float
 
 from amigo._version import __version__
 from amigo.basemodel import (
@@ -237,27 +238,50 @@ def fisher_diagonal(
 
 
 @eqx.filter_jit
-def pixel_fisher(base: BaseModel, params: FlatParams, data: SlopeData) -> BaseModel:
-    """Per-pixel Fisher diagonal of the flat field and the non-linearity from one flat
-    field, shaped like ``split(base, pixel_mask(base))``. A pixel's parameters act (IPC
-    aside) on that pixel's slopes only, so one forward-mode pass with a tangent of ones
-    gives every pixel's derivative at once."""
+def pixel_fisher(
+    base: BaseModel, params: FlatParams, data: SlopeData
+) -> tuple[BaseModel, Float[Array, "ny nx"]]:
+    """Per-pixel 2 x 2 Fisher matrix of the flat field and the non-linearity from one
+    flat field: its diagonal, shaped like ``split(base, pixel_mask(base))``, and the
+    (ny, nx) cross term. A pixel's parameters act (IPC aside) on that pixel's slopes
+    only, so one forward-mode pass with a tangent of ones gives every pixel's derivative
+    at once. Under one light level the two are strongly correlated (the non-linearity
+    bends the ramp, the flat scales it): the cross term is what keeps a Newton step of
+    the pair from overshooting (see :func:`pixel_newton`)."""
 
     def slopes(flat, nonlinearity):
         b = eqx.tree_at(lambda m: (m.ramp.flat, m.read.nonlinearity), base, (flat, nonlinearity))
         return model_slopes(b, None, params, data)  # type: ignore[arg-type]
 
     primals = (base.ramp.flat, base.read.nonlinearity)
-    out = []
+    dz = []
     for index in range(2):
         tangents = tuple(
             jnp.ones_like(p) if i == index else jnp.zeros_like(p) for i, p in enumerate(primals)
         )
         _, dslopes = jax.jvp(slopes, primals, tangents)
-        dz = whiten(dslopes, data)  # the derivative of W (data - model), up to its sign
-        out.append(jnp.sum(dz**2, axis=1).reshape(data.shape))
+        dz.append(whiten(dslopes, data))  # the derivative of W (data - model), up to sign
+    diagonal = tuple(jnp.sum(d**2, axis=1).reshape(data.shape) for d in dz)
+    cross = jnp.sum(dz[0] * dz[1], axis=1).reshape(data.shape)
     mask = pixel_mask(base)
-    return eqx.tree_at(lambda m: (m.ramp.flat, m.read.nonlinearity), split(base, mask), tuple(out))
+    tree = eqx.tree_at(lambda m: (m.ramp.flat, m.read.nonlinearity), split(base, mask), diagonal)
+    return tree, cross
+
+
+def pixel_newton(grad: BaseModel, fisher: dict[str, Any], damping: float) -> BaseModel:
+    """``(F + damping diag F)^-1 g`` per pixel for the (flat, non-linearity) pair, ``F``
+    the per-pixel 2 x 2 Fisher matrix (``fisher``: ``"diag"`` shaped like ``grad``,
+    ``"cross"`` (ny, nx)); zero where a pixel is not constrained."""
+    a = fisher["diag"].ramp.flat * (1.0 + damping)
+    b = fisher["diag"].read.nonlinearity * (1.0 + damping)
+    c = fisher["cross"]
+    g_f, g_n = grad.ramp.flat, grad.read.nonlinearity
+    det = a * b - c**2
+    ok = (a > 0) & (b > 0) & jnp.isfinite(det) & (det > 0)
+    det = jnp.where(ok, det, 1.0)
+    step_f = jnp.where(ok, (b * g_f - c * g_n) / det, 0.0)
+    step_n = jnp.where(ok, (a * g_n - c * g_f) / det, 0.0)
+    return eqx.tree_at(lambda m: (m.ramp.flat, m.read.nonlinearity), grad, (step_f, step_n))
 
 
 @eqx.filter_jit
@@ -617,11 +641,16 @@ class Trainer:
         cal_fisher = exposure_fisher("cal_params", state.cal_params, self.data.cal)
         val_fisher = exposure_fisher("val_params", state.val_params, self.data.val)
         flat_fisher = exposure_fisher("flat_params", state.flat_params, self.data.flats)
-        pixel = jax.tree.map(jnp.zeros_like, split(base, pixel_mask(base)))
+        pixel = {
+            "diag": jax.tree.map(jnp.zeros_like, split(base, pixel_mask(base))),
+            "cross": jnp.zeros_like(base.ramp.flat),
+        }
         for p, d in zip(state.flat_params, self.data.flats, strict=True):
-            pixel = jax.tree.map(jnp.add, pixel, pixel_fisher(base, p, d))
-        # A pixel no flat constrains keeps its value (infinite Fisher: no step).
-        pixel = jax.tree.map(lambda f: jnp.where(f > 0, f, jnp.inf), pixel)
+            diagonal, cross = pixel_fisher(base, p, d)
+            pixel = {
+                "diag": jax.tree.map(jnp.add, pixel["diag"], diagonal),
+                "cross": pixel["cross"] + cross,
+            }
         # The dark current: every calibration exposure's pixels (the batch gradient is
         # scaled up to the whole set, so its Fisher is the whole set's too).
         dark = jax.tree.map(jnp.zeros_like, split(base, dark_mask(base)))
@@ -644,7 +673,10 @@ class Trainer:
         zeros = functools.partial(jax.tree.map, jnp.zeros_like)
         return {
             "physical": jnp.zeros((n, n), state.base.hole_centres_m.dtype),
-            "pixel": zeros(split(state.base, pixel_mask(state.base))),
+            "pixel": {
+                "diag": zeros(split(state.base, pixel_mask(state.base))),
+                "cross": jnp.zeros_like(state.base.ramp.flat),
+            },
             "dark": zeros(split(state.base, dark_mask(state.base))),
             "cal": zeros(state.cal_params),
             "val": zeros(state.val_params),
@@ -692,11 +724,15 @@ class Trainer:
             ravel_pytree(physical_step_limits(base))[0],
         )
         base = merge(base, unravel(moved_vector), mask)
-        # The dark current of every pixel, from the same batch gradient.
-        mask = dark_mask(base)
-        g_dark = jax.tree.map(lambda g: g * scale, split(grad_base, mask))
-        dark, dark_opt = state.dark_opt.update(split(base, mask), g_dark, self.fisher["dark"])
-        base = merge(base, dark, mask)
+        # The dark current of every pixel, from the same batch gradient, once the optics
+        # have settled (network-on stages): a per-pixel offset would otherwise soak up
+        # the residuals of a still-wrong PSF.
+        dark_opt = state.dark_opt
+        if use_network:
+            mask = dark_mask(base)
+            g_dark = jax.tree.map(lambda g: g * scale, split(grad_base, mask))
+            dark, dark_opt = dark_opt.update(split(base, mask), g_dark, self.fisher["dark"])
+            base = merge(base, dark, mask)
         adam_state = state.adam_state
         if use_network and base.ramp.network is not None:
             weights = eqx.filter(base.ramp.network, eqx.is_array)
@@ -731,9 +767,13 @@ class Trainer:
             state.flat_params, tuple(grads), self.fisher["flat"]
         )
         mask = pixel_mask(base)
-        pixel, pixel_opt = state.pixel_opt.update(
-            split(base, mask), split(grad_base, mask), self.fisher["pixel"]
+        # A joint Newton step of each pixel's (flat, non-linearity) pair (zero where no
+        # flat constrains it), then momentum on it (unit "Fisher": already preconditioned).
+        direction = pixel_newton(
+            split(grad_base, mask), self.fisher["pixel"], self.settings.damping
         )
+        ones = jax.tree.map(jnp.ones_like, direction)
+        pixel, pixel_opt = state.pixel_opt.update(split(base, mask), direction, ones)
         base = merge(base, pixel, mask)
         # The flat's mean is degenerate with every flux: pin it to one.
         used = np.zeros(base.ramp.flat.shape, bool)
