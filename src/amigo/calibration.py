@@ -378,6 +378,7 @@ class TrainSettings:
     init: str | None = None
     physical_lr: float = 0.5
     pixel_lr: float = 0.8
+    dark_lr: float = 0.25
     exposure_lr: float = 0.5
     momentum: float = 0.6
     network_lr: float = 3e-3
@@ -539,7 +540,7 @@ class Trainer:
                 ravel_pytree(split(base, physical_mask(base)))[0], s.physical_lr, s.momentum
             ),
             pixel_opt=FisherMomentum.init(split(base, pixel_mask(base)), s.pixel_lr, s.momentum),
-            dark_opt=FisherMomentum.init(split(base, dark_mask(base)), s.pixel_lr, s.momentum),
+            dark_opt=FisherMomentum.init(split(base, dark_mask(base)), s.dark_lr, s.momentum),
             cal_opt=FisherMomentum.init(cal, s.exposure_lr, s.momentum),
             flat_opt=FisherMomentum.init(flats, s.exposure_lr, s.momentum),
             val_opt=FisherMomentum.init(val, s.exposure_lr, s.momentum),
@@ -772,13 +773,18 @@ class Trainer:
         direction = pixel_newton(
             split(grad_base, mask), self.fisher["pixel"], self.settings.damping
         )
-        ones = jax.tree.map(jnp.ones_like, direction)
-        pixel, pixel_opt = state.pixel_opt.update(split(base, mask), direction, ones)
-        base = merge(base, pixel, mask)
-        # The flat's mean is degenerate with every flux: pin it to one.
+        # The flat's mean is degenerate with every flux: the flats' levels carry it, the
+        # flat's step has none (a common-mode step would jolt every calibrator's flux).
         used = np.zeros(base.ramp.flat.shape, bool)
         for d in self.data.flats:
             used |= np.asarray(d.used) > 0
+        step = direction.ramp.flat
+        step = jnp.where(used, step - jnp.mean(step[used]), step)
+        direction = eqx.tree_at(lambda m: m.ramp.flat, direction, step)
+        ones = jax.tree.map(jnp.ones_like, direction)
+        pixel, pixel_opt = state.pixel_opt.update(split(base, mask), direction, ones)
+        base = merge(base, pixel, mask)
+        # Pinned to one against rounding drift.
         base = eqx.tree_at(
             lambda m: m.ramp.flat, base, base.ramp.flat / jnp.mean(base.ramp.flat[used])
         )
