@@ -3,7 +3,9 @@
 For every file: fit the point source's position and flux with the base model (the
 instrument fixed), once with the charge-migration network (``--detector full``) and once
 with it off (``--detector linear``), and report chi2, degrees of freedom and the z-score
-standard deviation, with the full slope covariance and with its diagonal. Prints a table
+standard deviation, with the slope covariance ``amigo fit`` uses ("auto": the full sample
+covariance where every slope averages >= 10 m integrations, the pooled estimate
+otherwise) and with its diagonal. Prints a table
 per exposure and per filter, and writes the numbers as JSON.
 
 The fit is this issue's own ramp-level point-source fit (amigo.calibration.fit_exposure),
@@ -56,7 +58,7 @@ def main() -> None:
                 _, stats = fit_exposure(model, data, cache, args.iterations)
                 row = {
                     **stats.to_json(),
-                    "covariance": "diag" if diagonal else "full",
+                    "covariance": "diag" if diagonal else "auto",
                     "detector": name,
                     "seconds": round(time.perf_counter() - start, 1),
                 }
