@@ -183,18 +183,16 @@ def model_slopes(base: BaseModel, cache: PupilCache, params, data: SlopeData) ->
 # ---------------------------------------------------------------------------- likelihood
 
 
-def whitened_residuals(model_dn: Float[Array, "m ny nx"], data: SlopeData) -> Array:
-    """(ny * nx, m) ``W (data - model)`` per pixel; zero rows for unused pixels."""
-    m = data.slopes_dn.shape[0]
-    residual = (data.slopes_dn - model_dn).reshape(m, -1).T  # (n, m)
-    return jnp.einsum("nij,nj->ni", data.whitening, residual)
-
-
 def whiten(values_dn: Float[Array, "m ny nx"], data: SlopeData) -> Array:
-    """(ny * nx, m) ``W v`` per pixel (zero rows for unused pixels): a change ``v`` of
-    the model slopes in units of the noise (``-W v`` is the change of the residuals)."""
+    """(ny * nx, m) ``W v`` per pixel (zero rows for unused pixels): slopes, or a change
+    of the model slopes, in units of the noise."""
     m = data.slopes_dn.shape[0]
     return jnp.einsum("nij,nj->ni", data.whitening, values_dn.reshape(m, -1).T)
+
+
+def whitened_residuals(model_dn: Float[Array, "m ny nx"], data: SlopeData) -> Array:
+    """(ny * nx, m) ``W (data - model)`` per pixel; zero rows for unused pixels."""
+    return whiten(data.slopes_dn - model_dn, data)
 
 
 def chi2(model_dn: Array, data: SlopeData) -> Array:

@@ -183,13 +183,14 @@ def command(
 
         from amigo.basemodel import load_base_model, read_metadata
         from amigo.calibration import TrainingData, TrainSettings, train
+        from amigo.optics import cast
 
         dtype = jnp.float64 if float64 else jnp.float32
         initial = None
         try:
             data = TrainingData.read(cal, flats, val, diagonal=diagonal, dtype=dtype)
             if init is not None:
-                initial = _as_dtype(load_base_model(init), dtype)
+                initial = cast(load_base_model(init), dtype)
                 provenance["initial_model"] = _summary(init, read_metadata(init))
         except InputError as error:
             fail_input(error)
@@ -222,18 +223,6 @@ def command(
         f"last losses (chi2/2 per value): cal {final['cal_loss'][-1]:.4g}, "
         f"val {final['val_loss'][-1]:.4g}"
     )
-
-
-def _as_dtype(model, dtype):
-    """``model`` with its floating-point arrays in ``dtype`` (the training precision)."""
-    import equinox as eqx
-    import jax
-    import jax.numpy as jnp
-
-    def cast(x):
-        return x.astype(dtype) if eqx.is_array(x) and jnp.issubdtype(x.dtype, jnp.floating) else x
-
-    return jax.tree.map(cast, model)
 
 
 def _summary(path: Path, metadata: dict) -> dict:
