@@ -171,3 +171,39 @@ def test_shipped_model_loads_and_says_what_it_was_trained_on():
     ):
         assert key in record, key
     assert path.stat().st_size < 2_000_000
+
+
+def test_with_config_changes_only_how_finely_the_optics_is_computed():
+    """Same parameters, finer pupil: the image moves towards a much finer computation
+    of the same instrument (the pupil sampling error shrinks), and settings that fix
+    parameter shapes are refused."""
+    model = _perturbed(BaseModel.create(SMALL, jax.random.PRNGKey(4), linear=True), seed=7)
+    model = eqx.tree_at(  # a realistic wavefront and geometry, not random numbers
+        lambda m: (m.zernikes_nm["F430M"], m.defocus_nm["F430M"], m.hole_centres_m, m.detector),
+        model,
+        (
+            jnp.asarray(np.random.default_rng(1).normal(0, 20, (7, 10)), jnp.float32),
+            jnp.asarray(25.0),
+            BaseModel.create(SMALL).hole_centres_m,
+            BaseModel.create(SMALL).detector,
+        ),
+    )
+
+    def image(m: BaseModel) -> np.ndarray:
+        return np.asarray(m.illuminance("F430M", jnp.array([0.01, 0.02]), m.pupil_cache()))
+
+    fine = model.with_config(pupil_npix=512)
+    assert fine.config.pupil_npix == 512 and fine.config.shape == SMALL.shape
+    for a, b in zip(jax.tree.leaves(model), jax.tree.leaves(fine), strict=True):
+        assert a is b  # the parameters themselves are untouched
+    reference = image(fine)
+    errors = [
+        float(np.abs(image(model.with_config(pupil_npix=n)) - reference).max() / reference.max())
+        for n in (64, 128, 256)
+    ]
+    assert errors[0] > errors[1] > errors[2], errors
+    assert errors[2] < 1e-3
+    with pytest.raises(ValueError, match="shape"):
+        model.with_config(shape=(16, 16))
+    with pytest.raises(ValueError, match="n_zernike"):
+        model.with_config(n_zernike=6)

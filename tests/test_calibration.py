@@ -3,6 +3,8 @@ tiny synthetic problem."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -24,6 +26,7 @@ from amigo.calibration import (
     pixel_newton,
     split,
 )
+from amigo.errors import InputError
 from amigo.io.calslope import CalSlope
 from amigo.likelihood import SlopeNoise, auto_structure
 from amigo.slope_model import (
@@ -272,7 +275,7 @@ def test_parameter_groups_are_disjoint_and_cover_the_instrument():
 
 
 @pytest.mark.slow
-def test_training_decreases_the_loss_on_a_tiny_synthetic_problem(cache):
+def test_training_decreases_the_loss_on_a_tiny_synthetic_problem(cache, tmp_path):
     """Truth: aberrations, a rotated detector, a non-uniform flat. Start: a nominal model.
     Stage 0 (network off) then one network stage; the calibration, flat and validation
     losses all fall, and validation never changes the instrument."""
@@ -321,6 +324,18 @@ def test_training_decreases_the_loss_on_a_tiny_synthetic_problem(cache):
     assert trainer.state.base.ramp.network is not None
     assert trainer.history.stage[-1] == 1
     assert not trainer.result().linear
+
+    # A checkpoint restores the whole state, and only for the model configuration it
+    # was written with (same data and settings, optics on another pupil grid: refused).
+    checkpoint = tmp_path / "model.ckpt.npz"
+    trainer.save_checkpoint(checkpoint)
+    again = Trainer(data, settings, SMALL, cache)
+    again.load_checkpoint(checkpoint)
+    assert again.step == trainer.step and again.history == trainer.history
+    assert eqx.tree_equal(again.state.base, trainer.state.base)
+    other = dataclasses.replace(SMALL, pupil_npix=40)
+    with pytest.raises(InputError, match="another model configuration"):
+        Trainer(data, settings, other, cache).load_checkpoint(checkpoint)
 
 
 @pytest.mark.slow

@@ -82,6 +82,7 @@ def test_train_writes_a_model_with_its_record_and_resumes(files):
     assert "Traceback" not in result.stderr
     model = load_base_model(out)
     assert not model.linear and model.config.shape == SHAPE
+    assert (model.config.pupil_npix, model.config.defocus_method) == (256, "pupil")
     record = read_metadata(out)
     assert record["data"]["calibration"][0]["name"] == "cal"
     assert record["data"]["flats"][0]["name"] == "flat"
@@ -99,12 +100,18 @@ def test_train_writes_a_model_with_its_record_and_resumes(files):
     # stage, no restart), and the new file records where it started.
     tuned_path = files["folder"] / "tuned.npz"
     tuned_args = [*args[:7], "--out", str(tuned_path), "--steps", "1", "--batches", "1"]
-    tuned_run = run_amigo(*tuned_args, "--init", str(out))
+    # ... here with the optics computed on another pupil grid, as a model trained with
+    # older defaults is brought to the current ones.
+    tuned_run = run_amigo(*tuned_args, "--init", str(out), "--pupil-npix", "192",
+                          "--defocus-method", "angular_spectrum")  # fmt: skip
     assert tuned_run.returncode == 0, tuned_run.stderr
+    tuned_config = load_base_model(tuned_path).config
+    assert (tuned_config.pupil_npix, tuned_config.defocus_method) == (192, "angular_spectrum")
     assert "fine-tuning the network" in tuned_run.stderr
     tuned_record = read_metadata(tuned_path)
     assert tuned_record["initial_model"]["path"] == str(out)
     assert tuned_record["initial_model"]["date"] == read_metadata(out)["date"]
+    assert tuned_record["initial_model"]["optics"]["pupil_npix"] == 256
     assert tuned_record["settings"]["init"] == str(out)
     assert tuned_record["history"]["stage"] == [1]
     # One Adam step moves each weight by at most about the learning rate (3e-3): the

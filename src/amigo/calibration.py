@@ -951,6 +951,9 @@ class Trainer:
                 raise InputError(path, "checkpoint was written for other training data")
             if _tuples_to_lists(asdict(self.settings)) != record["settings"]:
                 raise InputError(path, "checkpoint was written with other training settings")
+            config = _tuples_to_lists(self.state.base.config.to_json())
+            if "config" in record and record["config"] != config:
+                raise InputError(path, "checkpoint was written for another model configuration")
             skeleton = self.state
             if record["network_on"]:
                 skeleton = eqx.tree_at(

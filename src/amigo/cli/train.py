@@ -123,6 +123,20 @@ class _ManyValues(click.Option):
     "no network-off stage; --stages then lists network-on stages, the first keeping "
     "the model's network.",
 )
+@click.option(
+    "--pupil-npix",
+    "pupil_npix",
+    default=None,
+    type=click.IntRange(min=32),
+    help="Pupil samples across the telescope pupil [default: the --init model's, else 256].",
+)
+@click.option(
+    "--defocus-method",
+    "defocus_method",
+    default=None,
+    type=click.Choice(["pupil", "angular_spectrum"]),
+    help="How the optics applies the defocus [default: the --init model's, else pupil].",
+)
 @click.option("--float64", "float64", is_flag=True, help="Train in float64 (default float32).")
 @click.option(
     "--provenance",
@@ -146,6 +160,8 @@ def command(
     time_limit: float | None,
     resume: bool,
     init: Path | None,
+    pupil_npix: int | None,
+    defocus_method: str | None,
     float64: bool,
     provenance_file: Path | None,
 ) -> None:
@@ -181,17 +197,24 @@ def command(
     with jax.enable_x64(float64):
         import jax.numpy as jnp
 
-        from amigo.basemodel import load_base_model, read_metadata
+        from amigo.basemodel import BaseModelConfig, load_base_model, read_metadata
         from amigo.calibration import TrainingData, TrainSettings, train
         from amigo.optics import cast
 
         dtype = jnp.float64 if float64 else jnp.float32
-        initial = None
+        optics = {
+            k: v
+            for k, v in (("pupil_npix", pupil_npix), ("defocus_method", defocus_method))
+            if v is not None
+        }
+        initial = config = None
         try:
             data = TrainingData.read(cal, flats, val, diagonal=diagonal, dtype=dtype)
             if init is not None:
-                initial = cast(load_base_model(init), dtype)
+                initial = cast(load_base_model(init), dtype).with_config(**optics)
                 provenance["initial_model"] = _summary(init, read_metadata(init))
+            elif optics:
+                config = BaseModelConfig(filters=data.filters, shape=data.cal[0].shape, **optics)
         except InputError as error:
             fail_input(error)
             return
@@ -209,6 +232,7 @@ def command(
                 data,
                 out,
                 settings,
+                config=config,
                 resume=resume,
                 time_limit_s=None if time_limit is None else 60.0 * time_limit,
                 provenance=provenance,
@@ -227,8 +251,12 @@ def command(
 
 def _summary(path: Path, metadata: dict) -> dict:
     """What the fine-tuned model's metadata records of the model it started from."""
+    from amigo.basemodel import OPTICS_SETTINGS
+
     keys = ("date", "command", "trained_on", "steps_done", "amigo_version", "dtype")
-    return {"path": str(path), **{k: metadata[k] for k in keys if k in metadata}}
+    config = metadata.get("config", {})
+    optics = {k: config[k] for k in OPTICS_SETTINGS if k in config}
+    return {"path": str(path), **{k: metadata[k] for k in keys if k in metadata}, "optics": optics}
 
 
 #: Memory mappings that training on full-size calibration data has been seen to need.
