@@ -62,3 +62,68 @@ def test_undamped_step_is_the_newton_step_and_degeneracies_get_none():
     assert d[1] * np.sqrt(fisher[1, 1]) == pytest.approx(d[6] * np.sqrt(fisher[6, 6]), rel=1e-6)
     # Damping shortens the step.
     assert np.linalg.norm(_Solver(fisher)(grad, 10.0)) < np.linalg.norm(d)
+
+
+@pytest.mark.slow
+def test_wavefront_prior_adds_exactly_its_gaussian_term(tmp_path, monkeypatch):
+    """The prior of ``NewtonConfig.wavefront_prior_nm`` adds ``|w - w0|^2 / (2 s^2)`` to
+    the calibrators' loss (``w0``: the instrument's own wavefront), ``-(w - w0) / s^2`` to
+    their gradient (checked against a finite difference of the loss) and ``1 / s^2`` to
+    the diagonal of the wavefront's Fisher block, and nothing to a science-only stage."""
+    import equinox as eqx
+
+    from amigo.basis import load_basis
+    from amigo.fitting import FilterFit, FitExposure
+    from amigo.likelihood import ImageData
+    from amigo.model import FilterSetup, Instrument
+    from amigo.newton import _Problem
+    from amigo.visibility import UVGrid
+
+    monkeypatch.setenv("AMIGO_CACHE_DIR", str(tmp_path))
+    rng = np.random.default_rng(3)
+    w0 = rng.normal(0, 10.0, (7, 10))
+    instrument = Instrument.nominal(n_wavelengths=2)
+    instrument = eqx.tree_at(
+        lambda i: i.optics.zernikes_nm, instrument, jnp.asarray(w0, jnp.float32)
+    )
+    basis, _ = load_basis(instrument, "F480M", UVGrid(7, 0.9))
+    setup = FilterSetup.create("F480M", instrument, basis)
+    image = np.asarray(instrument.detector(instrument.optics.illuminance(
+        setup.spectrum(jnp.zeros(())), jnp.zeros(2)), 1e6))  # fmt: skip
+    sigma = np.sqrt(image + 100.0)
+    data = ImageData(
+        image + sigma * rng.normal(size=image.shape), sigma, np.ones(image.shape, bool)
+    )
+    fit = FilterFit(instrument, setup, [FitExposure("c", "calibrator", "C", data),
+                                        FitExposure("s", "science", "S", data)])  # fmt: skip
+    params = fit.initial_params()
+    layout = Layout.of(params)
+    vector = layout.pack(params)
+    vector[layout.optics] += rng.normal(0, 3.0, layout.optics.size)  # away from w0
+    offset = vector[layout.optics] - np.append(w0.ravel(), 0.0)
+    s = 2.0
+    free, tied = _Problem(fit, params, np.array([0])), _Problem(fit, params, np.array([0]), s)
+    free.float64 = tied.float64 = True  # so that the data terms cancel to rounding
+    assert tied.loss(vector) - free.loss(vector) == pytest.approx(
+        0.5 * np.sum(offset**2) / s**2, rel=1e-6
+    )
+    g_free, g_tied = free.gradient(vector), tied.gradient(vector)
+    expected = np.zeros(layout.size)
+    expected[layout.optics] = -offset / s**2
+    rounding = 1e-8 * np.abs(g_free).max()  # of the data term, which cancels
+    np.testing.assert_allclose(g_tied - g_free, expected, rtol=1e-5, atol=rounding)
+    # g = -dL/dv: a central difference of the loss along a wavefront direction.
+    direction = np.zeros(layout.size)
+    direction[layout.optics] = rng.normal(size=layout.optics.size)
+    h = 1e-2
+    slope = (tied.loss(vector + h * direction) - tied.loss(vector - h * direction)) / (2 * h)
+    assert -slope == pytest.approx(float(g_tied @ direction), rel=2e-2)
+    f_free, n_free = free.normal_equations(vector, "test")
+    f_tied, n_tied = tied.normal_equations(vector, "test")
+    added = np.zeros((layout.size, layout.size))
+    added[layout.optics, layout.optics] = 1 / s**2
+    np.testing.assert_allclose(f_tied - f_free, added, atol=1e-6 * np.abs(f_free).max())
+    np.testing.assert_allclose(n_tied - n_free, expected, rtol=1e-5, atol=rounding)
+    science = _Problem(fit, params, np.array([1]), s)
+    assert science.prior_precision == 0.0
+    assert science.loss(vector) == pytest.approx(_Problem(fit, params, np.array([1])).loss(vector))

@@ -98,6 +98,10 @@ class NewtonConfig:
     float64_check
         Evaluate the Jacobians that are expected to confirm convergence in float64 (and
         return their Fisher matrix, see :class:`NewtonResult`).
+    wavefront_prior_nm
+        Standard deviation (nm) of an independent Gaussian prior on every Zernike
+        coefficient and the defocus, centred on the instrument's own wavefront (the base
+        model's calibrated one); ``None``: no prior (the calibrators alone decide).
     """
 
     max_iterations: int = 12
@@ -105,6 +109,7 @@ class NewtonConfig:
     damping: float = 1e-3
     chord_steps: int = 20
     float64_check: bool = True
+    wavefront_prior_nm: float | None = None
 
 
 @dataclass
@@ -336,10 +341,25 @@ class _Problem:
     chi2 that the convergence test asks about).
     """
 
-    def __init__(self, fit: FilterFit, params: FitParams, members: np.ndarray) -> None:
+    def __init__(
+        self,
+        fit: FilterFit,
+        params: FitParams,
+        members: np.ndarray,
+        wavefront_prior_nm: float | None = None,
+    ) -> None:
         self.fit = fit
         self.layout = Layout.of(params)
         self.members = np.asarray(members, int)
+        # The prior acts only where the wavefront is fitted: on the calibrators' stage.
+        fits_wavefront = bool(np.any(np.asarray(fit.is_calibrator, bool)[self.members]))
+        self.prior_precision = 0.0
+        if wavefront_prior_nm is not None and fits_wavefront:
+            self.prior_precision = 1.0 / float(wavefront_prior_nm) ** 2
+        optics = fit.instrument.optics
+        self.prior_centre = np.concatenate(
+            [np.ravel(np.asarray(optics.zernikes_nm)), [float(optics.defocus_nm)]]
+        ).astype(np.float64)
         self.data = np.asarray(fit.pixels.data, np.float64).reshape(fit.n_exposures, -1)
         self.weight = np.asarray(fit.pixels.inverse_sigma, np.float64).reshape(fit.n_exposures, -1)
         self.locals = [
@@ -380,13 +400,19 @@ class _Problem:
         models = np.asarray(models, np.float64).reshape(self.fit.n_exposures, -1)
         return (self.data - models) * self.weight
 
+    def _prior_offset(self, vector: np.ndarray) -> np.ndarray:
+        """Wavefront minus the prior's centre (nm)."""
+        return vector[self.layout.optics] - self.prior_centre
+
     def loss(self, vector: np.ndarray) -> float:
-        """``L = chi2 / 2`` of the member exposures at ``vector``."""
+        """``L = chi2 / 2`` of the member exposures at ``vector`` (plus the wavefront
+        prior's ``|w - w0|^2 / (2 sigma^2)`` where there is one)."""
         with self.precision():
             instrument, setup, _, wavefront, thetas, anchor = self._inputs(vector)
             psfs = self._psfs(instrument, setup, wavefront, anchor)
             r = self._residuals(instrument, setup, thetas, psfs, anchor)[self.members]
-        return 0.5 * float(np.sum(r * r))
+        prior = 0.5 * self.prior_precision * float(np.sum(self._prior_offset(vector) ** 2))
+        return 0.5 * float(np.sum(r * r)) + prior
 
     def gradient(self, vector: np.ndarray) -> np.ndarray:
         """``g = -grad L`` at ``vector`` (one reverse-mode pass)."""
@@ -409,7 +435,7 @@ class _Problem:
         grad = np.zeros(lay.size)
         for e in self.members:
             np.add.at(grad, self.locals[e], g_thetas[e])
-        grad[lay.optics] += g_wave
+        grad[lay.optics] += g_wave + self.prior_precision * self._prior_offset(vector)
         return -grad
 
     def normal_equations(self, vector: np.ndarray, label: str) -> tuple[np.ndarray, np.ndarray]:
@@ -436,6 +462,9 @@ class _Problem:
                 wj = jac * self.weight[e]  # whitened Jacobian
                 fisher[np.ix_(index, index)] += wj @ wj.T
                 grad[index] += wj @ r[e]
+        if self.prior_precision:
+            fisher[lay.optics, lay.optics] += self.prior_precision
+            grad[lay.optics] -= self.prior_precision * self._prior_offset(vector)
         return fisher, grad
 
 
@@ -609,7 +638,7 @@ def levenberg_marquardt(
     for members, stage_label in stages:
         if len(members) == 0:
             continue
-        problem = _Problem(fit, params, members)
+        problem = _Problem(fit, params, members, config.wavefront_prior_nm)
         result = _minimise(problem, vector, config, stage_label)
         vector = result.vector
         converged &= result.converged

@@ -206,6 +206,14 @@ def model_options(command):
     show_default=True,
     help="BFGS polish steps after the natural-gradient descent.",
 )
+@click.option(
+    "--wavefront-prior",
+    "wavefront_prior",
+    type=click.FloatRange(min=0.0, min_open=True),
+    default=None,
+    help="Gaussian prior (nm rms per Zernike coefficient and on the defocus) holding the "
+    "calibrators' wavefront near the base model's [default: none].",
+)
 def command(
     sci: tuple[Path, ...],
     cal: tuple[Path, ...],
@@ -214,6 +222,7 @@ def command(
     detector: str | None,
     max_iterations: int | None,
     polish: int,
+    wavefront_prior: float | None,
     knots: int | None,
     knot_spacing: float | None,
 ) -> None:
@@ -252,6 +261,10 @@ def command(
             step(f"{filter_name}: calibrators only (no science exposure): skipped")
         _check_orientations(items)
     config = FitConfig(polish_steps=polish)
+    if wavefront_prior is not None:
+        config = dataclasses.replace(
+            config, newton=dataclasses.replace(config.newton, wavefront_prior_nm=wavefront_prior)
+        )
     if max_iterations is not None:
         config = dataclasses.replace(config, max_iterations=max_iterations)
     detector_model = None
