@@ -8,8 +8,9 @@ covariance where every slope averages >= 10 m integrations, the pooled estimate
 otherwise) and with its diagonal. Prints a table
 per exposure and per filter, and writes the numbers as JSON.
 
-The fit is this issue's own ramp-level point-source fit (amigo.calibration.fit_exposure),
-standing in for ``amigo fit`` until the fitting engine lands.
+The fit is the training's ramp-level point-source fit (amigo.calibration.fit_exposure):
+a cross-check of ``amigo fit`` with nothing (latent visibilities, the calibrators'
+wavefront) to absorb or add to the detector's residuals.
 
 Run::
 
