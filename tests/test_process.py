@@ -22,6 +22,7 @@ from amigo.process import (
     clipping_influence,
     edge_density_factor,
     estimate_thresholds,
+    nearest_psd,
     process_ramps,
     robust_centre_scale,
     usable_groups,
@@ -208,6 +209,42 @@ def test_clipping_influence_of_a_single_band():
     r = np.outer(sd, sd) * np.arcsin(np.clip(sigma / np.outer(sd, sd), -1, 1))
     expected = 2 * d @ sigma[:, 2] / n + d @ r @ d / n
     assert delta_slope[0, 0, 0, 0] == pytest.approx(expected)
+
+
+def test_nearest_psd_clips_negative_eigenvalues_only():
+    rng = np.random.default_rng(11)
+    a = rng.normal(size=(5, 4, 4))
+    psd = a @ np.swapaxes(a, 1, 2)  # already positive definite: unchanged
+    np.testing.assert_allclose(nearest_psd(psd), psd, rtol=1e-12, atol=1e-12)
+    # A pairwise-deletion matrix that is not PSD: the implied slope variance
+    # C00 + C11 - 2 C01 = 4 + 9 - 2 * 7 = -1 is negative.
+    bad = np.array([[[4.0, 7.0], [7.0, 9.0]]])
+    fixed = nearest_psd(bad)[0]
+    values, vectors = np.linalg.eigh(bad[0])
+    expected = values[1] * np.outer(vectors[:, 1], vectors[:, 1])  # the negative one dropped
+    np.testing.assert_allclose(fixed, expected, rtol=1e-12)
+    assert np.linalg.eigvalsh(fixed).min() > -1e-12
+    assert np.isnan(nearest_psd(np.full((1, 2, 2), np.nan))).all()
+
+
+def test_clipping_influence_is_finite_for_a_pairwise_covariance_that_is_not_psd():
+    """Found at 10 integrations of 12 groups: a negative implied slope variance made the
+    correction NaN, and a quarter of the pixels were flagged 'no noise'."""
+    cov = np.array([[4.0, 7.0], [7.0, 9.0]]).reshape(2, 2, 1, 1)
+    delta_ramp, delta_slope = clipping_influence(cov, 10, 10, 3.0)
+    assert np.all(np.isfinite(delta_ramp)) and np.all(np.isfinite(delta_slope))
+
+
+def test_covariance_correction_flags_no_pixel_at_few_integrations():
+    rng = np.random.default_rng(12)
+    ramps = simulate(rng, 10, 12, np.full((36, 36), 200.0), read_dn=10.0, adc=False)
+    flagged = {}
+    for correction in (False, True):
+        settings = ProcessSettings(adc_correction=False, covariance_correction=correction)
+        product = process_ramps(ArraySource(ramps.raw), settings)
+        flagged[correction] = (product.badpix_reason & BAD_NO_NOISE) != 0
+    # Only pixels without a usable variance in the plain covariance lose it.
+    assert not np.any(flagged[True] & ~flagged[False])
 
 
 # --------------------------------------------------------------------------------------

@@ -536,6 +536,25 @@ def _window_structure(ngroups: int) -> tuple[np.ndarray, np.ndarray]:
     return to_ramp, affects
 
 
+def nearest_psd(cov: np.ndarray) -> np.ndarray:
+    """Each (k, k) matrix of ``cov`` (..., k, k) with its negative eigenvalues set to zero.
+
+    Pairwise deletion estimates each element from its own set of integrations, so with few
+    integrations the matrix need not be positive semi-definite, and a slope variance
+    derived from it (``C_gg + C_hh - 2 C_gh``) can come out negative. Matrices with a
+    non-finite element are returned unchanged (NaN stays NaN).
+    """
+    out = np.array(cov, dtype=np.float64, copy=True)
+    finite = np.all(np.isfinite(out), axis=(-2, -1))
+    if np.any(finite):
+        sym = 0.5 * (out[finite] + np.swapaxes(out[finite], -1, -2))
+        values, vectors = np.linalg.eigh(sym)
+        out[finite] = (vectors * np.maximum(values, 0.0)[..., None, :]) @ np.swapaxes(
+            vectors, -1, -2
+        )
+    return out
+
+
 def clipping_influence(
     ramp_cov_dn2: np.ndarray, nints: int, n_sample: int, nsigma: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -558,6 +577,10 @@ def clipping_influence(
     corrected value
     against the scatter of the means over many realisations.
 
+    ``Sigma`` is built from the nearest positive semi-definite version of ``ramp_cov_dn2``
+    (:func:`nearest_psd`): pairwise deletion does not guarantee one, and with few
+    integrations a negative implied slope variance would make the term NaN.
+
     Parameters
     ----------
     ramp_cov_dn2
@@ -576,13 +599,19 @@ def clipping_influence(
     ngroups = ramp_cov_dn2.shape[0]
     pixel_shape = ramp_cov_dn2.shape[2:]
     to_ramp, affects = _window_structure(ngroups)
-    cov_r = np.moveaxis(ramp_cov_dn2.reshape(ngroups, ngroups, -1), -1, 0)  # (P, G, G)
+    cov_r = nearest_psd(np.moveaxis(ramp_cov_dn2.reshape(ngroups, ngroups, -1), -1, 0))
     sigma = to_ramp @ cov_r @ to_ramp.T  # (P, W, W) joint covariance of all bands' variables
     var = np.diagonal(sigma, axis1=1, axis2=2)  # (P, W)
+    # A variable without spread (a rank-deficient estimate from two or three integrations)
+    # has a band that moves nothing: zero influence and zero correlation, not 0 / 0.
+    spread = var > 0
     with np.errstate(invalid="ignore", divide="ignore"):
-        influence = edge_density_factor(nsigma, n_sample) * sigma / var[:, None, :] * affects
-        sd = np.sqrt(var)
-        rho = np.clip(sigma / (sd[:, :, None] * sd[:, None, :]), -1.0, 1.0)
+        safe_var = np.where(spread, var, np.inf)
+        influence = edge_density_factor(nsigma, n_sample) * sigma / safe_var[:, None, :] * affects
+        sd = np.sqrt(np.where(spread, var, 0.0))
+        both = spread[:, :, None] & spread[:, None, :]
+        rho = np.where(both, sigma / np.where(both, sd[:, :, None] * sd[:, None, :], 1.0), 0.0)
+        rho = np.clip(rho, -1.0, 1.0)
         r = sd[:, :, None] * sd[:, None, :] * np.arcsin(rho)
         cross = influence @ sigma
         delta = (cross + np.swapaxes(cross, 1, 2)) / nints
