@@ -33,6 +33,7 @@ from jax.flatten_util import ravel_pytree
 
 from amigo import instrument
 from amigo.basemodel import BaseModel, BaseModelConfig
+from amigo.detector.linear import bin_pixels
 from amigo.simulate.optics_illumination import OpticalModelIllumination
 from amigo.simulate.run import REFERENCE_PIXEL_XY
 from amigo.simulate.scenarios import load_scenario
@@ -42,16 +43,11 @@ from amigo.simulate.state import draw_instrument_state
 READ_VARIANCE_E2 = 300.0
 
 
-def _bin(image: np.ndarray, k: int) -> np.ndarray:
-    n = image.shape[0] // k
-    return image.reshape(n, k, n, k).sum(axis=(1, 3))
-
-
 def reference(spec, state) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
     """Noiseless data (e- over the exposure) and its noise, from the simulator's optics."""
     xy = (REFERENCE_PIXEL_XY[0] + spec.offset_pix[0], REFERENCE_PIXEL_XY[1] + spec.offset_pix[1])
     scene = DetectorScene((PointSource(*xy, 1.0),))
-    image = _bin(OpticalModelIllumination().render(scene, spec.filter, state, 4), 4)
+    image = bin_pixels(OpticalModelIllumination().render(scene, spec.filter, state, 4), 4)
     image = image / image.sum()
     total = spec.nints_full * spec.peak_dn * instrument.GAIN_E_PER_DN / image.max()
     data = image * total
@@ -101,8 +97,7 @@ def floor(spec, state, pupil_npix: int, method: str) -> tuple[float, int, float]
                 ),
             )
             image = model.illuminance(f, p["position"], cache)
-            n = instrument.SUBARRAY_SIZE
-            image = image.reshape(n, 3, n, 3).sum(axis=(1, 3)) * jnp.exp(p["log_flux"])
+            image = bin_pixels(image, 3) * jnp.exp(p["log_flux"])
             return ((image - data) / sigma)[rows].ravel()
 
         res = jax.jit(residuals)

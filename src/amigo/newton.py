@@ -244,9 +244,15 @@ def local_vector(params: FitParams, e: int, s: int) -> Float[Array, " n"]:
     )
 
 
+def wavefront_vector(optics) -> Float[Array, " n"]:
+    """``[Zernikes (flattened), defocus]`` of anything holding ``zernikes_nm`` and
+    ``defocus_nm`` (an :class:`~amigo.model.OpticsParams` or the instrument's optics)."""
+    return jnp.concatenate([jnp.ravel(optics.zernikes_nm), jnp.atleast_1d(optics.defocus_nm)])
+
+
 def optics_vector(params: FitParams) -> Float[Array, " n"]:
     """``[Zernikes (flattened), defocus]`` of ``params``."""
-    return jnp.concatenate([jnp.ravel(params.optics.zernikes_nm), params.optics.defocus_nm[None]])
+    return wavefront_vector(params.optics)
 
 
 def local_illuminance(theta, instrument, setup, psfs, anchor) -> Float[Array, "240 240"]:
@@ -356,10 +362,7 @@ class _Problem:
         self.prior_precision = 0.0
         if wavefront_prior_nm is not None and fits_wavefront:
             self.prior_precision = 1.0 / float(wavefront_prior_nm) ** 2
-        optics = fit.instrument.optics
-        self.prior_centre = np.concatenate(
-            [np.ravel(np.asarray(optics.zernikes_nm)), [float(optics.defocus_nm)]]
-        ).astype(np.float64)
+        self.prior_centre = np.asarray(wavefront_vector(fit.instrument.optics), np.float64)
         self.data = np.asarray(fit.pixels.data, np.float64).reshape(fit.n_exposures, -1)
         self.weight = np.asarray(fit.pixels.inverse_sigma, np.float64).reshape(fit.n_exposures, -1)
         self.locals = [
