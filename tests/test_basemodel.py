@@ -41,7 +41,7 @@ def test_parameter_count_of_the_full_model():
     expected = (
         3 * per_filter
         + 7 * 2  # hole centres
-        + 3  # jitter, rotation, anisotropy
+        + 5  # jitter, rotation, anisotropy, skew, scale
         + 8640  # network (tests/test_ramp.py checks the architecture)
         + 80 * 80  # flat
         + 5  # intra-pixel

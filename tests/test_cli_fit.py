@@ -50,27 +50,14 @@ def test_calslope_mixed_with_level2_or_full_detector_without_base_model_is_refus
     assert not (tmp_path / "o").exists()
 
 
-def test_uncal_and_detector_full_are_refused(tmp_path, capsys):
+def test_uncal_and_one_file_in_both_roles_are_refused(tmp_path, capsys):
     uncal = write_uncal(tmp_path / "r_uncal.fits", np.zeros((1, 3, 80, 80)))
     cal = write_level2(tmp_path / "c_cal.fits", np.ones((80, 80)))
     sci = write_level2(tmp_path / "s_cal.fits", np.ones((80, 80)))
     assert _run(["fit", "--sci", str(uncal), "--cal", str(cal), "--out", str(tmp_path)]) == 2
     assert "amigo process" in capsys.readouterr().err
-    args = [
-        "fit",
-        "--sci",
-        str(sci),
-        "--cal",
-        str(cal),
-        "--out",
-        str(tmp_path),
-        "--detector",
-        "full",
-    ]
-    assert _run(args) == 2
-    err = capsys.readouterr().err
-    assert "--detector full is not available for level-2 images" in err
     assert _run(["fit", "--sci", str(sci), "--cal", str(sci), "--out", str(tmp_path)]) == 2
+    assert "is given both as --sci and --cal" in capsys.readouterr().err
 
 
 def test_help_lists_the_options():
@@ -95,3 +82,54 @@ def test_calints_are_averaged_with_errors_of_the_mean(tmp_path):
     np.testing.assert_allclose(image.data[40, 40], used.mean(), rtol=1e-6)
     np.testing.assert_allclose(image.error[40, 40], 2 / np.sqrt(3), rtol=1e-6)
     assert not image.mask[:4].any()  # reference rows
+
+
+def test_several_files_after_one_flag_or_the_flag_repeated(tmp_path, capsys):
+    """``--sci A B --cal C D`` (the README's syntax, shell globs) and ``--sci A --sci B``
+    both give every file to the command: the raw ramp given second is found and refused
+    by name, not rejected by the parser as an extra argument."""
+    uncal = write_uncal(tmp_path / "r_uncal.fits", np.zeros((1, 3, 80, 80)))
+    sci = write_level2(tmp_path / "s_cal.fits", np.ones((80, 80)))
+    cal = [write_level2(tmp_path / f"c{i}_cal.fits", np.ones((80, 80))) for i in range(2)]
+    out = str(tmp_path / "o")
+    spellings = [
+        ["--sci", str(sci), str(uncal), "--cal", *map(str, cal), "--out", out],
+        ["--cal", *map(str, cal), "--sci", str(sci), str(uncal), "--out", out],
+        ["--sci", str(sci), "--sci", str(uncal), "--cal", str(cal[0]), "--out", out],
+    ]
+    for args in spellings:
+        assert _run(["fit", *args]) == 2
+        err = capsys.readouterr().err
+        assert "r_uncal.fits" in err and "amigo process" in err, err
+        assert "unexpected extra argument" not in err
+    assert not (tmp_path / "o").exists()
+    # `amigo run` takes the same syntax (here refused for the level-2 file it is given).
+    assert _run(["run", "--sci", str(sci), str(cal[0]), "--cal", str(cal[1]), "--out", out]) == 2
+    assert "unexpected extra argument" not in capsys.readouterr().err
+
+
+def test_the_same_star_as_science_and_calibrator_stays_two_targets(tmp_path):
+    """The null test (one visit of a star against another): the calibrator exposures get
+    their own target, named with their observation; other calibrators keep their names."""
+    from amigo.cli.fit import key_targets
+    from amigo.fitting import FitExposure
+
+    def item(name, role, observation, target="HD-37093"):
+        path = write_level2(
+            tmp_path / name,
+            np.ones((80, 80)),
+            overrides={"TARGPROP": target, "OBSERVTN": observation},
+        )
+        meta = read_exposure(path).meta
+        return FitExposure(
+            name, role, meta.target, ImageData.from_exposure(read_exposure(path))
+        ), meta
+
+    items = [
+        item("a_cal.fits", "science", "016"),
+        item("b_cal.fits", "calibrator", "015"),
+        item("c_cal.fits", "calibrator", "018", target="HD-36805"),
+    ]
+    keyed = key_targets(items)
+    assert [e.target for e, _ in keyed] == ["HD-37093", "HD-37093 (cal obs 015)", "HD-36805"]
+    assert [e.role for e, _ in keyed] == ["science", "calibrator", "calibrator"]

@@ -29,7 +29,7 @@ def test_fourier_shift_equals_pupil_tilt_and_conserves_flux():
         setup,
         OpticsParams.from_instrument(instrument),
         jnp.zeros(()),
-        ExposureParams(position, jnp.log(flux)),
+        ExposureParams(position, jnp.log(flux), instrument.detector.jitter_arcsec * 1000),
         None,
         None,
     )
@@ -54,7 +54,9 @@ def test_locate_recovers_a_shift():
                 setup,
                 optics,
                 jnp.zeros(()),
-                ExposureParams(jnp.asarray(position), jnp.log(flux)),
+                ExposureParams(
+                    jnp.asarray(position), jnp.log(flux), instrument.detector.jitter_arcsec * 1e3
+                ),
                 None,
                 None,
             )

@@ -16,6 +16,7 @@ def _params(rng, n_exposures=3, n_targets=2, n_amp=4, n_phase=5):
         exposures=ExposureParams(
             jnp.asarray(rng.normal(size=(n_exposures, 2)), jnp.float32),
             jnp.asarray(rng.normal(size=n_exposures), jnp.float32),
+            jnp.asarray(20 + rng.normal(size=n_exposures), jnp.float32),
         ),
         sources=SourceParams(
             jnp.asarray(rng.normal(size=(n_targets, n_amp)), jnp.float32),
@@ -23,7 +24,10 @@ def _params(rng, n_exposures=3, n_targets=2, n_amp=4, n_phase=5):
             jnp.asarray(rng.normal(size=n_targets), jnp.float32),
         ),
         optics=OpticsParams(
-            jnp.asarray(rng.normal(size=(7, 10)), jnp.float32), jnp.asarray(1.5, jnp.float32)
+            jnp.asarray(rng.normal(size=(7, 10)), jnp.float32),
+            jnp.asarray(1.5, jnp.float32),
+            jnp.asarray([-0.44, 1.006, -0.26, 1.0], jnp.float32),
+            jnp.asarray(3.0, jnp.float32),
         ),
     )
 
@@ -33,18 +37,21 @@ def test_layout_round_trip_and_local_indices():
     params = _params(rng)
     layout = Layout.of(params)
     vector = layout.pack(params)
-    assert vector.shape == (layout.size,) == (3 * 3 + 2 + 71 + 2 * 9,)
+    assert vector.shape == (layout.size,) == (3 * 4 + 2 + 76 + 2 * 9,)
     back = layout.pack(layout.unpack(params, vector + 1.0))
     np.testing.assert_allclose(back, vector + 1.0, rtol=1e-6)
-    # Exposure 2 of target 1: its position, flux, its target's slope and latents.
+    # Exposure 2 of target 1: its position, flux, its target's slope, its jitter, latents.
     local = layout.local(2, 1)
     p = layout.unpack(params, vector)
     np.testing.assert_allclose(vector[local[:2]], np.asarray(p.exposures.position_arcsec[2]))
     assert vector[local[2]] == pytest.approx(float(p.exposures.log_flux[2]))
     assert vector[local[3]] == pytest.approx(float(p.sources.slope_per_um[1]))
+    assert vector[local[4]] == pytest.approx(float(p.exposures.jitter_mas[2]))
     latent = np.concatenate([p.sources.amp[1], p.sources.phase[1]])
-    np.testing.assert_allclose(vector[local[4:]], latent)
-    np.testing.assert_allclose(vector[layout.optics[:-1]], np.ravel(p.optics.zernikes_nm))
+    np.testing.assert_allclose(vector[local[5:]], latent)
+    np.testing.assert_allclose(vector[layout.wavefront[:-1]], np.ravel(p.optics.zernikes_nm))
+    np.testing.assert_allclose(vector[layout.geometry], np.asarray(p.optics.geometry))
+    assert vector[layout.band[0]] == pytest.approx(3.0)
 
 
 def test_undamped_step_is_the_newton_step_and_degeneracies_get_none():
@@ -99,8 +106,17 @@ def test_wavefront_prior_adds_exactly_its_gaussian_term(tmp_path, monkeypatch):
     params = fit.initial_params()
     layout = Layout.of(params)
     vector = layout.pack(params)
-    vector[layout.optics] += rng.normal(0, 3.0, layout.optics.size)  # away from w0
-    offset = vector[layout.optics] - np.append(w0.ravel(), 0.0)
+    # The fit's model images (FilterFit.models: all exposures in one compiled program)
+    # against the engine's own per-exposure model, for the calibrator and the science
+    # exposure (no prior is active at the starting point).
+    chi2 = np.asarray(fit.chi2(params), float)
+    for e in (0, 1):
+        alone = _Problem(fit, params, np.array([e]))
+        alone.float64 = True
+        assert alone.loss(vector) == pytest.approx(0.5 * chi2[e], rel=1e-4)
+    vector[layout.wavefront] += rng.normal(0, 3.0, layout.wavefront.size)  # away from w0
+    vector[layout.geometry] += [0.05, 2e-3, -0.05, 1e-3]  # and from the SIAF geometry
+    offset = vector[layout.wavefront] - np.append(w0.ravel(), 0.0)
     s = 2.0
     free, tied = _Problem(fit, params, np.array([0])), _Problem(fit, params, np.array([0]), s)
     free.float64 = tied.float64 = True  # so that the data terms cancel to rounding
@@ -109,21 +125,28 @@ def test_wavefront_prior_adds_exactly_its_gaussian_term(tmp_path, monkeypatch):
     )
     g_free, g_tied = free.gradient(vector), tied.gradient(vector)
     expected = np.zeros(layout.size)
-    expected[layout.optics] = -offset / s**2
+    expected[layout.wavefront] = -offset / s**2
     rounding = 1e-8 * np.abs(g_free).max()  # of the data term, which cancels
     np.testing.assert_allclose(g_tied - g_free, expected, rtol=1e-5, atol=rounding)
-    # g = -dL/dv: a central difference of the loss along a wavefront direction.
+    # g = -dL/dv: a central difference of the loss along a wavefront direction, and along
+    # the detector geometry (data term and its always-on prior).
     direction = np.zeros(layout.size)
-    direction[layout.optics] = rng.normal(size=layout.optics.size)
+    direction[layout.wavefront] = rng.normal(size=layout.wavefront.size)
     h = 1e-2
+    slope = (tied.loss(vector + h * direction) - tied.loss(vector - h * direction)) / (2 * h)
+    assert -slope == pytest.approx(float(g_tied @ direction), rel=2e-2)
+    direction = np.zeros(layout.size)
+    direction[layout.geometry] = [0.01, 1e-4, 0.01, 1e-4]
+    direction[layout.band] = 0.5
+    h = 0.5
     slope = (tied.loss(vector + h * direction) - tied.loss(vector - h * direction)) / (2 * h)
     assert -slope == pytest.approx(float(g_tied @ direction), rel=2e-2)
     f_free, n_free = free.normal_equations(vector, "test")
     f_tied, n_tied = tied.normal_equations(vector, "test")
     added = np.zeros((layout.size, layout.size))
-    added[layout.optics, layout.optics] = 1 / s**2
+    added[layout.wavefront, layout.wavefront] = 1 / s**2
     np.testing.assert_allclose(f_tied - f_free, added, atol=1e-6 * np.abs(f_free).max())
     np.testing.assert_allclose(n_tied - n_free, expected, rtol=1e-5, atol=rounding)
     science = _Problem(fit, params, np.array([1]), s)
-    assert science.prior_precision == 0.0
+    assert not np.any(science.prior_precision)
     assert science.loss(vector) == pytest.approx(_Problem(fit, params, np.array([1])).loss(vector))

@@ -69,7 +69,15 @@ from amigo.optics.spectrum import LinearSpectrum
 
 FORMAT = "amigo-base-model"
 #: 2: the dark current is a per-pixel map (version 1 held one value for all pixels).
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
+#: Leaves of the linear detector's geometry (format 3 added skew and scale, and the SIAF's
+#: sense of rotation).
+GEOMETRY_KEYS = (
+    ".detector.rotation_deg",
+    ".detector.anisotropy",
+    ".detector.skew_deg",
+    ".detector.scale",
+)
 METADATA_KEY = "__metadata__"
 DARK_KEY = ".read.dark_e_per_group"
 #: Package-data location of the shipped base model.
@@ -172,15 +180,14 @@ class MovableHoles(eqx.Module):
         edge = softening_px * grid.pixel_m / supersample
         size = jnp.asarray(self.flat_to_flat_m, x.dtype)
         offsets = (np.arange(supersample) - 0.5 * (supersample - 1)) / supersample * grid.pixel_m
+        # The seven holes broadcast along a leading axis, not a Python loop: one copy of
+        # the hexagon's graph instead of seven (compile time, which dominates on a CPU).
+        cx = self.centres_m[:, 0, None, None]
+        cy = self.centres_m[:, 1, None, None]
         total = 0.0
         for oy in offsets:
             for ox in offsets:
-                total = total + jnp.stack(
-                    [
-                        soft_hexagon(x + ox - cx, y + oy - cy, size, edge)
-                        for cx, cy in self.centres_m
-                    ]
-                )
+                total = total + soft_hexagon(x + ox - cx, y + oy - cy, size, edge)
         return total / supersample**2
 
     def zernike_basis(self, grid: PupilGrid, n_modes: int, radius_factor: float) -> Array:
@@ -255,7 +262,8 @@ class BaseModel(eqx.Module):
             },
             defocus_nm={f: jnp.asarray(0.0) for f in config.filters},
             hole_centres_m=jnp.asarray(np.asarray(instrument.HOLE_CENTRES_M, dtype=float)),
-            detector=LinearDetector.create(),
+            # IPC acts in the read model (on every group read), not on the linear image.
+            detector=LinearDetector.create(ipc=False),
             ramp=ramp,
             read=read,
             config=config,
@@ -283,6 +291,22 @@ class BaseModel(eqx.Module):
     def with_linear_detector(self) -> BaseModel:
         """The same instrument with the network switched off (``--detector linear``)."""
         return eqx.tree_at(lambda m: m.ramp.network, self, None, is_leaf=lambda x: x is None)
+
+    def for_level2(self) -> BaseModel:
+        """The detector as it stands behind a level-2 image: the STScI pipeline has
+        subtracted the dark, divided by its flat and corrected the classical
+        non-linearity, so those are switched off (unit flat, no dark, no quadratic
+        term); the charge migration (brighter-fatter), the intra-pixel response and IPC,
+        which the pipeline leaves in, stay."""
+        return eqx.tree_at(
+            lambda m: (m.ramp.flat, m.read.dark_e_per_group, m.read.nonlinearity),
+            self,
+            (
+                jnp.ones_like(self.ramp.flat),
+                jnp.zeros_like(self.read.dark_e_per_group),
+                jnp.zeros_like(self.read.nonlinearity),
+            ),
+        )
 
     def with_network(self, network: ChargeMigrationNetwork | None) -> BaseModel:
         """The same instrument with another network (``None``: linear)."""
@@ -332,6 +356,9 @@ class BaseModel(eqx.Module):
         """The filter's default spectrum at the model's wavelength sampling."""
         return _filter_spectrum(filter_name, self.config.n_wavelengths, float(slope_per_um))
 
+    # Compiled as one program (filter name static): op by op, the optics and the
+    # resampling cost minutes of per-primitive tracing outside a caller's jit.
+    @eqx.filter_jit
     def illuminance(
         self,
         filter_name: str,
@@ -350,6 +377,7 @@ class BaseModel(eqx.Module):
         return self.detector.illuminance(image)
 
     # ------------------------------------------------------------------ detector
+    @eqx.filter_jit
     def slopes(self, illuminance_e: Float[Array, "m m"], ngroups: int) -> Float[Array, "g y x"]:
         """Predicted slopes (ngroups - 1, ny, nx), DN per group, from an illuminance in
         photo-electrons per integration on the 3x grid: ramp model -> read model ->
@@ -396,18 +424,28 @@ def leaf_paths(tree: Any) -> dict[str, Array]:
     return {jax.tree_util.keystr(path): leaf for path, leaf in flat}
 
 
-def fill_leaves(path: Path, skeleton: Any, data, broadcast: tuple[str, ...] = ()) -> Any:
+def fill_leaves(
+    path: Path,
+    skeleton: Any,
+    data,
+    broadcast: tuple[str, ...] = (),
+    from_skeleton: tuple[str, ...] = (),
+) -> Any:
     """``skeleton`` with every array leaf replaced by the array stored under its path in
     ``data`` (an open npz); :class:`InputError` if paths or shapes differ. A 0-d array
-    stored under a path in ``broadcast`` fills the leaf's whole shape (older formats)."""
+    stored under a path in ``broadcast`` fills the leaf's whole shape, and the paths in
+    ``from_skeleton`` keep the skeleton's value whether stored or not (older formats)."""
     expected = leaf_paths(skeleton)
-    stored = set(data.files) - {METADATA_KEY}
+    stored = (set(data.files) - {METADATA_KEY}) | set(from_skeleton)
     if stored != set(expected):
         missing = sorted(set(expected) - stored)[:3]
         extra = sorted(stored - set(expected))[:3]
         raise InputError(path, f"parameters do not match: missing {missing}, unexpected {extra}")
     values = {}
     for name, leaf in expected.items():
+        if name in from_skeleton:
+            values[name] = np.asarray(leaf)
+            continue
         array = data[name]
         if name in broadcast and array.shape == ():
             array = np.broadcast_to(array, leaf.shape)
@@ -487,8 +525,13 @@ def load_base_model(path: str | os.PathLike[str] | None = None) -> BaseModel:
         config = BaseModelConfig.from_json(record["config"])
         skeleton = BaseModel.create(config, linear=not record.get("network", True))
         # Files before format 2 hold one dark current for all pixels: spread it.
-        spread = (DARK_KEY,) if record.get("format_version", 1) < 2 else ()
-        return fill_leaves(path, skeleton, data, broadcast=spread)
+        version = int(record.get("format_version", 1))
+        spread = (DARK_KEY,) if version < 2 else ()
+        # Files before format 3 hold the detector rotation with the sign the research
+        # code's resampler meant for coordinates (+0.561 deg: the image turned the wrong
+        # way) and no skew or scale: they take the SIAF-derived geometry instead.
+        geometry = GEOMETRY_KEYS if version < 3 else ()
+        return fill_leaves(path, skeleton, data, broadcast=spread, from_skeleton=geometry)
 
 
 def default_model_path() -> Path:

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -39,6 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from amigo._version import __version__
+from amigo.cachedir import cache_dir
 from amigo.model import FilterSetup, Instrument, OpticsParams, filter_psfs, unit_image
 from amigo.progress import step, track
 from amigo.visibility import LatentBasis, UVGrid
@@ -88,14 +88,6 @@ class BasisInfo:
     n_knots_used: int
     n_knots_support: int
     seconds: float
-
-
-def cache_dir() -> Path:
-    """Folder of cached bases (``$AMIGO_CACHE_DIR`` or the XDG cache folder)."""
-    if os.environ.get("AMIGO_CACHE_DIR"):
-        return Path(os.environ["AMIGO_CACHE_DIR"])
-    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
-    return Path(base) / "amigo"
 
 
 def basis_key(instrument: Instrument, filter_name: str, grid: UVGrid) -> str:

@@ -109,20 +109,20 @@ def exposure_stats(
     """chi2, dof and z-score spread of every exposure at the optimum.
 
     ``dof`` = values in the likelihood (pixels, or slopes for calslope exposures) minus
-    the parameters the exposure pays for: its position and
-    flux (3), its share of its target's latent visibilities and slope, and (calibrators)
-    its share of the 71 wavefront parameters.
+    the parameters the exposure pays for: its position, flux and jitter (4), its share of
+    its target's latent visibilities and slope, and (calibrators) its share of the 76
+    instrument parameters (wavefront, detector geometry, band taper).
     """
     p = result.params
     n_latent = p.sources.amp.shape[1] + p.sources.phase.shape[1] + 1
-    n_optics = p.optics.zernikes_nm.size + 1
+    n_optics = p.optics.zernikes_nm.size + 1 + p.optics.geometry.size + 1
     per_target = np.bincount(fit.source_index, minlength=len(fit.targets))
     n_cal = max(int(fit.is_calibrator.sum()), 1)
     stats = []
     for e, exposure in enumerate(fit.exposures):
         image = exposure.image
         z = image.zscores(models[e])  # pixels, or slopes for a calslope exposure
-        share = 3 + n_latent / per_target[fit.source_index[e]]
+        share = 4 + n_latent / per_target[fit.source_index[e]]
         if fit.is_calibrator[e]:
             share += n_optics / n_cal
         stats.append(

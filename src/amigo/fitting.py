@@ -287,30 +287,13 @@ class FilterFit:
         setup: FilterSetup | None = None,
     ) -> Float[Array, "e 80 80"]:
         """(E, 80, 80) model images in DN/s."""
-        instrument = self.instrument if instrument is None else instrument
-        setup = self.setup if setup is None else setup
-        anchor = self.anchor.astype(setup.wavelengths_m.dtype)
-        # Science exposures see the wavefront as a constant (fitted on calibrators only);
-        # the PSFs are computed once per role and shared by the exposures.
-        shared = filter_psfs(instrument, setup, params.optics, anchor)
-        psfs = {True: shared, False: jax.lax.stop_gradient(shared)}
-        return jnp.stack(
-            [
-                self._image(params, e, psfs[bool(self.is_calibrator[e])], instrument, setup)
-                for e in range(self.n_exposures)
-            ]
-        )
-
-    def _image(
-        self, params: FitParams, e: int, psfs: Array, instrument: Instrument, setup: FilterSetup
-    ) -> Float[Array, "80 80"]:
-        """Model image of exposure ``e`` from the filter's shared PSFs."""
-        anchor = self.anchor.astype(setup.wavelengths_m.dtype)
-        exposure = jax.tree.map(lambda x: x[e], params.exposures)
-        source = jax.tree.map(lambda x: x[self.source_index[e]], params.sources)
-        log_amp, phase = setup.basis.grids(source.amp, source.phase)
-        return image_from_psfs(
-            instrument, setup, psfs, source.slope_per_um, exposure, log_amp, phase, anchor
+        return _model_images(
+            params,
+            self.instrument if instrument is None else instrument,
+            self.setup if setup is None else setup,
+            self.anchor,
+            tuple(bool(c) for c in self.is_calibrator),
+            tuple(int(i) for i in self.source_index),
         )
 
     def local_jacobians(
@@ -324,15 +307,18 @@ class FilterFit:
         """Forward-mode Jacobians of exposure ``e``'s image (the columns of
         :mod:`amigo.newton`).
 
-        Returns the (4 + m, 80, 80) Jacobian with respect to the exposure's local vector
-        ``[x, y, log_flux, slope, latent amp..., latent phase...]`` (wavefront held
+        Returns the (5 + m, 80, 80) Jacobian with respect to the exposure's local vector
+        ``[x, y, log_flux, slope, jitter_mas, latent amp..., latent phase...]`` (wavefront held
         fixed; see :data:`amigo.newton.N_LOCAL_SCALARS`), and, with ``wavefront=True``,
-        the (71, 80, 80) Jacobian with respect to ``[Zernikes (flattened), defocus]``
+        the (76, 80, 80) Jacobian with respect to the instrument block ``[Zernikes
+        (flattened), defocus, geometry, band taper]``
         (else ``None``). Pass a float64 ``instrument``/``setup``/``params`` (inside
         ``jax.enable_x64``) for float64 Jacobians.
         """
         instrument = self.instrument if instrument is None else instrument
+        instrument = instrument.with_geometry(params.optics.geometry)
         setup = self.setup if setup is None else setup
+        setup = setup.with_band_taper(params.optics.band_taper_per_um2)
         anchor = self.anchor.astype(setup.wavelengths_m.dtype)
         theta = local_vector(params, e, int(self.source_index[e]))
         psfs = psfs_of(instrument, setup, params.optics, anchor)
@@ -385,7 +371,8 @@ class FilterFit:
         instrument, setup = self.instrument, self.setup
         optics = OpticsParams.from_instrument(instrument)
         psfs = filter_psfs(instrument, setup, optics)
-        template_params = ExposureParams(jnp.zeros(2), jnp.zeros(()))
+        jitter_mas = float(instrument.detector.jitter_arcsec) * 1000.0
+        template_params = ExposureParams(jnp.zeros(2), jnp.zeros(()), jnp.asarray(jitter_mas))
         template = np.asarray(
             image_from_psfs(instrument, setup, psfs, jnp.zeros(()), template_params, None, None)
         )
@@ -404,6 +391,7 @@ class FilterFit:
             exposures=ExposureParams(
                 jnp.asarray(np.array(positions), jnp.float32),
                 jnp.asarray(np.log(fluxes), jnp.float32),
+                jnp.full(len(positions), jitter_mas, jnp.float32),
             ),
             sources=SourceParams(
                 jnp.zeros((n_s, basis.n_amp), jnp.float32),
@@ -661,7 +649,8 @@ def _positions(p: FitParams):
 
 
 def _fluxes(p: FitParams):
-    return p.exposures.log_flux
+    # The jitter moves with the flux (both are per-exposure scalars of the image's shape).
+    return (p.exposures.log_flux, p.exposures.jitter_mas)
 
 
 def _slopes(p: FitParams):
@@ -880,9 +869,53 @@ def latent_information(
                 step(f"{label}: kernel Jacobians of {fit.exposures[e].name} (point source)")
                 local, wave = fit.local_jacobians(point, e, instrument, setup, wavefront=True)
                 jac0 = np.asarray(local[N_LOCAL_SCALARS:]).reshape(n, -1)
-                # Columns in the order of nuisance_names(): Zernikes, log-flux, slope, defocus.
-                nuis = np.concatenate([wave[:-1], local[2:4], wave[-1:]])
+                # Columns in the order of nuisance_names(): Zernikes, log-flux, slope, defocus
+                # (the instrument block is [Zernikes, defocus, geometry]).
+                n_zernike = params.optics.zernikes_nm.size
+                zernikes, defocus = wave[:n_zernike], wave[n_zernike : n_zernike + 1]
+                nuis = np.concatenate([zernikes, local[2:4], defocus])
                 nuis = np.asarray(nuis).reshape(len(names), -1)
                 cross += (jac0 * w[e].ravel()) @ nuis.T
                 cal_hessian += (jac0 * w[e].ravel()) @ jac0.T
     return LatentInformation(hessian, cross, cal_hessian, time.perf_counter() - start)
+
+
+# Compiled as one program: called outside a jit (the products' model images, residuals)
+# the model ran op by op, each operation compiling on its own (minutes on a 2-core CPU).
+@eqx.filter_jit
+def _model_images(
+    params: FitParams,
+    instrument: Instrument,
+    setup: FilterSetup,
+    anchor: Array,
+    calibrator: tuple[bool, ...],
+    source_index: tuple[int, ...],
+) -> Float[Array, "e 80 80"]:
+    """(E, 80, 80) model images in DN/s (:meth:`FilterFit.models`); ``calibrator`` and
+    ``source_index`` (static) give each exposure's role and source."""
+    instrument = instrument.with_geometry(params.optics.geometry)
+    setup = setup.with_band_taper(params.optics.band_taper_per_um2)
+    anchor = anchor.astype(setup.wavelengths_m.dtype)
+    # Science exposures see the wavefront as a constant (fitted on calibrators only);
+    # the PSFs are computed once per role and shared by the exposures.
+    shared = filter_psfs(instrument, setup, params.optics, anchor)
+    psfs = {True: shared, False: jax.lax.stop_gradient(shared)}
+
+    def images(indices: list[int], psfs_of_role: Array) -> Array:
+        # The exposures of one role share their PSFs: one vmapped copy of the model.
+        exposures = jax.tree.map(lambda x: x[np.array(indices)], params.exposures)
+        picked = np.array([source_index[e] for e in indices])
+        sources = jax.tree.map(lambda x: x[picked], params.sources)
+
+        def one(exposure, source):
+            log_amp, phase = setup.basis.grids(source.amp, source.phase)
+            return image_from_psfs(
+                instrument, setup, psfs_of_role, source.slope_per_um, exposure, log_amp,
+                phase, anchor,
+            )  # fmt: skip
+
+        return jax.vmap(one)(exposures, sources)
+
+    groups = {role: [e for e, c in enumerate(calibrator) if c == role] for role in (True, False)}
+    stacked = jnp.concatenate([images(groups[r], psfs[r]) for r in (True, False) if groups[r]])
+    return stacked[np.argsort(groups[True] + groups[False])]

@@ -10,12 +10,15 @@ Frames used throughout amigo
 second-to-last axis, rows). Arrays are indexed ``[..., y, x]``.
 
 *Pupil (mask) frame*: the non-redundant mask projected onto the primary mirror, in
-metres, with ``+x`` and ``+y`` along detector ``+x`` and ``+y`` (the frame in which the
-Fraunhofer image of the mask is the detector image, before the small detector rotation
-and anisotropy of :data:`DETECTOR_ROTATION_DEG` / :data:`DETECTOR_ANISOTROPY`). The mask
-is point-symmetric in intensity, so this frame and its negative give identical point-source
-images; we fixed the sign by the convention of the authors' research code and checked the
-axes (not a transpose or a mirror) on the power spectrum of real COM 1093 images.
+metres: the telescope's V2/V3 frame with V2 reversed (``x = -V2``, ``y = +V3``; see
+:func:`pupil_to_v2v3_matrix`), the SIAF's ideal frame before its V3IdlYAngle turn.
+Optical-frame angles (the Fraunhofer image of the mask) use the same axes; the detector
+sees that image through the linear map :func:`nominal_geometry_matrix`, derived from the
+SIAF: V3IdlYAngle, VIdlParity and the linear terms of the science-to-ideal polynomial.
+The mask is point-symmetric in intensity, so this frame and its negative give identical
+point-source images; the axes (not a transpose or a mirror) are checked on the power
+spectrum of real COM 1093 images (tests/test_instrument.py), and the sense of the turn on
+real and independently simulated images (docs/geometry.md).
 
 *Sky*: offsets ``(dRA, dDec)`` with ``dRA`` positive to the east; position angles east of
 north. With the usual JWST orientation keywords, detector ``+y`` points at position angle
@@ -25,11 +28,12 @@ north. With the usual JWST orientation keywords, detector ``+y`` points at posit
 from __future__ import annotations
 
 import functools
+import importlib.util
 import itertools
 import warnings
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
-from importlib import resources
+from pathlib import Path
 
 import numpy as np
 
@@ -38,8 +42,9 @@ import numpy as np
 # --------------------------------------------------------------------------------------
 
 #: Hole centres (m) in the pupil frame described above, shape (7, 2) as (x, y).
-#: Source: NIRISS NRM design as used by the AMIGO authors' research code (the negative of
-#: AMICAL's "g7" table); axes verified against COM 1093 power spectra (tests/test_instrument).
+#: Source: the NIRISS NRM as-designed hole table (AMICAL's "g7"; the JWST pipeline's
+#: ImPlaneIA heritage), negated (the research code's sign; the image is the same). Axes:
+#: ``x = -V2``, ``y = +V3`` (:func:`pupil_to_v2v3_matrix`), verified against COM 1093.
 HOLE_CENTRES_M: np.ndarray = np.array(
     [
         [0.00000, 2.64000],
@@ -107,12 +112,116 @@ V3_IDL_Y_ANGLE_DEG: float = 0.56126717
 #: Parity of the ideal frame relative to V2/V3. Source: SIAF NIS_AMI1 VIdlParity.
 VIDL_PARITY: int = -1
 
-#: Rotation of the detector pixel grid relative to the optical (pupil-frame) image (deg).
-#: Source: AMIGO paper, 'Linear Detector Model' (~0.56 deg; research code +0.561 deg).
-DETECTOR_ROTATION_DEG: float = 0.561
-#: y/x anisotropy of the detector pixel grid relative to the optical image.
-#: Source: AMIGO research code (1.00765; paper ~1.0077).
-DETECTOR_ANISOTROPY: float = 1.00765
+#: Linear terms of the NIS_AMI1 science-to-ideal polynomial at the reference pixel
+#: (arcsec per pixel): ``x_idl = X10 dx + X11 dy``, ``y_idl = Y10 dx + Y11 dy`` with
+#: ``(dx, dy)`` the science-frame (DMS) pixel offset. Source: SIAF NIS_AMI1 Sci2IdlX10,
+#: Sci2IdlX11, Sci2IdlY10, Sci2IdlY11 (PRD PRDOPSSOC-075 as shipped by pysiaf 0.29;
+#: tests/test_geometry.py reads them back from pysiaf).
+SIAF_SCI_TO_IDEAL_ARCSEC_PER_PIX: np.ndarray = np.array(
+    [
+        [0.0653249481533922, -1.378360325188185e-05],
+        [-0.0002816883065592215, 0.06572261227530646],
+    ]
+)
+SIAF_SCI_TO_IDEAL_ARCSEC_PER_PIX.setflags(write=False)
+
+
+def pupil_to_v2v3_matrix() -> np.ndarray:
+    """(2, 2) matrix taking amigo's pupil (and optical) frame to the telescope's V2/V3 frame.
+
+    amigo's pupil frame is the V2/V3 frame with V2 reversed: ``x = -V2``, ``y = +V3``
+    (the NIRISS ideal frame before its :data:`V3_IDL_Y_ANGLE_DEG` rotation; NIRISS has
+    ``VIdlParity = -1``). :data:`HOLE_CENTRES_M` are the mask's as-designed hole centres
+    in this frame, on the primary mirror (entrance pupil) as seen from the sky. Offsets on
+    the sky (angles) and in the pupil transform alike (the Fraunhofer phase ``b . theta``
+    is invariant under any orthogonal map applied to both), so the same matrix takes an
+    optical-frame angle to a V2/V3 angle.
+    """
+    return np.array([[-1.0, 0.0], [0.0, 1.0]])
+
+
+def v2v3_to_ideal_matrix(
+    v3_idl_y_angle_deg: float = V3_IDL_Y_ANGLE_DEG, parity: int = VIDL_PARITY
+) -> np.ndarray:
+    """(2, 2) linear part of the SIAF's V2/V3 -> ideal transform (angles, arcsec).
+
+    The SIAF's ideal -> V2/V3 map is ``V2 = P x cos(t) + y sin(t)``,
+    ``V3 = -P x sin(t) + y cos(t)`` (``P`` = VIdlParity, ``t`` = V3IdlYAngle, offsets from
+    V2Ref/V3Ref); this returns its inverse.
+    """
+    t = np.deg2rad(v3_idl_y_angle_deg)
+    ideal_to_v2v3 = np.array([[parity * np.cos(t), np.sin(t)], [-parity * np.sin(t), np.cos(t)]])
+    return np.linalg.inv(ideal_to_v2v3)
+
+
+def nominal_geometry_matrix() -> np.ndarray:
+    """(2, 2) ``G``: optical-frame offset (in mean pixels, :data:`PIXEL_SCALE_ARCSEC`) ->
+    detector (science-frame) offset in pixels, derived from the SIAF (no fitted number).
+
+    The chain: optical frame -> V2/V3 (:func:`pupil_to_v2v3_matrix`), V2/V3 -> ideal
+    (:func:`v2v3_to_ideal_matrix`: V3IdlYAngle and VIdlParity), ideal -> science pixels
+    (the inverse of :data:`SIAF_SCI_TO_IDEAL_ARCSEC_PER_PIX`). For NIS_AMI1 it turns the
+    image by -0.444 deg (clockwise: from +y towards +x) on the detector, with a 0.26 deg
+    skew and a y/x anisotropy of 1.0060; see :func:`geometry_parameters` and
+    docs/geometry.md.
+    """
+    to_pixels = np.linalg.inv(SIAF_SCI_TO_IDEAL_ARCSEC_PER_PIX)
+    chain = to_pixels @ v2v3_to_ideal_matrix() @ pupil_to_v2v3_matrix()
+    return chain * PIXEL_SCALE_ARCSEC
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """The detector geometry ``G`` in four numbers (see
+    :func:`amigo.detector.linear.geometry_matrix` for the exact definition).
+
+    Attributes
+    ----------
+    rotation_deg
+        Mean turn of the image on the detector, positive from +x towards +y
+        (counter-clockwise in the DMS display, origin at the bottom left).
+    anisotropy
+        y/x stretch along the detector axes: a pixel spans ``anisotropy`` times more sky
+        along y than along x.
+    skew_deg
+        The images of the optical +x and +y axes are ``90 + skew_deg`` degrees apart.
+    scale
+        Magnification relative to :data:`PIXEL_SCALE_ARCSEC` (1: that mean pixel scale).
+    """
+
+    rotation_deg: float
+    anisotropy: float
+    skew_deg: float
+    scale: float
+
+
+def geometry_parameters(matrix: np.ndarray) -> Geometry:
+    """Invert :func:`amigo.detector.linear.geometry_matrix`: the four numbers of ``G``.
+
+    ``G = s diag(a^1/2, a^-1/2) K`` with ``K``'s columns the unit vectors at angles
+    ``phi - kappa/2`` and ``90 + phi + kappa/2``. Writing ``u = s a^1/2``,
+    ``w = s a^-1/2``, the columns of ``G`` give ``(G00/u)^2 + (G10/w)^2 = 1`` and
+    ``(G01/u)^2 + (G11/w)^2 = 1``, linear in ``1/u^2`` and ``1/w^2``.
+    """
+    g = np.asarray(matrix, dtype=float)
+    lhs = np.array([[g[0, 0] ** 2, g[1, 0] ** 2], [g[0, 1] ** 2, g[1, 1] ** 2]])
+    inv_u2, inv_w2 = np.linalg.solve(lhs, np.ones(2))
+    u, w = 1.0 / np.sqrt(inv_u2), 1.0 / np.sqrt(inv_w2)
+    alpha = np.arctan2(g[1, 0] / w, g[0, 0] / u)  # image of optical +x
+    beta = np.arctan2(-g[0, 1] / u, g[1, 1] / w)  # image of optical +y, minus 90 deg
+    return Geometry(
+        rotation_deg=float(np.rad2deg(0.5 * (alpha + beta))),
+        anisotropy=float(u / w),
+        skew_deg=float(np.rad2deg(beta - alpha)),
+        scale=float(np.sqrt(u * w)),
+    )
+
+
+@functools.cache
+def nominal_geometry() -> Geometry:
+    """The SIAF-derived geometry of NIS_AMI1 (:func:`nominal_geometry_matrix`)."""
+    return geometry_parameters(nominal_geometry_matrix())
+
 
 #: Instrumental jitter (Gaussian sigma, arcsec). Source: AMIGO paper (~21 mas recovered).
 JITTER_SIGMA_ARCSEC: float = 0.0214
@@ -191,12 +300,23 @@ def check_filter(name: str) -> str:
     return canonical
 
 
+def svo_votable(name: str) -> bytes:
+    """The SVO Filter Profile Service VOTable of NIRISS filter ``name`` (canonical name).
+
+    The svo-filters package ships these files (Angstrom, filter-only throughput); we read
+    them at run time rather than copying curves. The package is located, not imported:
+    importing it imports bokeh and astropy.table, 15 s per process on a 2-core CI machine.
+    """
+    spec = importlib.util.find_spec("svo_filters")
+    if spec is None or not spec.submodule_search_locations:
+        raise ModuleNotFoundError("the svo-filters package (a dependency of amigo) is missing")
+    folder = Path(next(iter(spec.submodule_search_locations)))
+    return (folder / "data" / "filters" / f"NIRISS.{name}").read_bytes()
+
+
 @functools.cache
 def _filter_curve_cached(name: str) -> tuple[np.ndarray, np.ndarray]:
-    # The svo-filters package ships the SVO Filter Profile Service VOTables (Angstrom,
-    # filter-only throughput); we read them at run time rather than copying curves.
-    resource = resources.files("svo_filters") / "data" / "filters" / f"NIRISS.{name}"
-    root = ET.fromstring(resource.read_bytes())
+    root = ET.fromstring(svo_votable(name))
     rows = [
         [float(td.text) for td in tr.findall("{*}TD")]
         for tr in root.iter()
@@ -268,24 +388,36 @@ def filter_bins(name: str, n: int = 9) -> FilterBins:
     throughput and its wavelength the throughput-weighted centroid, so the band's mean
     wavelength is preserved exactly.
     """
-    if n < 1:
-        raise ValueError(f"number of wavelengths must be >= 1, got {n}")
     name = check_filter(name)
     wavelength, throughput = filter_curve(name)
-    inside = np.nonzero(throughput >= FILTER_SUPPORT_FRACTION * throughput.max())[0]
+    return bin_curve(name, wavelength, throughput, n)
+
+
+def bin_curve(name: str, wavelength_m: np.ndarray, weight: np.ndarray, n: int) -> FilterBins:
+    """Bin a weight curve (``wavelength_m`` ascending, metres) into ``n`` wavelengths.
+
+    The support (where ``weight`` is at least :data:`FILTER_SUPPORT_FRACTION` of its peak)
+    is cut into ``n`` equal-width bins; each bin's weight is its integrated weight and its
+    wavelength the weighted centroid, so the curve's mean wavelength is preserved.
+    """
+    if n < 1:
+        raise ValueError(f"number of wavelengths must be >= 1, got {n}")
+    wavelength = np.asarray(wavelength_m, dtype=float)
+    curve = np.asarray(weight, dtype=float)
+    inside = np.nonzero(curve >= FILTER_SUPPORT_FRACTION * curve.max())[0]
     edges = np.linspace(wavelength[inside[0]], wavelength[inside[-1]], n + 1)
     # Integrate on a fine grid so that bins narrower than the tabulation are still exact.
     fine = np.linspace(edges[0], edges[-1], 200 * n + 1)
-    t_fine = np.interp(fine, wavelength, throughput)
+    c_fine = np.interp(fine, wavelength, curve)
     which = np.clip(np.searchsorted(edges, fine, side="right") - 1, 0, n - 1)
-    weight = np.bincount(which, weights=t_fine, minlength=n)
-    first_moment = np.bincount(which, weights=t_fine * fine, minlength=n)
+    total = np.bincount(which, weights=c_fine, minlength=n)
+    first_moment = np.bincount(which, weights=c_fine * fine, minlength=n)
     centroids = np.where(
-        weight > 0, first_moment / np.where(weight > 0, weight, 1.0), 0.5 * (edges[:-1] + edges[1:])
+        total > 0, first_moment / np.where(total > 0, total, 1.0), 0.5 * (edges[:-1] + edges[1:])
     )
     return FilterBins(
         name=name,
         wavelengths_m=centroids,
-        weights=weight / weight.sum(),
+        weights=total / total.sum(),
         edges_m=edges,
     )

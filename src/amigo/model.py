@@ -32,7 +32,6 @@ import dataclasses
 from pathlib import Path
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
@@ -41,7 +40,7 @@ from amigo import instrument as nis
 from amigo._version import __version__
 from amigo.detector.linear import LinearDetector
 from amigo.errors import InputError
-from amigo.optics import LinearSpectrum, NRMOptics
+from amigo.optics import LinearSpectrum, NRMOptics, cast
 from amigo.visibility import Injector, LatentBasis, UVGrid
 
 #: Number of wavelengths propagated per filter. Source: AMIGO paper (9 by default).
@@ -91,17 +90,26 @@ class Instrument(eqx.Module):
     ) -> Instrument:
         """The image-level instrument of one filter from a trained
         :class:`~amigo.basemodel.BaseModel`: its mask (fitted hole positions), wavefront
-        and defocus of that filter, and linear detector geometry (jitter, rotation,
-        anisotropy). The base model's ramp and read models are not part of it: they act
+        and defocus of that filter, its linear detector (jitter, geometry) and its IPC
+        kernel. The base model's ramp and read models are not part of it: they act
         on calslope data through :mod:`amigo.ramp_fit`; ``detector`` (``"full"`` or
         ``"linear"``) only names the one in use."""
         optics = base.optics(filter_name, base.pupil_cache())
+        # Images see the base model's own IPC kernel (its read model applies it to ramps).
+        detector = eqx.tree_at(
+            lambda d: d.ipc_kernel, base.detector, base.read.ipc_kernel, is_leaf=lambda x: x is None
+        )
         return cls(
             optics=optics,
-            detector=base.detector,
+            detector=detector,
             n_wavelengths=int(base.config.n_wavelengths),
             name=f"{name} ({filter_name}; {detector} detector)",
         )
+
+    def with_geometry(self, geometry: Float[Array, " 4"]) -> Instrument:
+        """This instrument with the detector geometry ``[rotation_deg, anisotropy,
+        skew_deg, scale]`` (:data:`amigo.detector.linear.GEOMETRY_NAMES`; differentiable)."""
+        return eqx.tree_at(lambda i: i.detector, self, self.detector.with_geometry(geometry))
 
     @property
     def psf_pixel_rad(self) -> float:
@@ -176,6 +184,9 @@ class FilterSetup(eqx.Module):
         The knot grid of the log-visibilities.
     basis
         Latent visibility basis of the filter (``None`` while the basis is being built).
+    band_taper_per_um2
+        The band-shape correction ``tau`` of :class:`~amigo.optics.LinearSpectrum`
+        (``None``: 0); fitted per filter with the instrument block.
     """
 
     name: str = eqx.field(static=True)
@@ -185,6 +196,7 @@ class FilterSetup(eqx.Module):
     injector: Injector
     grid: UVGrid = eqx.field(static=True)
     basis: LatentBasis | None = None
+    band_taper_per_um2: Float[Array, ""] | None = None
 
     @classmethod
     def create(
@@ -194,10 +206,20 @@ class FilterSetup(eqx.Module):
         basis: LatentBasis | None = None,
         grid: UVGrid | None = None,
         dtype=np.float32,
+        bins: nis.FilterBins | None = None,
     ) -> FilterSetup:
-        """Setup of filter ``name``; ``grid`` defaults to the basis's (or the default)."""
+        """Setup of filter ``name``; ``grid`` defaults to the basis's (or the default).
+        ``bins``: the wavelengths and weights (default: the filter throughput binned,
+        :func:`amigo.instrument.filter_bins`; :func:`amigo.bandpass.effective_bins` gives
+        the physical band of a star)."""
         grid = basis.grid if basis is not None else (grid or UVGrid())
-        bins = nis.filter_bins(name, instrument.n_wavelengths)
+        if bins is None:
+            bins = nis.filter_bins(name, instrument.n_wavelengths)
+        elif len(bins.wavelengths_m) != instrument.n_wavelengths:
+            raise ValueError(
+                f"{len(bins.wavelengths_m)} wavelengths given, the instrument propagates "
+                f"{instrument.n_wavelengths}"
+            )
         injector = Injector.build(
             grid,
             bins.wavelengths_m,
@@ -217,17 +239,29 @@ class FilterSetup(eqx.Module):
         )
 
     def spectrum(self, slope_per_um: Array) -> LinearSpectrum:
-        """The filter's :class:`~amigo.optics.LinearSpectrum` with SED slope ``m``."""
+        """The filter's :class:`~amigo.optics.LinearSpectrum` with SED slope ``m`` (and
+        the setup's band-shape correction)."""
+        taper = 0.0 if self.band_taper_per_um2 is None else self.band_taper_per_um2
         return LinearSpectrum(
             wavelengths_m=self.wavelengths_m,
             filter_weights=self.filter_weights,
             central_wavelength_m=self.central_wavelength_m,
             slope_per_um=slope_per_um,
+            taper_per_um2=taper,
+        )
+
+    def with_band_taper(self, taper_per_um2: Array) -> FilterSetup:
+        """This setup with the band-shape correction ``tau`` (differentiable)."""
+        return eqx.tree_at(
+            lambda s: s.band_taper_per_um2,
+            self,
+            jnp.asarray(taper_per_um2),
+            is_leaf=lambda x: x is None,
         )
 
 
 class OpticsParams(eqx.Module):
-    """Per-filter wavefront: fitted on calibrators, fixed for science targets.
+    """Per-filter instrument state: fitted on calibrators, fixed for science targets.
 
     Attributes
     ----------
@@ -235,14 +269,27 @@ class OpticsParams(eqx.Module):
         (7, 10) Noll Zernike coefficients per hole (rms nm).
     defocus_nm
         Fresnel defocus (Noll Z4 over the pupil, rms nm; see :class:`~amigo.optics.NRMOptics`).
+    geometry
+        (4,) detector geometry ``[rotation_deg, anisotropy, skew_deg, scale]``
+        (:data:`amigo.detector.linear.GEOMETRY_NAMES`).
+    band_taper_per_um2
+        The band-shape correction ``tau`` (:class:`~amigo.optics.LinearSpectrum`).
     """
 
     zernikes_nm: Float[Array, "7 nz"]
     defocus_nm: Float[Array, ""]
+    geometry: Float[Array, " 4"]
+    band_taper_per_um2: Float[Array, ""]
 
     @classmethod
     def from_instrument(cls, instrument: Instrument) -> OpticsParams:
-        return cls(instrument.optics.zernikes_nm, instrument.optics.defocus_nm)
+        dtype = instrument.optics.zernikes_nm.dtype
+        return cls(
+            instrument.optics.zernikes_nm,
+            instrument.optics.defocus_nm,
+            instrument.detector.geometry().astype(dtype),
+            jnp.zeros((), dtype),
+        )
 
 
 class SourceParams(eqx.Module):
@@ -269,7 +316,7 @@ class SourceParams(eqx.Module):
 
 
 class ExposureParams(eqx.Module):
-    """Per exposure: position of the source and its flux.
+    """Per exposure: position of the source, its flux and the pointing jitter.
 
     Attributes
     ----------
@@ -277,10 +324,14 @@ class ExposureParams(eqx.Module):
         (2,) offset ``(x, y)`` from the field centre in the optical frame (arcsec).
     log_flux
         Natural log of the flux entering the mask, in the image unit (DN/s for level 2).
+    jitter_mas
+        Gaussian sigma of the exposure's jitter (mas; its sign is irrelevant, the blur
+        depends on its square).
     """
 
     position_arcsec: Float[Array, " 2"]
     log_flux: Float[Array, ""]
+    jitter_mas: Float[Array, ""]
 
 
 def filter_psfs(
@@ -352,7 +403,8 @@ def image_from_psfs(
         phase,
         anchor_arcsec,
     )
-    return instrument.detector(illuminance, jnp.exp(exposure.log_flux))
+    detector = instrument.detector.with_jitter(exposure.jitter_mas / 1000.0)
+    return detector(illuminance, jnp.exp(exposure.log_flux))
 
 
 def image_from_log_vis(
@@ -364,7 +416,10 @@ def image_from_log_vis(
     log_amp: Float[Array, "k k"] | None,
     phase: Float[Array, "k k"] | None,
 ) -> Float[Array, "80 80"]:
-    """The 80 x 80 detector image for given log-visibility grids (see module notes)."""
+    """The 80 x 80 detector image for given log-visibility grids (see module notes), with
+    the detector geometry of ``optics_params``."""
+    instrument = instrument.with_geometry(optics_params.geometry)
+    setup = setup.with_band_taper(optics_params.band_taper_per_um2)
     psfs = filter_psfs(instrument, setup, optics_params)
     return image_from_psfs(instrument, setup, psfs, slope_per_um, exposure, log_amp, phase)
 
@@ -428,7 +483,8 @@ def unit_image(
     basis is built from this function's Jacobian.
     """
     dtype = setup.injector.w_y.dtype
-    exposure = ExposureParams(jnp.zeros(2, dtype), jnp.zeros((), dtype))
+    jitter_mas = (instrument.detector.jitter_arcsec * 1000.0).astype(dtype)
+    exposure = ExposureParams(jnp.zeros(2, dtype), jnp.zeros((), dtype), jitter_mas)
     log_amp, phase = setup.grid.to_full(log_amp_half, phase_half)
     return image_from_log_vis(
         instrument,
@@ -443,11 +499,4 @@ def unit_image(
 
 def float64(tree):
     """Cast every floating array of a pytree to float64 (inside ``jax.enable_x64``)."""
-    return jax.tree.map(
-        lambda x: (
-            jnp.asarray(x, jnp.float64)
-            if isinstance(x, jax.Array | np.ndarray) and jnp.issubdtype(x.dtype, jnp.floating)
-            else x
-        ),
-        tree,
-    )
+    return cast(tree, jnp.float64)

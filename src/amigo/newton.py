@@ -20,9 +20,15 @@ Gauss-Newton step.
 
 Global parameter vector
 -----------------------
-``[positions (E, 2), log fluxes (E), SED slopes (S), Zernikes (7 x nz), defocus, latent
-visibilities (S, m_a + m_p)]``, float64. Science exposures see the wavefront as fixed
-(it is fitted on calibrators only), so their Jacobians have no wavefront columns.
+``[positions (E, 2), log fluxes (E), SED slopes (S), jitters (E), Zernikes (7 x nz),
+defocus, detector geometry (4), band taper, latent visibilities (S, m_a + m_p)]``,
+float64. The Zernikes, defocus, geometry and the band-shape correction (the taper of
+:class:`~amigo.optics.LinearSpectrum`) form the filter's *instrument block*: science exposures
+see it as fixed (it is fitted on calibrators only), so their Jacobians have no columns
+for it. The geometry has a Gaussian prior centred on the instrument's (the SIAF-derived
+nominal, or the base model's) with the widths :data:`GEOMETRY_PRIOR_SIGMA`: wide enough
+that a calibrator's data overrule it, narrow enough to keep a fit of few pixels sane; the
+band taper one of width :data:`BAND_TAPER_PRIOR_SIGMA` centred on 0.
 
 Convergence is the Newton decrement ``g^T F^+ g`` (twice the decrease of ``L = chi2/2``
 that a full step would give) per exposure, below :attr:`NewtonConfig.tolerance`.
@@ -72,6 +78,16 @@ CHORD_EFFICIENCY = 0.05
 #: smaller eigenvalues are set by rounding, and the gradient's rounding noise along them
 #: would dominate both the step and the Newton decrement.
 EIGEN_FLOOR = 1e-7
+#: Standard deviations of the Gaussian prior on ``[rotation_deg, anisotropy, skew_deg,
+#: scale]`` around the instrument's geometry: 1 deg, 1 %, 1 deg, 1 % (the real data and
+#: an independent simulation move them by < 0.5 deg and < 0.5 %; one calibrator exposure
+#: measures them to ~0.01 deg and ~1e-4).
+GEOMETRY_PRIOR_SIGMA = (1.0, 0.01, 1.0, 0.01)
+#: Size of the detector geometry vector.
+N_GEOMETRY = 4
+#: Standard deviation of the prior on the band taper (per um^2): 50 lets the band's rms
+#: width move by ~10-20 % in the medium-band filters (optics.LinearSpectrum).
+BAND_TAPER_PRIOR_SIGMA = 50.0
 
 
 @dataclass(frozen=True)
@@ -102,6 +118,15 @@ class NewtonConfig:
         Standard deviation (nm) of an independent Gaussian prior on every Zernike
         coefficient and the defocus, centred on the instrument's own wavefront (the base
         model's calibrated one); ``None``: no prior (the calibrators alone decide).
+    geometry_prior_sigma
+        Standard deviations of the Gaussian prior on the detector geometry ``[rotation_deg,
+        anisotropy, skew_deg, scale]`` around the instrument's (tiny values freeze it).
+    jitter_prior_mas
+        Standard deviation (mas) of a Gaussian prior holding every exposure's jitter at the
+        instrument's; ``None`` (default): free (a tiny value freezes it).
+    band_taper_prior
+        Standard deviation (per um^2) of the Gaussian prior on the band taper around 0
+        (a tiny value freezes it).
     """
 
     max_iterations: int = 12
@@ -110,6 +135,9 @@ class NewtonConfig:
     chord_steps: int = 20
     float64_check: bool = True
     wavefront_prior_nm: float | None = None
+    geometry_prior_sigma: tuple[float, float, float, float] = GEOMETRY_PRIOR_SIGMA
+    jitter_prior_mas: float | None = None
+    band_taper_prior: float = BAND_TAPER_PRIOR_SIGMA
 
 
 @dataclass
@@ -153,21 +181,42 @@ class Layout:
         return self.zernike_shape[0] * self.zernike_shape[1]
 
     @property
-    def optics(self) -> np.ndarray:
+    def jitters(self) -> np.ndarray:
         start = 3 * self.n_exposures + self.n_targets
-        return np.arange(start, start + self.n_zernike + 1)
+        return np.arange(start, start + self.n_exposures)
+
+    @property
+    def optics(self) -> np.ndarray:
+        """The instrument block ``[Zernikes, defocus, geometry, band taper]``."""
+        start = 4 * self.n_exposures + self.n_targets
+        return np.arange(start, start + self.n_zernike + 1 + N_GEOMETRY + 1)
+
+    @property
+    def wavefront(self) -> np.ndarray:
+        """``[Zernikes, defocus]`` (the first part of :attr:`optics`)."""
+        return self.optics[: self.n_zernike + 1]
+
+    @property
+    def geometry(self) -> np.ndarray:
+        """``[rotation_deg, anisotropy, skew_deg, scale]`` (after :attr:`wavefront`)."""
+        return self.optics[self.n_zernike + 1 : self.n_zernike + 1 + N_GEOMETRY]
+
+    @property
+    def band(self) -> np.ndarray:
+        """The band taper (the last entry of :attr:`optics`)."""
+        return self.optics[-1:]
 
     @property
     def size(self) -> int:
         return int(self.optics[-1]) + 1 + self.n_targets * self.n_latent
 
     def local(self, e: int, s: int) -> np.ndarray:
-        """Indices of ``[x, y, log_flux, slope, latents]`` of exposure ``e`` (target ``s``)."""
+        """Indices of ``[x, y, log_flux, slope, jitter, latents]`` of exposure ``e``
+        (target ``s``)."""
         E = self.n_exposures
         latent0 = int(self.optics[-1]) + 1 + s * self.n_latent
-        return np.concatenate(
-            [[2 * e, 2 * e + 1, 2 * E + e, 3 * E + s], np.arange(latent0, latent0 + self.n_latent)]
-        )
+        scalars = [2 * e, 2 * e + 1, 2 * E + e, 3 * E + s, int(self.jitters[e])]
+        return np.concatenate([scalars, np.arange(latent0, latent0 + self.n_latent)])
 
     def pack(self, params: FitParams) -> np.ndarray:
         p = params
@@ -176,8 +225,11 @@ class Layout:
                 np.ravel(p.exposures.position_arcsec),
                 np.ravel(p.exposures.log_flux),
                 np.ravel(p.sources.slope_per_um),
+                np.ravel(p.exposures.jitter_mas),
                 np.ravel(p.optics.zernikes_nm),
                 np.ravel(p.optics.defocus_nm),
+                np.ravel(p.optics.geometry),
+                np.ravel(p.optics.band_taper_per_um2),
                 np.ravel(np.concatenate([p.sources.amp, p.sources.phase], axis=1)),
             ]
         ).astype(np.float64)
@@ -186,8 +238,8 @@ class Layout:
         E, S = self.n_exposures, self.n_targets
         dtype = params.sources.amp.dtype
         n_amp = params.sources.amp.shape[1]
-        o = self.optics
-        latent = vector[o[-1] + 1 :].reshape(S, self.n_latent)
+        latent = vector[self.optics[-1] + 1 :].reshape(S, self.n_latent)
+        wavefront = self.wavefront
 
         def as_(x):
             return jnp.asarray(x, dtype)
@@ -197,8 +249,11 @@ class Layout:
                 q.exposures.position_arcsec,
                 q.exposures.log_flux,
                 q.sources.slope_per_um,
+                q.exposures.jitter_mas,
                 q.optics.zernikes_nm,
                 q.optics.defocus_nm,
+                q.optics.geometry,
+                q.optics.band_taper_per_um2,
                 q.sources.amp,
                 q.sources.phase,
             ),
@@ -207,8 +262,11 @@ class Layout:
                 as_(vector[: 2 * E].reshape(E, 2)),
                 as_(vector[2 * E : 3 * E]),
                 as_(vector[3 * E : 3 * E + S]),
-                as_(vector[o[:-1]].reshape(self.zernike_shape)),
-                as_(vector[o[-1]]),
+                as_(vector[self.jitters]),
+                as_(vector[wavefront[:-1]].reshape(self.zernike_shape)),
+                as_(vector[wavefront[-1]]),
+                as_(vector[self.geometry]),
+                as_(vector[self.band[0]]),
                 as_(latent[:, :n_amp]),
                 as_(latent[:, n_amp:]),
             ),
@@ -226,18 +284,21 @@ class Layout:
 
 # ------------------------------------------------------------------------------ images
 #: Scalars before the latent visibilities in an exposure's local vector
-#: ``[x, y, log_flux, slope, latents]``.
-N_LOCAL_SCALARS = 4
+#: ``[x, y, log_flux, slope, jitter_mas, latents]``.
+N_LOCAL_SCALARS = 5
+#: Index of the jitter (mas) in the local vector.
+JITTER_INDEX = 4
 
 
 def local_vector(params: FitParams, e: int, s: int) -> Float[Array, " n"]:
-    """Local vector ``[x, y, log_flux, slope, amp..., phase...]`` of exposure ``e`` of
-    target ``s`` (dtype of ``params``)."""
+    """Local vector ``[x, y, log_flux, slope, jitter_mas, amp..., phase...]`` of exposure
+    ``e`` of target ``s`` (dtype of ``params``)."""
     return jnp.concatenate(
         [
             params.exposures.position_arcsec[e],
             params.exposures.log_flux[e][None],
             params.sources.slope_per_um[s][None],
+            params.exposures.jitter_mas[e][None],
             params.sources.amp[s],
             params.sources.phase[s],
         ]
@@ -251,14 +312,30 @@ def wavefront_vector(optics) -> Float[Array, " n"]:
 
 
 def optics_vector(params: FitParams) -> Float[Array, " n"]:
-    """``[Zernikes (flattened), defocus]`` of ``params``."""
-    return wavefront_vector(params.optics)
+    """The instrument block ``[Zernikes (flattened), defocus, geometry, band taper]`` of
+    ``params``."""
+    o = params.optics
+    return jnp.concatenate([wavefront_vector(o), o.geometry, jnp.atleast_1d(o.band_taper_per_um2)])
+
+
+def _split_block(block: Array, shape: tuple[int, int]) -> OpticsParams:
+    """Instrument block -> :class:`OpticsParams`."""
+    n = shape[0] * shape[1]
+    return OpticsParams(block[:n].reshape(shape), block[n], block[n + 1 : -1], block[-1])
+
+
+def _at(instrument, setup, optics: OpticsParams):
+    """The instrument and setup with the block's geometry and band taper."""
+    return (
+        instrument.with_geometry(optics.geometry),
+        setup.with_band_taper(optics.band_taper_per_um2),
+    )
 
 
 def local_illuminance(theta, instrument, setup, psfs, anchor) -> Float[Array, "240 240"]:
     """Unit-flux optical illuminance (:func:`amigo.model.illuminance_from_psfs`) of one
-    exposure from its local vector ``[x, y, log_flux, slope, latents]`` (the flux,
-    ``theta[2]``, is applied by the detector)."""
+    exposure from its local vector ``[x, y, log_flux, slope, jitter, latents]`` (the
+    flux, ``theta[2]``, and the jitter are applied by the detector)."""
     n_amp = setup.basis.n_amp
     latent = theta[N_LOCAL_SCALARS:]
     log_amp, phase = setup.basis.grids(latent[:n_amp], latent[n_amp:])
@@ -267,35 +344,51 @@ def local_illuminance(theta, instrument, setup, psfs, anchor) -> Float[Array, "2
     )
 
 
+def local_detector(theta, instrument):
+    """The instrument's linear detector with the jitter of the local vector ``theta``."""
+    return instrument.detector.with_jitter(theta[JITTER_INDEX] / 1000.0)
+
+
 def _local_image(theta, instrument, setup, psfs, anchor) -> Float[Array, "80 80"]:
-    """Image (DN/s) of one exposure from its local vector (as :func:`image_from_psfs`)."""
+    """Image (DN/s) of one exposure from its local vector (as :func:`image_from_psfs`),
+    with the detector geometry ``instrument`` holds."""
     optical = local_illuminance(theta, instrument, setup, psfs, anchor)
-    return instrument.detector(optical, jnp.exp(theta[2]))
+    return local_detector(theta, instrument)(optical, jnp.exp(theta[2]))
 
 
 def _columns(function, x: Array) -> Array:
-    """Forward-mode Jacobian of ``function`` at ``x``, (n, *out), in batches of columns."""
-    eye = jnp.eye(x.shape[0], dtype=x.dtype)
-    return jax.lax.map(lambda t: jax.jvp(function, (x,), (t,))[1], eye, batch_size=JVP_BATCH)
+    """Forward-mode Jacobian of ``function`` at ``x``, (n, *out), in batches of columns.
+
+    The tangents are padded with zero columns to a whole number of batches: ``lax.map``
+    would otherwise trace the remainder as a second copy of the model, which doubles the
+    compile time (minutes on a CPU) to save a few JVPs.
+    """
+    n = x.shape[0]
+    batch = min(JVP_BATCH, n)
+    padded = -(-n // batch) * batch
+    tangents = jnp.eye(padded, n, dtype=x.dtype)  # rows n.. are zero
+    columns = jax.lax.map(lambda t: jax.jvp(function, (x,), (t,))[1], tangents, batch_size=batch)
+    return columns[:n]
 
 
 @eqx.filter_jit
 def local_jacobian(theta, instrument, setup, psfs, anchor) -> Float[Array, "n 80 80"]:
-    """Jacobian of one exposure's image w.r.t. its local vector (wavefront held fixed)."""
+    """Jacobian of one exposure's image w.r.t. its local vector (instrument block fixed)."""
     return _columns(lambda t: _local_image(t, instrument, setup, psfs, anchor), theta)
 
 
 @eqx.filter_jit
-def optics_jacobian(wavefront, theta, instrument, setup, anchor) -> Float[Array, "n 80 80"]:
-    """Jacobian of one exposure's image w.r.t. ``[Zernikes (flattened), defocus]``."""
+def optics_jacobian(block, theta, instrument, setup, anchor) -> Float[Array, "n 80 80"]:
+    """Jacobian of one exposure's image w.r.t. the instrument block ``[Zernikes
+    (flattened), defocus, geometry]``."""
     shape = instrument.optics.zernikes_nm.shape
 
     def image_of(vector):
-        optics = OpticsParams(vector[:-1].reshape(shape), vector[-1])
+        optics = _split_block(vector, shape)
         psfs = filter_psfs(instrument, setup, optics, anchor)
-        return _local_image(theta, instrument, setup, psfs, anchor)
+        return _local_image(theta, *_at(instrument, setup, optics), psfs, anchor)
 
-    return _columns(image_of, wavefront)
+    return _columns(image_of, block)
 
 
 @eqx.filter_jit
@@ -310,30 +403,38 @@ def _images(thetas, instrument, setup, psfs, anchor) -> Float[Array, "e 80 80"]:
 
 
 @eqx.filter_jit
-def _gradient(thetas, wavefront, instrument, setup, anchor, data, weight, members, calibrator):
+def _gradient(thetas, block, instrument, setup, anchor, data, weight, members, calibrator):
     """Gradient of ``L = sum_e |W_e (d_e - m_e)|^2 / 2`` over the exposures with
-    ``members[e] = 1`` w.r.t. every exposure's local vector (E, n) and the wavefront
-    ``[Zernikes, defocus]``, by reverse mode.
+    ``members[e] = 1`` w.r.t. every exposure's local vector (E, n) and the instrument
+    block ``[Zernikes, defocus, geometry]``, by reverse mode.
 
-    Only exposures with ``calibrator[e] = 1`` inform the wavefront (science exposures see
-    it as a constant, as in :meth:`amigo.fitting.FilterFit.models`).
+    Only exposures with ``calibrator[e] = 1`` inform the instrument block (science
+    exposures see it as a constant, as in :meth:`amigo.fitting.FilterFit.models`).
     """
     shape = instrument.optics.zernikes_nm.shape
+    n_wave = shape[0] * shape[1] + 1
 
     def psfs_of_wavefront(vector):
-        optics = OpticsParams(vector[:-1].reshape(shape), vector[-1])
+        optics = _split_block(jnp.concatenate([vector, block[n_wave:]]), shape)
         return filter_psfs(instrument, setup, optics, anchor)
 
-    psfs, pullback = jax.vjp(psfs_of_wavefront, wavefront)
+    psfs, pullback = jax.vjp(psfs_of_wavefront, block[:n_wave])
 
-    def loss(thetas, psfs, mask):
-        images = jax.vmap(lambda t: _local_image(t, instrument, setup, psfs, anchor))(thetas)
-        r = (data - images.reshape(data.shape)) * weight
-        return 0.5 * jnp.sum(mask[:, None] * r * r)
+    def images_of(thetas, psfs, rest):
+        # ``rest``: the block after the wavefront (geometry, band taper).
+        optics = _split_block(jnp.concatenate([block[:n_wave], rest]), shape)
+        at_instrument, at_setup = _at(instrument, setup, optics)
+        return jax.vmap(lambda t: _local_image(t, at_instrument, at_setup, psfs, anchor))(thetas)
 
-    g_thetas = jax.grad(loss)(thetas, psfs, members)
-    g_psfs = jax.grad(loss, argnums=1)(thetas, psfs, calibrator)
-    return g_thetas, pullback(g_psfs)[0]
+    images, image_pullback = jax.vjp(images_of, thetas, psfs, block[n_wave:])
+    r = (data - images.reshape(data.shape)) * weight
+    # dL/dm_e = -mask_e W_e r_e, with the members' mask for the local vectors and the
+    # calibrators' for the instrument: both pulled back by one batched reverse pass (one
+    # copy of the model's backward graph, not two, to compile).
+    masks = jnp.stack([members, calibrator]).astype(r.dtype)
+    cotangents = (-masks[:, :, None] * (r * weight)[None]).reshape((2, *images.shape))
+    g_thetas, g_psfs, g_rest = jax.vmap(image_pullback)(cotangents)
+    return g_thetas[0], jnp.concatenate([pullback(g_psfs[1])[0], g_rest[1]])
 
 
 # ------------------------------------------------------------------------------ solver
@@ -353,16 +454,37 @@ class _Problem:
         params: FitParams,
         members: np.ndarray,
         wavefront_prior_nm: float | None = None,
+        geometry_prior_sigma: tuple[float, ...] = GEOMETRY_PRIOR_SIGMA,
+        jitter_prior_mas: float | None = None,
+        band_taper_prior: float = BAND_TAPER_PRIOR_SIGMA,
     ) -> None:
         self.fit = fit
         self.layout = Layout.of(params)
         self.members = np.asarray(members, int)
         # The prior acts only where the wavefront is fitted: on the calibrators' stage.
         fits_wavefront = bool(np.any(np.asarray(fit.is_calibrator, bool)[self.members]))
-        self.prior_precision = 0.0
-        if wavefront_prior_nm is not None and fits_wavefront:
-            self.prior_precision = 1.0 / float(wavefront_prior_nm) ** 2
-        self.prior_centre = np.asarray(wavefront_vector(fit.instrument.optics), np.float64)
+        # Gaussian priors on the instrument block (only where it is fitted): the geometry's
+        # always, the wavefront's if asked for; zero precision means no prior.
+        lay = self.layout
+        self.prior_precision = np.zeros(len(lay.optics))
+        n_wave = len(lay.wavefront)
+        if fits_wavefront:
+            self.prior_precision[n_wave:-1] = 1.0 / np.square(geometry_prior_sigma)
+            self.prior_precision[-1] = 1.0 / float(band_taper_prior) ** 2
+            if wavefront_prior_nm is not None:
+                self.prior_precision[:n_wave] = 1.0 / float(wavefront_prior_nm) ** 2
+        self.prior_centre = np.concatenate(
+            [
+                np.asarray(wavefront_vector(fit.instrument.optics), np.float64),
+                np.asarray(fit.instrument.detector.geometry(), np.float64),
+                np.zeros(1),
+            ]
+        )
+        # An optional prior on the members' jitters, centred on the instrument's.
+        self.jitter_precision = np.zeros(lay.size)
+        if jitter_prior_mas is not None:
+            self.jitter_precision[lay.jitters[self.members]] = 1.0 / float(jitter_prior_mas) ** 2
+        self.jitter_centre = float(fit.instrument.detector.jitter_arcsec) * 1000.0
         self.data = np.asarray(fit.pixels.data, np.float64).reshape(fit.n_exposures, -1)
         self.weight = np.asarray(fit.pixels.inverse_sigma, np.float64).reshape(fit.n_exposures, -1)
         self.locals = [
@@ -385,15 +507,19 @@ class _Problem:
         return jax.enable_x64(self.float64)
 
     def _inputs(self, vector: np.ndarray):
+        """The model at ``vector``: the instrument (with the vector's geometry), setup,
+        dtype, instrument block, local vectors (E, n) and the PSF anchor."""
         instrument, setup, dtype = self._models()
         lay = self.layout
-        wavefront = jnp.asarray(vector[lay.optics], dtype)
+        block = jnp.asarray(vector[lay.optics], dtype)
+        optics = _split_block(block, lay.zernike_shape)
+        instrument, setup = _at(instrument, setup, optics)
         thetas = jnp.asarray(np.stack([vector[i] for i in self.locals]), dtype)
         anchor = jnp.asarray(self.fit.anchor, dtype)
-        return instrument, setup, dtype, wavefront, thetas, anchor
+        return instrument, setup, dtype, block, thetas, anchor
 
-    def _psfs(self, instrument, setup, wavefront, anchor):
-        optics = OpticsParams(wavefront[:-1].reshape(self.layout.zernike_shape), wavefront[-1])
+    def _psfs(self, instrument, setup, block, anchor):
+        optics = _split_block(block, self.layout.zernike_shape)
         return psfs_of(instrument, setup, optics, anchor)
 
     def _residuals(self, instrument, setup, thetas, psfs, anchor) -> np.ndarray:
@@ -404,17 +530,19 @@ class _Problem:
         return (self.data - models) * self.weight
 
     def _prior_offset(self, vector: np.ndarray) -> np.ndarray:
-        """Wavefront minus the prior's centre (nm)."""
+        """Instrument block minus the prior's centre."""
         return vector[self.layout.optics] - self.prior_centre
 
     def loss(self, vector: np.ndarray) -> float:
-        """``L = chi2 / 2`` of the member exposures at ``vector`` (plus the wavefront
-        prior's ``|w - w0|^2 / (2 sigma^2)`` where there is one)."""
+        """``L = chi2 / 2`` of the member exposures at ``vector`` plus the priors'
+        ``sum (w - w0)^2 / (2 sigma^2)`` on the instrument block."""
         with self.precision():
             instrument, setup, _, wavefront, thetas, anchor = self._inputs(vector)
             psfs = self._psfs(instrument, setup, wavefront, anchor)
             r = self._residuals(instrument, setup, thetas, psfs, anchor)[self.members]
-        prior = 0.5 * self.prior_precision * float(np.sum(self._prior_offset(vector) ** 2))
+        prior = 0.5 * float(np.sum(self.prior_precision * self._prior_offset(vector) ** 2))
+        jitter = vector - self.jitter_centre
+        prior += 0.5 * float(np.sum(self.jitter_precision * jitter**2))
         return 0.5 * float(np.sum(r * r)) + prior
 
     def gradient(self, vector: np.ndarray) -> np.ndarray:
@@ -439,6 +567,7 @@ class _Problem:
         for e in self.members:
             np.add.at(grad, self.locals[e], g_thetas[e])
         grad[lay.optics] += g_wave + self.prior_precision * self._prior_offset(vector)
+        grad += self.jitter_precision * (vector - self.jitter_centre)
         return -grad
 
     def normal_equations(self, vector: np.ndarray, label: str) -> tuple[np.ndarray, np.ndarray]:
@@ -465,9 +594,10 @@ class _Problem:
                 wj = jac * self.weight[e]  # whitened Jacobian
                 fisher[np.ix_(index, index)] += wj @ wj.T
                 grad[index] += wj @ r[e]
-        if self.prior_precision:
-            fisher[lay.optics, lay.optics] += self.prior_precision
-            grad[lay.optics] -= self.prior_precision * self._prior_offset(vector)
+        fisher[lay.optics, lay.optics] += self.prior_precision
+        grad[lay.optics] -= self.prior_precision * self._prior_offset(vector)
+        fisher[np.diag_indices(n)] += self.jitter_precision
+        grad -= self.jitter_precision * (vector - self.jitter_centre)
         return fisher, grad
 
 
@@ -497,6 +627,25 @@ class _Solver:
         step = np.zeros(self.size)
         step[self.active] = scaled / self.root
         return step
+
+
+def marginal_errors(fisher: np.ndarray | None, indices: np.ndarray) -> np.ndarray:
+    """Standard errors ``sqrt((F^+)_ii)`` of the global vector's entries ``indices``
+    (all others marginalised), from a fit's Fisher matrix (priors included); exact
+    degeneracies are dropped as in the solver. NaN where ``fisher`` is ``None`` or the
+    parameter has no information."""
+    indices = np.asarray(indices, int)
+    if fisher is None:
+        return np.full(indices.shape, np.nan)
+    solver = _Solver(fisher)
+    out = np.full(indices.shape, np.nan)
+    for k, i in enumerate(indices):
+        unit = np.zeros(fisher.shape[0])
+        unit[i] = 1.0
+        variance = float(solver(unit)[i])
+        if variance > 0:
+            out[k] = np.sqrt(variance)
+    return out
 
 
 @dataclass
@@ -641,7 +790,15 @@ def levenberg_marquardt(
     for members, stage_label in stages:
         if len(members) == 0:
             continue
-        problem = _Problem(fit, params, members, config.wavefront_prior_nm)
+        problem = _Problem(
+            fit,
+            params,
+            members,
+            config.wavefront_prior_nm,
+            config.geometry_prior_sigma,
+            config.jitter_prior_mas,
+            config.band_taper_prior,
+        )
         result = _minimise(problem, vector, config, stage_label)
         vector = result.vector
         converged &= result.converged

@@ -48,15 +48,7 @@ def _check_inputs(sci: tuple[Path, ...], cal: tuple[Path, ...], detector: str | 
     levels = {"level2" if k in LEVEL2_KINDS else k for k in kinds.values()}
     if len(levels) > 1:
         raise InputError(None, "mixing raw-ramp products and level-2 images in one call")
-    level = levels.pop()
-    if detector == "full" and level == "level2":
-        raise InputError(
-            None,
-            "--detector full is not available for level-2 images (their ramps were already "
-            "fitted with a linear detector by the STScI pipeline): give calslope files "
-            "('amigo process') or use --detector linear",
-        )
-    return level
+    return levels.pop()
 
 
 @dataclass(frozen=True)
@@ -82,10 +74,12 @@ class FitModel:
 
 def _fit_model(model: Path | None, detector: str | None, level: str) -> FitModel:
     """Resolve the options: calslope files default to the shipped base model with its
-    network; level-2 images to the nominal instrument with the linear detector."""
+    network; level-2 images to the nominal instrument with the linear detector, or with
+    ``--detector full`` to the base model's ramp seen through the pipeline's slope
+    estimator (:class:`amigo.ramp_fit.Level2Input`)."""
     from amigo.model import Instrument, load_instrument
 
-    if model is None and level == "calslope":
+    if model is None and (level == "calslope" or detector == "full"):
         from amigo.basemodel import default_model_path
 
         model = default_model_path()
@@ -105,11 +99,13 @@ def _fit_model(model: Path | None, detector: str | None, level: str) -> FitModel
     record = read_metadata(model)
     trained = record.get("trained_on", "?").split(":")[0]
     name = f"{model.name} (trained on {record.get('scenario', '?').split(' ')[0]}, {trained})"
-    if level == "level2":
+    if level == "level2" and detector != "full":
         mode, ramp = "linear", None
     else:
         mode = detector or "full"
         ramp = base if mode == "full" else base.with_linear_detector()
+        if level == "level2":
+            ramp = ramp.for_level2()  # dark, flat and linearity already corrected
     return FitModel(
         lambda filter_name: Instrument.from_base_model(base, filter_name, name, mode), ramp, mode
     )
@@ -134,17 +130,48 @@ def _read_fit_exposure(path: Path, role: str, level: str):
         image = ramp.image(None)
     else:
         from amigo.io.jwst import read_exposure
+        from amigo.ramp_fit import Level2Input
 
         exposure = read_exposure(path)
         meta = exposure.meta
         image = ImageData.from_exposure(exposure)
+        ramp = Level2Input(image, meta.ngroups, meta.nframes, meta.group_time_s)
     return FitExposure(path.name, role, meta.target, image), meta, ramp
 
 
+def key_targets(items: list) -> list:
+    """``(FitExposure, ExposureMeta)`` pairs with each exposure's target keyed by role.
+
+    Exposures of one target share latent visibilities in the fit, so a star given both as
+    science and as calibrator (the standard null test: one visit against another) must
+    not become one target: its calibrator exposures are renamed ``"<name> (cal obs
+    <OBSERVTN>)"``. Science targets keep their names (the product files are named after
+    them); a calibrator star that is nobody's science keeps its name too.
+    """
+    import dataclasses
+
+    science = {e.target for e, _ in items if e.role == "science"}
+    keyed = []
+    for exposure, meta in items:
+        if exposure.role == "calibrator" and exposure.target in science:
+            visit = f" obs {meta.observation}" if meta.observation else ""
+            exposure = dataclasses.replace(exposure, target=f"{exposure.target} (cal{visit})")
+        keyed.append((exposure, meta))
+    return keyed
+
+
 def exposures_option(name: str, text: str):
-    """The repeatable, required ``--sci``/``--cal`` option of ``fit`` and ``run``."""
+    """The required ``--sci``/``--cal`` option of ``fit`` and ``run``: several files after
+    one flag (``--sci A B C``, as a shell glob gives them) or the flag repeated."""
+    from amigo.cli.options import ManyValues
+
     return click.option(
-        f"--{name}", name, multiple=True, required=True, type=click.Path(path_type=Path), help=text
+        f"--{name}",
+        name,
+        cls=ManyValues,
+        required=True,
+        type=click.Path(path_type=Path),
+        help=text,
     )
 
 
@@ -162,8 +189,10 @@ _MODEL_OPTIONS = [
         "--detector",
         type=click.Choice(["full", "linear"]),
         default=None,
-        help="Detector model for calslope files: 'full' (the base model's charge-migration "
-        "network; the default) or 'linear' (network off). Level-2 images: 'linear' only.",
+        help="Detector model: 'full' (the base model's charge-migration network; the "
+        "default for calslope files; for level-2 images its ramp goes through the JWST "
+        "pipeline's slope estimator) or 'linear' (network off; the default for level-2 "
+        "images, fitted as they are).",
     ),
     click.option(
         "--knots",
@@ -189,8 +218,10 @@ def model_options(command):
 
 
 @click.command("fit")
-@exposures_option("sci", "Science exposure (repeat the option for several).")
-@exposures_option("cal", "Calibrator (PSF reference) exposure (repeat for several).")
+@exposures_option("sci", "Science exposures (several after one flag, or the flag repeated).")
+@exposures_option(
+    "cal", "Calibrator (PSF reference) exposures (several after one flag, or repeated)."
+)
 @click.option("--out", "out", required=True, type=click.Path(path_type=Path), help="Output folder.")
 @model_options
 @click.option(
@@ -248,11 +279,14 @@ def command(
     fit_model = _fit_model(model, detector, level)
     by_filter: dict[str, list] = defaultdict(list)
     ramps = {}
+    read = []
     for role, paths in (("science", sci), ("calibrator", cal)):
         for path in paths:
             fit_exposure, meta, ramp = _read_fit_exposure(path, role, level)
-            by_filter[meta.filter].append((fit_exposure, meta))
+            read.append((fit_exposure, meta))
             ramps[fit_exposure.name] = ramp
+    for fit_exposure, meta in key_targets(read):
+        by_filter[meta.filter].append((fit_exposure, meta))
     for filter_name, items in by_filter.items():
         roles = {e.role for e, _ in items}
         if "calibrator" not in roles:
@@ -277,6 +311,7 @@ def command(
     summary_exposures = []
     filters_summary = {}
     names = []
+    unconverged = []
     for filter_name, items in sorted(by_filter.items()):
         if not any(e.role == "science" for e, _ in items):
             continue
@@ -285,6 +320,8 @@ def command(
         product = _run_filter(instrument, filter_name, items, config, out, grid, detector_model)
         summary_exposures.extend(product["exposures"])
         filters_summary[filter_name] = product["filter"]
+        if not product["filter"]["converged"]:
+            unconverged.append(filter_name)
     _write_summary(
         out,
         "; ".join(dict.fromkeys(names)),
@@ -293,6 +330,13 @@ def command(
         filters_summary,
     )
     step(f"wrote {out / 'fit_summary.json'}")
+    if unconverged:
+        click.echo(
+            f"warning: the fit did not converge in {', '.join(unconverged)}; its products are "
+            "written and flagged (CONVERGD = F in the calvis header, 'converged': false per "
+            "exposure in fit_summary.json): raise --max-iterations or check the residuals",
+            err=True,
+        )
 
 
 def _grid(knots: int | None, spacing: float | None):
@@ -358,12 +402,15 @@ def _run_filter(
     bins = nis.filter_bins(filter_name, instrument.n_wavelengths)
     blue, red = nis.half_power_limits(filter_name)
     params = product.result.params
+    # The fitted detector geometry (calibrators) places the sky on the optical frame.
+    fitted = instrument.with_geometry(params.optics.geometry)
+    geometry = _geometry_record(product.result)
     for target_product in product.products:
         target = target_product.target
         sci_items = [(e, metas[e.name]) for e in exposures if e.target == target]
         cal_names = [e.name for e in exposures if e.role == "calibrator"]
         orientation = sci_items[0][1].orientation
-        sky_to_uv = sky_to_optical_matrix(orientation, instrument.detector)
+        sky_to_uv = sky_to_optical_matrix(orientation, fitted.detector)
         photons = 0.0
         for e, exposure in enumerate(fit.exposures):
             if exposure.target == target:
@@ -395,6 +442,8 @@ def _run_filter(
                 "NAMP": (fit.setup.basis.n_amp, "latent log-amplitude modes"),
                 "NPHA": (fit.setup.basis.n_phase, "latent phase modes"),
                 "NNUIS": (discos.kernel.n_nuisance, "nuisance parameters nulled"),
+                # Products of an unconverged fit are still written, but flagged.
+                "CONVERGD": (bool(product.result.converged), "fit converged (fit_summary.json)"),
             },
         )
         step(f"wrote {calvis_path}")
@@ -444,10 +493,13 @@ def _run_filter(
                 "seconds": round(s.seconds, 2),
                 "loss_change": float(product.result.loss_change),
                 "newton_decrement": float(product.result.newton_decrement),
+                **geometry["filter"],
+                **geometry["exposures"][e],
             }
-            for s in product.stats
+            for e, s in enumerate(product.stats)
         ],
         "filter": {
+            "converged": bool(product.result.converged),
             "basis_amplitude_modes": info.n_amp,
             "basis_phase_modes": info.n_phase,
             "kernel_amplitudes": int(product.kernel.amp.shape[0]),
@@ -456,6 +508,44 @@ def _run_filter(
             **detector_summary,
         },
     }
+
+
+def _json_number(value: float, digits: int) -> float | None:
+    """``value`` rounded, or ``None`` (JSON null) where it is not finite."""
+    import math
+
+    return round(float(value), digits) if math.isfinite(value) else None
+
+
+def _geometry_record(result) -> dict:
+    """The fitted detector geometry of the filter (``rotation_deg``, ``anisotropy``,
+    ``skew_deg``, ``scale``), its band taper (``band_taper_per_um2``) and each exposure's
+    ``jitter_mas``, with ``_err`` twins
+    (marginal standard errors from the fit's Fisher matrix, priors included; null where
+    the fit did not confirm its optimum in float64)."""
+    import numpy as np
+
+    from amigo.detector.linear import GEOMETRY_NAMES
+    from amigo.newton import Layout, marginal_errors
+
+    params = result.params
+    layout = Layout.of(params)
+    values = np.asarray(params.optics.geometry, np.float64)
+    errors = marginal_errors(result.fisher, layout.geometry)
+    filter_record = {}
+    for name, value, error in zip(GEOMETRY_NAMES, values, errors, strict=True):
+        filter_record[name] = _json_number(value, 6)
+        filter_record[f"{name}_err"] = _json_number(error, 6)
+    taper_error = marginal_errors(result.fisher, layout.band)[0]
+    filter_record["band_taper_per_um2"] = _json_number(float(params.optics.band_taper_per_um2), 4)
+    filter_record["band_taper_per_um2_err"] = _json_number(taper_error, 4)
+    jitters = np.abs(np.asarray(params.exposures.jitter_mas, np.float64))
+    jitter_errors = marginal_errors(result.fisher, layout.jitters)
+    exposures = [
+        {"jitter_mas": _json_number(j, 4), "jitter_mas_err": _json_number(err, 4)}
+        for j, err in zip(jitters, jitter_errors, strict=True)
+    ]
+    return {"filter": filter_record, "exposures": exposures}
 
 
 def _write_summary(

@@ -2,21 +2,23 @@
 (brighter-fatter) model (:mod:`amigo.detector.ramp`) and the read-out (:mod:`amigo.detector.read`)."""
 
 from amigo.detector.linear import (
+    GEOMETRY_NAMES,
     LinearDetector,
     bin_pixels,
     cubic_resample,
     displacement_reach,
-    gaussian_blur,
+    fourier_gaussian_blur,
     geometry_matrix,
     sky_to_optical_matrix,
 )
 
 __all__ = [
+    "GEOMETRY_NAMES",
     "LinearDetector",
     "bin_pixels",
     "cubic_resample",
     "displacement_reach",
-    "gaussian_blur",
+    "fourier_gaussian_blur",
     "geometry_matrix",
     "sky_to_optical_matrix",
 ]

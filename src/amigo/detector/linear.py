@@ -1,31 +1,45 @@
-"""Linear detector model: jitter, detector rotation and anisotropy, pixel binning, flux.
+"""Linear detector model: jitter, the detector's geometry, pixel binning, flux.
 
 The optical model produces the illuminance on an oversampled grid aligned with the
-optical (pupil) frame. The detector pixel grid is slightly rotated and anisotropic
+optical (pupil) frame. The detector pixel grid is slightly rotated, stretched and skewed
 with respect to it. This module maps one onto the other (the paper's 'Linear Detector
 Model'):
 
-1. instrumental jitter: a Gaussian blur of the oversampled image (optical frame);
+1. instrumental jitter: a Gaussian blur of the oversampled image (optical frame), applied
+   as the exact Gaussian transfer function in Fourier space, so any sigma >= 0 works;
 2. resampling onto the detector's oversampled grid by cubic interpolation through the
-   linear map :func:`geometry_matrix` (rotation and y/x anisotropy);
+   linear map :func:`geometry_matrix`;
 3. summing each ``oversample x oversample`` block into a detector pixel and scaling by
-   the source flux.
+   the source flux;
+4. inter-pixel capacitance (IPC): a 5x5 convolution of the pixel image (level-2 images
+   keep it: the JWST pipeline does not remove it). The ramp model of calslope fits uses
+   :meth:`LinearDetector.illuminance` and applies IPC in its own read-out instead.
 
-Frames and the geometry matrix
-------------------------------
+Frames and the geometry matrix (the sign convention, stated once)
+-----------------------------------------------------------------
 Offsets are measured from the centre of the field (the corner shared by the four
 central pixels of the 80 x 80 subarray, i.e. detector pixel coordinate 39.5 along each
-axis, 0-based). An offset ``p`` in the optical frame, in units of the mean pixel scale
-:data:`amigo.instrument.PIXEL_SCALE_ARCSEC`, lands at the detector offset (pixels)::
+axis, 0-based). The optical frame is amigo's pupil frame (``x = -V2``, ``y = +V3``, see
+:func:`amigo.instrument.pupil_to_v2v3_matrix`). An offset ``p`` in the optical frame, in
+units of the mean pixel scale :data:`amigo.instrument.PIXEL_SCALE_ARCSEC`, lands at the
+detector offset (pixels)::
 
-    d = G p,    G = S(a) R(phi),    R(phi) = [[cos, -sin], [sin, cos]],
-                                    S(a) = diag(a^(1/2), a^(-1/2))
+    d = G p,    G = s D(a) K(phi, kappa),    D(a) = diag(a^(1/2), a^(-1/2)),
+    K = [[cos(phi - kappa/2), -sin(phi + kappa/2)],
+         [sin(phi - kappa/2),  cos(phi + kappa/2)]]
 
-so the image is rotated counter-clockwise (from +x towards +y) by ``phi =
-rotation_deg`` on the detector, and a detector pixel spans ``a = anisotropy`` times more
-sky along y than along x (``a^(-1/2)`` and ``a^(1/2)`` times the mean scale along x and
-y). ``det G = 1``: the resampling conserves flux. The paper's values are ~0.56 deg and
-~1.0077 (:data:`amigo.instrument.DETECTOR_ROTATION_DEG`, ``DETECTOR_ANISOTROPY``).
+* ``phi = rotation_deg``: the image turns by ``phi`` from detector +x towards +y
+  (counter-clockwise as the DMS image is displayed, origin at the bottom left);
+* ``kappa = skew_deg``: the images of the optical axes are ``90 + kappa`` degrees apart;
+* ``a = anisotropy``: a detector pixel spans ``a`` times more sky along y than along x;
+* ``s = scale``: magnification relative to the mean pixel scale.
+
+``det G = s^2 cos(kappa)``; the resampling divides by it, so flux is conserved.
+:func:`amigo.instrument.geometry_parameters` inverts the map. The nominal ``G`` is
+derived from the SIAF (:func:`amigo.instrument.nominal_geometry_matrix`): rotation
+-0.444 deg (clockwise), anisotropy 1.0060, skew -0.259 deg, scale 1.00001 for NIS_AMI1.
+(The AMIGO research code's "+0.561 deg" is the SIAF's V3IdlYAngle applied to the
+*coordinates* in its resampler, i.e. the image turned the other way; docs/geometry.md.)
 """
 
 from __future__ import annotations
@@ -40,29 +54,54 @@ from amigo import instrument
 from amigo.optics.propagation import keys_cubic
 
 MAS_PER_ARCSEC = 1000.0
+#: Order of the geometry vector of :meth:`LinearDetector.geometry` (fits and files).
+GEOMETRY_NAMES = ("rotation_deg", "anisotropy", "skew_deg", "scale")
 
 
-def geometry_matrix(rotation_deg: Array | float, anisotropy: Array | float) -> Float[Array, "2 2"]:
-    """(2, 2) matrix ``G``: optical offset (mean pixels) -> detector offset (pixels)."""
-    phi = jnp.deg2rad(rotation_deg)
-    c, s = jnp.cos(phi), jnp.sin(phi)
-    root = jnp.sqrt(anisotropy)
-    return jnp.array([[root * c, -root * s], [s / root, c / root]])
+def geometry_matrix(
+    rotation_deg: Array | float,
+    anisotropy: Array | float,
+    skew_deg: Array | float = 0.0,
+    scale: Array | float = 1.0,
+) -> Float[Array, "2 2"]:
+    """(2, 2) matrix ``G``: optical offset (mean pixels) -> detector offset (pixels).
 
-
-def gaussian_blur(image: Float[Array, "n m"], sigma_px: Array | float, radius: int) -> Array:
-    """Separable Gaussian blur of the last two axes (taps ``-radius..radius``, unit sum).
-
-    Zero outside the array. With the normalised taps, the total is conserved wherever the
-    image is negligible within ``radius`` of its edges.
+    See the module notes for the definition of the four numbers; with ``skew_deg = 0``
+    and ``scale = 1`` it is ``D(a) R(phi)``, a rotation followed by an area-preserving
+    stretch along the detector axes.
     """
-    k = jnp.arange(-radius, radius + 1, dtype=image.dtype)
-    taps = jnp.exp(-0.5 * (k / sigma_px) ** 2)
-    taps = taps / jnp.sum(taps)
+    # Plain numbers give a NumPy matrix: evaluated op by op, JAX compiles every primitive
+    # (seconds on a small CPU) for what is a constant.
+    values = (rotation_deg, anisotropy, skew_deg, scale)
+    xp = np if all(isinstance(v, float | int | np.floating | np.ndarray) for v in values) else jnp
+    half = 0.5 * xp.deg2rad(skew_deg)
+    phi = xp.deg2rad(rotation_deg)
+    root = xp.sqrt(anisotropy)
+    k = xp.array(
+        [[xp.cos(phi - half), -xp.sin(phi + half)], [xp.sin(phi - half), xp.cos(phi + half)]]
+    )
+    return scale * xp.array([[root], [1.0 / root]]) * k
+
+
+@eqx.filter_jit
+def fourier_gaussian_blur(image: Float[Array, "... n m"], sigma: Array | float, pad: int) -> Array:
+    """Gaussian blur (sigma in samples, any value >= 0) of the last two axes.
+
+    Multiplies the spectrum by the Gaussian's transfer function
+    ``exp(-2 pi^2 sigma^2 f^2)``: the exact convolution of the band-limited interpolant of
+    the samples, smooth in ``sigma`` (so a fit can move it through 0), conserving the sum
+    exactly. ``pad`` zero samples on each side keep the circular convolution from wrapping
+    light across the edges.
+    """
     n, m = image.shape[-2:]
-    padded = jnp.pad(image, [(0, 0)] * (image.ndim - 2) + [(radius, radius), (radius, radius)])
-    rows = sum(taps[i] * padded[..., :, i : i + m] for i in range(2 * radius + 1))
-    return sum(taps[i] * rows[..., i : i + n, :] for i in range(2 * radius + 1))
+    widths = [(0, 0)] * (image.ndim - 2) + [(pad, pad), (pad, pad)]
+    padded = jnp.pad(image, widths)
+    fy = jnp.fft.fftfreq(n + 2 * pad)[:, None]
+    fx = jnp.fft.rfftfreq(m + 2 * pad)[None, :]
+    transfer = jnp.exp(-2.0 * jnp.pi**2 * jnp.square(sigma) * (fx**2 + fy**2))
+    spectrum = jnp.fft.rfft2(padded) * transfer.astype(padded.dtype)
+    blurred = jnp.fft.irfft2(spectrum, s=padded.shape[-2:])
+    return blurred[..., pad : pad + n, pad : pad + m].astype(image.dtype)
 
 
 def displacement_reach(matrix: np.ndarray, shape: tuple[int, int]) -> int:
@@ -90,13 +129,21 @@ def _shift_along(image: Array, u: Array, axis: int, reach: int) -> Array:
     pad = [(0, 0)] * image.ndim
     pad[axis] = (reach, reach)
     padded = jnp.pad(image, pad)
+    taps = np.arange(-reach, reach + 1)
+    # The kernel's weights for every tap at once, (2 reach + 1, n, m): one copy of its
+    # piecewise polynomial in the graph, not one per tap (the graph's size sets the
+    # compile time, most of a CPU run's). The weighted sum stays a loop of slices, which
+    # XLA fuses into one pass; stacking the shifted copies would write them all to memory
+    # (per tangent, in a Jacobian: several times slower).
+    weights = keys_cubic(u - taps.reshape((-1,) + (1,) * u.ndim).astype(u.dtype))
     out = jnp.zeros_like(image)
-    for k in range(-reach, reach + 1):
+    for i, k in enumerate(taps):
         shifted = jax.lax.slice_in_dim(padded, reach + k, reach + k + n, axis=axis)
-        out = out + keys_cubic(u - k) * shifted
+        out = out + weights[i] * shifted
     return out
 
 
+@eqx.filter_jit
 def cubic_resample(
     image: Float[Array, "n m"], matrix: Float[Array, "2 2"], reach: int = 3
 ) -> Float[Array, "n m"]:
@@ -127,6 +174,7 @@ def cubic_resample(
     return _shift_along(_shift_along(image, ux, -1, reach), uy, -2, reach)
 
 
+@eqx.filter_jit
 def bin_pixels(image: Float[Array, "... n m"], factor: int) -> Float[Array, "... n/f m/f"]:
     """Sum ``factor x factor`` blocks of the last two axes."""
     n, m = image.shape[-2:]
@@ -135,22 +183,24 @@ def bin_pixels(image: Float[Array, "... n m"], factor: int) -> Float[Array, "...
 
 
 class LinearDetector(eqx.Module):
-    """Jitter, rotation/anisotropy resampling and binning of an oversampled illuminance.
+    """Jitter, geometric resampling and binning of an oversampled illuminance.
 
     Attributes
     ----------
     jitter_arcsec
-        Gaussian sigma of the instrumental jitter (arcsec; the paper finds ~0.021).
-    rotation_deg
-        Rotation ``phi`` of the image on the detector (see module notes).
-    anisotropy
-        y/x pixel-scale ratio ``a`` (see module notes).
+        Gaussian sigma of the instrumental jitter (arcsec; the paper finds ~0.021). Any
+        value >= 0; the blur depends on its square only.
+    rotation_deg, anisotropy, skew_deg, scale
+        The detector geometry ``G`` (see module notes; nominal values from the SIAF).
     oversample
         Sub-pixels per detector pixel per axis of the input illuminance.
     pixel_scale_arcsec
         Mean pixel scale (the optical grid's unit).
-    jitter_radius
-        Half width of the jitter kernel in sub-pixels (static; keep it >= 4 sigma).
+    ipc_kernel
+        (5, 5) IPC kernel applied to the binned image by :meth:`__call__`
+        (:func:`amigo.detector.read.default_ipc_kernel`), or ``None`` for none.
+    jitter_pad
+        Zero samples added on each side before the Fourier-space jitter blur (static).
     resample_reach
         Stencil reach of the resampling (static; see :func:`cubic_resample`).
     """
@@ -158,39 +208,78 @@ class LinearDetector(eqx.Module):
     jitter_arcsec: Float[Array, ""]
     rotation_deg: Float[Array, ""]
     anisotropy: Float[Array, ""]
+    skew_deg: Float[Array, ""]
+    scale: Float[Array, ""]
+    ipc_kernel: Float[Array, "5 5"] | None = None
     oversample: int = eqx.field(static=True, default=3)
     pixel_scale_arcsec: float = eqx.field(static=True, default=instrument.PIXEL_SCALE_ARCSEC)
-    jitter_radius: int = eqx.field(static=True, default=6)
+    jitter_pad: int = eqx.field(static=True, default=8)
     resample_reach: int = eqx.field(static=True, default=3)
 
     @classmethod
     def create(
         cls,
         jitter_arcsec: float = instrument.JITTER_SIGMA_ARCSEC,
-        rotation_deg: float = instrument.DETECTOR_ROTATION_DEG,
-        anisotropy: float = instrument.DETECTOR_ANISOTROPY,
+        rotation_deg: float | None = None,
+        anisotropy: float | None = None,
+        skew_deg: float | None = None,
+        scale: float | None = None,
         oversample: int = 3,
-        jitter_radius: int = 6,
+        jitter_pad: int = 8,
         npix: int = instrument.SUBARRAY_SIZE,
+        ipc: bool = True,
     ) -> LinearDetector:
-        """Detector with the given geometry; the resampling reach is sized for twice the
-        rotation and anisotropy given (so that a fit can move them), at least 3."""
-        with jax.ensure_compile_time_eval():  # a constant, even when built under jit
-            doubled = np.asarray(geometry_matrix(2 * rotation_deg, anisotropy**2))
+        """Detector with the given geometry (``None``: the SIAF-derived nominal value,
+        :func:`amigo.instrument.nominal_geometry`). The resampling reach is sized for a
+        geometry twice as far from the identity as the one given (so that a fit can move
+        it), and at least 3. ``ipc``: apply the default IPC kernel to binned images."""
+        from amigo.detector.read import default_ipc_kernel
+
+        nominal = instrument.nominal_geometry()
+        rotation = nominal.rotation_deg if rotation_deg is None else rotation_deg
+        aniso = nominal.anisotropy if anisotropy is None else anisotropy
+        skew = nominal.skew_deg if skew_deg is None else skew_deg
+        mag = nominal.scale if scale is None else scale
+        doubled = np.asarray(
+            geometry_matrix(
+                2 * float(rotation), float(aniso) ** 2, 2 * float(skew), float(mag) ** 2
+            )
+        )
         n = npix * oversample
         return cls(
             jnp.asarray(float(jitter_arcsec)),
-            jnp.asarray(float(rotation_deg)),
-            jnp.asarray(float(anisotropy)),
+            jnp.asarray(float(rotation)),
+            jnp.asarray(float(aniso)),
+            jnp.asarray(float(skew)),
+            jnp.asarray(float(mag)),
+            jnp.asarray(default_ipc_kernel()) if ipc else None,
             oversample=oversample,
-            jitter_radius=jitter_radius,
+            jitter_pad=jitter_pad,
             resample_reach=max(3, displacement_reach(np.asarray(doubled), (n, n))),
         )
+
+    def with_geometry(self, geometry: Float[Array, " 4"]) -> LinearDetector:
+        """This detector with ``geometry = [rotation_deg, anisotropy, skew_deg, scale]``
+        (:data:`GEOMETRY_NAMES`; differentiable)."""
+        g = jnp.asarray(geometry)
+        return eqx.tree_at(
+            lambda d: (d.rotation_deg, d.anisotropy, d.skew_deg, d.scale),
+            self,
+            (g[0], g[1], g[2], g[3]),
+        )
+
+    def with_jitter(self, jitter_arcsec: Array | float) -> LinearDetector:
+        """This detector with another jitter sigma (arcsec; differentiable)."""
+        return eqx.tree_at(lambda d: d.jitter_arcsec, self, jnp.asarray(jitter_arcsec))
+
+    def geometry(self) -> Float[Array, " 4"]:
+        """``[rotation_deg, anisotropy, skew_deg, scale]`` (:data:`GEOMETRY_NAMES`)."""
+        return jnp.stack([self.rotation_deg, self.anisotropy, self.skew_deg, self.scale])
 
     # ------------------------------------------------------------------ geometry
     def matrix(self) -> Float[Array, "2 2"]:
         """(2, 2) ``G``: optical offset (mean pixels) -> detector offset (pixels)."""
-        return geometry_matrix(self.rotation_deg, self.anisotropy)
+        return geometry_matrix(self.rotation_deg, self.anisotropy, self.skew_deg, self.scale)
 
     def optical_to_detector(self, position_arcsec: Float[Array, "... 2"]) -> Float[Array, "... 2"]:
         """Optical-frame offset ``(x, y)`` (arcsec) -> detector offset ``(dx, dy)`` (pixels)."""
@@ -215,15 +304,22 @@ class LinearDetector(eqx.Module):
         return self.optical_to_detector(position_arcsec) * scales
 
     # ------------------------------------------------------------------ image
+    @eqx.filter_jit
     def jitter(self, image: Float[Array, "n m"]) -> Float[Array, "n m"]:
         """Gaussian jitter blur on the oversampled optical grid."""
         sigma = self.jitter_arcsec * self.oversample / self.pixel_scale_arcsec
-        return gaussian_blur(image, sigma, self.jitter_radius)
+        return fourier_gaussian_blur(image, sigma, self.jitter_pad)
 
+    @eqx.filter_jit
     def resample(self, image: Float[Array, "n m"]) -> Float[Array, "n m"]:
-        """Optical oversampled grid -> detector oversampled grid (cubic, flux conserving)."""
-        return cubic_resample(image, self.matrix(), self.resample_reach)
+        """Optical oversampled grid -> detector oversampled grid (cubic, flux conserving:
+        the resampled samples are divided by ``det G``)."""
+        matrix = self.matrix()
+        return cubic_resample(image, matrix, self.resample_reach) / jnp.linalg.det(matrix)
 
+    # The image entry points are compiled as one program each: evaluated op by op the
+    # resampling costs a minute of per-primitive compilation on a 2-core CPU.
+    @eqx.filter_jit
     def illuminance(self, image: Float[Array, "n m"]) -> Float[Array, "n m"]:
         """Jittered, resampled illuminance on the detector's oversampled grid (unit flux).
 
@@ -231,14 +327,21 @@ class LinearDetector(eqx.Module):
         """
         return self.resample(self.jitter(image))
 
+    @eqx.filter_jit
     def __call__(self, image: Float[Array, "n m"], flux: Array | float) -> Float[Array, "n/o m/o"]:
-        """Detector image ``flux * bin(resample(jitter(image)))`` in pixels, e.g. (80, 80).
+        """Detector image ``IPC(flux * bin(resample(jitter(image))))`` in pixels, e.g.
+        (80, 80).
 
         ``image`` is a unit-flux oversampled illuminance (optical frame), e.g. from
         :meth:`amigo.optics.NRMOptics.illuminance`; ``flux`` sets the output's unit
         (photons, electrons or DN/s).
         """
-        return flux * bin_pixels(self.illuminance(image), self.oversample)
+        pixels = flux * bin_pixels(self.illuminance(image), self.oversample)
+        if self.ipc_kernel is None:
+            return pixels
+        from amigo.detector.read import convolve_ipc
+
+        return convolve_ipc(pixels, self.ipc_kernel.astype(pixels.dtype))
 
 
 def sky_to_optical_matrix(orientation, detector: LinearDetector) -> np.ndarray:

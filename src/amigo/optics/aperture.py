@@ -25,6 +25,7 @@ Conventions
 from __future__ import annotations
 
 import functools
+import math
 
 import equinox as eqx
 import jax
@@ -136,13 +137,48 @@ class PupilGrid(eqx.Module):
         return x, y
 
 
+def noll_indices(j: int) -> tuple[int, int]:
+    """Radial and azimuthal orders ``(n, m)`` of Noll's Zernike ``j >= 1`` (Noll 1976).
+
+    Row ``n`` holds ``n + 1`` modes, ordered by ``|m|`` (each ``m != 0`` twice); an even
+    ``j`` is the cosine mode (``m > 0``), an odd one the sine (``m < 0``): j = 2, 3 are
+    tip and tilt (n = 1, m = +-1), j = 4 defocus, j = 5, 6 astigmatism (m = -2, +2).
+    """
+    if j < 1:
+        raise ValueError(f"Noll index {j} < 1")
+    n, first = 0, 1
+    while first + n + 1 <= j:  # row n covers first .. first + n
+        first += n + 1
+        n += 1
+    orders = [abs_m for abs_m in range(n % 2, n + 1, 2) for _ in range(1 if abs_m == 0 else 2)]
+    abs_m = orders[j - first]
+    return n, (abs_m if j % 2 == 0 else -abs_m) if abs_m else 0
+
+
 @functools.cache
 def _zernike_factors(j: int) -> tuple[int, int, np.ndarray, np.ndarray]:
-    """Noll indices and radial-polynomial factors of mode ``j`` (constants, via dLux)."""
-    with jax.ensure_compile_time_eval():
-        n, m = dlu.noll_indices(j)
-        c, k = dlu.zernike_factors(j)
-        return int(n), int(m), np.asarray(c, dtype=float), np.asarray(k, dtype=float)
+    """``(n, m, c, k)`` of Noll mode ``j``: the radial polynomial is
+    ``R(rho) = sum_i c_i rho^(n - 2 k_i)`` with
+    ``c_k = (-1)^k (n - k)! / (k! ((n + |m|)/2 - k)! ((n - |m|)/2 - k)!)``, the
+    un-normalised form that :func:`dLux.utils.eval_radial` expects (the sqrt(n + 1)
+    normalisation is in ``eval_azimuthal``). Plain integers: computed this way once per
+    mode it costs microseconds, where dLux's traced factorials took seconds per mode."""
+    n, m = noll_indices(j)
+    a = abs(m)
+    k = np.arange((n - a) // 2 + 1)
+    c = np.array(
+        [
+            (-1) ** int(i)
+            * math.factorial(n - int(i))
+            / (
+                math.factorial(int(i))
+                * math.factorial((n + a) // 2 - int(i))
+                * math.factorial((n - a) // 2 - int(i))
+            )
+            for i in k
+        ]
+    )
+    return n, m, c, k.astype(float)
 
 
 def zernike_basis(
@@ -279,6 +315,23 @@ class Aperture(eqx.Module):
         return zernike_basis(grid, centres, radius_factor * self.circumradius_m, n_modes, support)
 
 
+@eqx.filter_jit
+def _render(
+    aperture: Aperture,
+    grid: PupilGrid,
+    n_modes: int,
+    radius_factor: float,
+    softening_px: float,
+    supersample: int,
+) -> tuple[Array, Array]:
+    """Hole transmissions and Zernike basis of ``aperture``, compiled as one program
+    (evaluated op by op they took two minutes on a 2-core CPU, for a 64-pixel pupil)."""
+    return (
+        aperture.hole_transmissions(grid, softening_px, supersample),
+        aperture.zernike_basis(grid, n_modes, radius_factor),
+    )
+
+
 class StaticAperture(eqx.Module):
     """Precomputed mask (the fast path): hole transmissions and Zernike basis as arrays.
 
@@ -300,10 +353,8 @@ class StaticAperture(eqx.Module):
         softening_px: float,
         supersample: int = 1,
     ) -> StaticAperture:
-        return cls(
-            holes=aperture.hole_transmissions(grid, softening_px, supersample),
-            basis=aperture.zernike_basis(grid, n_modes, radius_factor),
-        )
+        holes, basis = _render(aperture, grid, n_modes, radius_factor, softening_px, supersample)
+        return cls(holes=holes, basis=basis)
 
     def hole_transmissions(
         self, grid: PupilGrid, softening_px: float = 1.0, supersample: int = 1

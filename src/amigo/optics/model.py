@@ -187,6 +187,7 @@ class NRMOptics(eqx.Module):
         return eqx.tree_at(lambda o: o.aperture, self, static)
 
     # ------------------------------------------------------------------ pupil
+    @eqx.filter_jit
     def pupil(self) -> tuple[Float[Array, "ny nx"], Float[Array, "ny nx"]]:
         """Amplitude transmission and OPD (metres) on the pupil grid, each (ny, nx).
 
@@ -196,6 +197,7 @@ class NRMOptics(eqx.Module):
         amplitude, opd_m, _ = self._pupil_and_power()
         return amplitude, opd_m
 
+    @eqx.filter_jit
     def pupil_power(self) -> Float[Array, ""]:
         """Power through the mask in pupil pixels: ``sum_h a_h^2 * area_h / pixel^2``."""
         return self._pupil_and_power()[2]
@@ -223,6 +225,7 @@ class NRMOptics(eqx.Module):
         c = self.config
         return propagation.centred_axis(c.npix_psf, c.psf_pixel_rad, dtype=self.grid.x_m.dtype)
 
+    @eqx.filter_jit
     def focal_fields(
         self, wavelengths_m: Float[Array, " n"], position_arcsec: Float[Array, " 2"]
     ) -> Complex[Array, "n m m"]:
@@ -284,6 +287,7 @@ class NRMOptics(eqx.Module):
 
         return jax.vmap(one)(jnp.asarray(wavelengths_m))
 
+    @eqx.filter_jit
     def psfs(
         self, wavelengths_m: Float[Array, " n"], position_arcsec: Float[Array, " 2"]
     ) -> Float[Array, "n m m"]:
@@ -300,10 +304,14 @@ class NRMOptics(eqx.Module):
         re, im = self._fraunhofer_parts(wavelengths_m, position_arcsec)
         return re**2 + im**2
 
+    @eqx.filter_jit
     def integrate_pixels(self, image: Float[Array, "... m m"]) -> Float[Array, "... m m"]:
         """Point samples -> integrals over the oversampled sub-pixels (config method)."""
         return propagation.integrate_pixels(image, self.config.pixel_integration)
 
+    # Compiled as one program: evaluated op by op (outside a caller's jit) the optics
+    # cost minutes of per-primitive tracing on a 2-core CPU.
+    @eqx.filter_jit
     def illuminance(
         self, spectrum: AbstractSpectrum, position_arcsec: Float[Array, " 2"]
     ) -> Float[Array, "m m"]:
@@ -361,9 +369,20 @@ def defocus_opd_m(grid: PupilGrid, defocus_nm: Array, radius_m: float) -> Array:
 def cast(tree: Any, dtype: Any) -> Any:
     """Cast every floating-point array leaf of a pytree to ``dtype`` (e.g. float32)."""
 
+    target = np.dtype(dtype)
+
     def conv(leaf):
-        if isinstance(leaf, jax.Array | np.ndarray) and jnp.issubdtype(leaf.dtype, jnp.floating):
-            return jnp.asarray(leaf, dtype=dtype)
-        return leaf
+        if not isinstance(leaf, jax.Array | np.ndarray):
+            return leaf
+        if not jnp.issubdtype(leaf.dtype, jnp.floating):
+            return leaf
+        if isinstance(leaf, jax.Array) and leaf.dtype == target:
+            return leaf
+        if isinstance(leaf, jax.core.Tracer):
+            return leaf.astype(target)
+        # Through the host, not an XLA conversion: outside a jit every new shape would
+        # compile its own conversion program (0.3-1 s each on a 2-core CPU; a model has
+        # dozens of leaf shapes).
+        return jnp.asarray(np.asarray(leaf).astype(target))
 
     return jax.tree.map(conv, tree)

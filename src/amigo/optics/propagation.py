@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import functools
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Complex, Float
@@ -29,6 +30,7 @@ def centred_axis(n: int, pitch: float | Array, dtype=None) -> Array:
     return (jnp.arange(n, dtype=dtype) - 0.5 * (n - 1)) * pitch
 
 
+@eqx.filter_jit
 def mft(
     field: Complex[Array, "ny nx"],
     x_m: Float[Array, " nx"],
@@ -48,6 +50,7 @@ def mft(
     return ty @ (field @ tx.T)
 
 
+@eqx.filter_jit
 def mft_symmetric(
     field_re: Float[Array, "ny nx"],
     field_im: Float[Array, "ny nx"],
@@ -95,6 +98,7 @@ def mft_symmetric(
     return e_re, e_im
 
 
+@eqx.filter_jit
 def fresnel_defocus(
     field: Complex[Array, "m m"],
     pixel_rad: float,
@@ -213,6 +217,7 @@ def separable_filter(image: Float[Array, "... n m"], taps: np.ndarray) -> Array:
     return sum(float(w) * rows[..., i : i + n, :] for i, w in enumerate(taps))
 
 
+@eqx.filter_jit
 def integrate_pixels(image: Float[Array, "... n m"], method: str = "fir") -> Array:
     """Turn point samples of an oversampled intensity into integrals over sub-pixels.
 

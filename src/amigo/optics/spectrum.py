@@ -46,12 +46,20 @@ class LinearSpectrum(AbstractSpectrum):
         ``m``, the fractional change of the SED per micron of wavelength. The weights
         stay positive for ``|m| < 1 / (half band width in um)`` (about 7 per um for the
         medium-band filters); the model does not clip them, to keep gradients exact.
+    taper_per_um2
+        ``tau``, a calibratable correction of the band's shape: the weights are multiplied
+        by ``exp(-tau (lambda - lambda_c)^2)`` (lambda in um). ``tau > 0`` narrows the
+        effective band (its rms width by a fraction ~``0.43 tau s^2`` for a band of rms
+        width ``s`` um: measured 3.4 % for ``tau = 20`` in F430M, 7.8 % in F480M), ``tau <
+        0`` widens it. It absorbs what the filter curve, the detector QE and the star's
+        spectrum do not describe.
     """
 
     wavelengths_m: Float[Array, " n"]
     filter_weights: Float[Array, " n"]
     central_wavelength_m: Float[Array, ""]
     slope_per_um: Float[Array, ""]
+    taper_per_um2: Float[Array, ""] | float = 0.0
 
     @classmethod
     def from_filter(cls, name: str, n_wavelengths: int = 9, slope_per_um: float = 0.0):
@@ -69,7 +77,8 @@ class LinearSpectrum(AbstractSpectrum):
         return 1.0 + self.slope_per_um * (self.wavelengths_m - self.central_wavelength_m) / M_PER_UM
 
     def weights(self) -> Float[Array, " n"]:
-        w = self.filter_weights * self.sed()
+        offset_um = (self.wavelengths_m - self.central_wavelength_m) / M_PER_UM
+        w = self.filter_weights * self.sed() * jnp.exp(-self.taper_per_um2 * offset_um**2)
         return w / jnp.sum(w)
 
 

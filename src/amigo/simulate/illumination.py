@@ -139,17 +139,11 @@ def _hexagon_transform_real(qx: np.ndarray, qy: np.ndarray, vertices_m: np.ndarr
 def detector_to_optical_matrix_rad() -> np.ndarray:
     """2x2 matrix mapping a detector offset (pixels, [dx, dy]) to an optical angle (rad).
 
-    The convention of :mod:`amigo.detector.linear`: an optical offset ``p`` in units of
-    the mean pixel scale lands at the detector offset ``d = S(a) R(phi) p`` with
-    ``R(phi)`` the rotation by :data:`amigo.instrument.DETECTOR_ROTATION_DEG` and
-    ``S(a) = diag(a^(1/2), a^(-1/2))``, ``a`` = :data:`amigo.instrument.DETECTOR_ANISOTROPY`
-    (written out here with NumPy so the analytic model needs no JAX).
+    The inverse of the SIAF-derived geometry ``G`` of :mod:`amigo.detector.linear`
+    (:func:`amigo.instrument.nominal_geometry_matrix`; NumPy, so the analytic model
+    needs no JAX), times the mean pixel scale.
     """
-    phi = np.deg2rad(instrument.DETECTOR_ROTATION_DEG)
-    root = np.sqrt(instrument.DETECTOR_ANISOTROPY)
-    geometry = np.diag([root, 1.0 / root]) @ np.array(
-        [[np.cos(phi), -np.sin(phi)], [np.sin(phi), np.cos(phi)]]
-    )
+    geometry = instrument.nominal_geometry_matrix()
     return np.linalg.inv(geometry) * instrument.PIXEL_SCALE_ARCSEC * RAD_PER_ARCSEC
 
 

@@ -24,7 +24,6 @@ for every source and exposure.
 from __future__ import annotations
 
 import functools
-import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -69,9 +68,8 @@ class OpticalModelIllumination:
         return {
             "model": "amigo.optics",
             "description": "NRMOptics (sampled soft-edged pupil, 10 Zernikes per hole, MFT, "
-            "Fresnel defocus, pixel integration) + LinearDetector (jitter, rotation "
-            f"{instrument.DETECTOR_ROTATION_DEG} deg, anisotropy "
-            f"{instrument.DETECTOR_ANISOTROPY})",
+            "Fresnel defocus, pixel integration) + LinearDetector (jitter; SIAF-derived "
+            f"geometry {instrument.nominal_geometry()})",
             "n_wavelengths": self.n_wavelengths,
             "pupil_npix": self.pupil_npix,
             "pixel_integration": self.pixel_integration,
@@ -103,12 +101,7 @@ class OpticalModelIllumination:
                 defocus_nm=float(state.defocus_nm.get(filter_name, 0.0)),
                 static=True,
             )
-            sigma_sub = state.jitter_mas / 1000.0 / instrument.PIXEL_SCALE_ARCSEC * k
-            detector = LinearDetector.create(
-                jitter_arcsec=state.jitter_mas / 1000.0,
-                oversample=k,
-                jitter_radius=max(2, math.ceil(5 * sigma_sub)),
-            )
+            detector = LinearDetector.create(jitter_arcsec=state.jitter_mas / 1000.0, oversample=k)
             spectrum = LinearSpectrum.from_filter(filter_name, self.n_wavelengths)
             render = _compiled_render()
             rate = np.zeros((n * k, n * k))
