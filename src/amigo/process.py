@@ -8,6 +8,9 @@ For each pixel of an exposure of ``N`` integrations of ``G`` groups this module
 2. marks the groups that cannot be used: saturated (``raw >= saturation_dn``, or a GROUPDQ
    ``SATURATED`` flag), or flagged ``DO_NOT_USE`` / ``DROPOUT`` in GROUPDQ; such a group
    and every later group of that integration are dropped;
+   optionally (``ProcessSettings.one_over_f = "stripes"``, the ``amigo process`` default)
+   removes the 1/f column stripes, per integration and group difference, measured on the
+   faint pixels (:func:`remove_stripes`; docs/process.md, "1/f noise");
 3. rejects outliers along the integration axis, first on the ramps, group by group, then on
    the slopes (group differences), slope by slope, at ``nsigma`` robust standard deviations
    from a robust centre (median and 1.4826 x MAD). A rejected ramp value or slope removes
@@ -50,8 +53,9 @@ docs/process.md gives the derivation and the Monte Carlo check.
 Streaming, and why it equals the in-memory algorithm
 ----------------------------------------------------
 The only quantities that couple integrations are the clipping thresholds (per pixel, group
-and slope: centre and scale) and the sums behind the means and covariances. We compute the
-thresholds first, from a *threshold sample*: at most :attr:`ProcessSettings.max_sample_ints`
+and slope: centre and scale), the 1/f :class:`StripeModel` when stripes are removed, and
+the sums behind the means and covariances. We compute the stripe model and the thresholds
+first, from a *threshold sample*: at most :attr:`ProcessSettings.max_sample_ints`
 integrations spread evenly over the exposure (all of them when the exposure is small). Once
 the thresholds are fixed, whether integration ``i`` keeps group ``g`` depends on integration
 ``i`` alone, so a second pass over the integrations, chunk by chunk, makes exactly the
@@ -149,6 +153,34 @@ BAD_REASONS: dict[int, str] = {
     BAD_NO_NOISE: "no noise",
 }
 
+#: Treatments of 1/f noise (:attr:`ProcessSettings.one_over_f`, ``--one-over-f``):
+#: ``stripes`` removes each column's offset per integration and group difference
+#: (:func:`remove_stripes`), ``none`` leaves the data alone.
+ONE_OVER_F_METHODS: tuple[str, ...] = ("none", "stripes")
+
+#: A pixel is a stripe pixel (used to measure its column's 1/f offset) when it is a
+#: reference row or its slope (median over the threshold sample, DN per group) is below
+#: this. Its signal must be the same in every group difference; the quadratic
+#: non-linearity changes a 20 DN/group slope by ~0.01 DN/group over 10 groups.
+STRIPE_MAX_SIGNAL_DN: float = 20.0
+#: A stripe pixel is left out of an integration's estimate when one of its mean-free
+#: slopes lies further than this many of its noise scales from a first estimate of its
+#: column's offsets (cosmic rays, telegraph noise) ...
+STRIPE_NSIGMA: float = 4.0
+#: ... and out of that first estimate when one lies further than this many scales (the
+#: stripes included) from zero.
+STRIPE_OUTLIER_NSIGMA: float = 8.0
+#: Fewest stripe pixels for a column's own estimate; a column with fewer, in some
+#: integration, takes the mean of the other columns' offsets (the frame's common mode).
+STRIPE_MIN_PIXELS: int = 3
+#: Stripe pixels noisier than this times the median of their noise scales (hot, noisy or
+#: telegraph pixels) are not used.
+STRIPE_MAX_NOISE_RATIO: float = 2.0
+#: Integrations of the threshold sample (evenly spread) that :func:`fit_stripe_model`
+#: uses: enough for the pixels' scales (MAD of >= 100 values) and the stripes' variance
+#: (pooled over all columns), and a bounded cost.
+STRIPE_FIT_INTS: int = 100
+
 
 @dataclass(frozen=True)
 class ProcessSettings:
@@ -181,6 +213,13 @@ class ProcessSettings:
         Add the first-order effect of the data-derived clipping bands to the covariances
         (:func:`clipping_influence`); ``False`` gives the plain covariance of the kept
         values (the paper's estimator, 8-18 % too small in our simulations).
+    one_over_f
+        Treatment of 1/f noise, one of :data:`ONE_OVER_F_METHODS`: ``"stripes"`` removes
+        the column stripes before clipping (:func:`remove_stripes`, docs/process.md
+        "1/f noise"). The library default ``"none"`` keeps earlier results unchanged;
+        ``amigo process`` defaults to ``"stripes"``.
+    stripe_max_signal_dn
+        Slope (DN per group) below which a pixel helps measure its column's stripes.
     """
 
     nsigma: float = 3.0
@@ -193,8 +232,15 @@ class ProcessSettings:
     max_sample_values: int = 2**23
     chunk_values: int = 2**22
     covariance_correction: bool = True
+    one_over_f: str = "none"
+    stripe_max_signal_dn: float = STRIPE_MAX_SIGNAL_DN
 
     def __post_init__(self) -> None:
+        if self.one_over_f not in ONE_OVER_F_METHODS:
+            raise ValueError(
+                f"one_over_f must be one of {', '.join(ONE_OVER_F_METHODS)}, "
+                f"got {self.one_over_f!r}"
+            )
         if not self.nsigma > 0:
             raise ValueError(f"nsigma must be positive, got {self.nsigma}")
         if self.min_support < 2:
@@ -624,6 +670,285 @@ def clipping_influence(
 
 
 # --------------------------------------------------------------------------------------
+# 1/f noise: column stripes
+# --------------------------------------------------------------------------------------
+
+
+def _mean_free(slopes_dn: np.ndarray) -> np.ndarray:
+    """Each pixel's group differences minus their mean over the differences (axis 1)."""
+    return slopes_dn - slopes_dn.mean(axis=1, keepdims=True)
+
+
+def _pixel_scale(values: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """(ny, nx) Gaussian-equivalent scale (1.4826 MAD) of a pixel's ``values`` (n, k, ny,
+    nx) over the integrations where ``ok`` (n, ny, nx); NaN where none. Not floored."""
+    n, k = values.shape[:2]
+    masked = np.where(ok[:, None], values, np.nan).reshape(n * k, *values.shape[2:])
+    with np.errstate(invalid="ignore"):
+        centre = _nanmedian0(masked)
+        count = np.sum(np.isfinite(masked), axis=0)
+        return MAD_TO_SIGMA * mad_consistency_factor(count) * _nanmedian0(np.abs(masked - centre))
+
+
+def stripe_offsets(
+    slopes_dn: np.ndarray,
+    pixel_ok: np.ndarray,
+    weight: np.ndarray,
+    scale_dn: np.ndarray,
+    limit_dn: np.ndarray,
+    nsigma: float = STRIPE_NSIGMA,
+    min_pixels: int = STRIPE_MIN_PIXELS,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Measure the 1/f offset of every column, per integration and group difference.
+
+    SUB80 is read column by column, so 1/f noise adds one offset per column, group and
+    integration: vertical stripes. A pixel's signal is the same in every group difference
+    of an integration, so its differences minus their mean over the differences (its
+    *mean-free slopes*) hold no signal, only noise and its column's offsets minus their
+    mean over the differences. A column's offsets are the weighted mean of the mean-free
+    slopes of its stripe pixels, computed twice: first over the pixels whose mean-free
+    slopes all lie within ``limit_dn`` of zero (gross outliers out), then over those whose
+    mean-free slopes all lie within ``nsigma * scale_dn`` of the first mean. The offsets'
+    own mean over the differences, ``(f[G-1] - f[0]) / (G - 1)`` for per-group offsets
+    ``f``, cannot be measured this way.
+
+    Parameters
+    ----------
+    slopes_dn
+        (n, G-1, ny, nx) group differences of the ADC-corrected ramps, DN per group.
+    pixel_ok
+        (n, ny, nx) bool: every group of the pixel is usable in that integration.
+    weight
+        (ny, nx) weight of each stripe pixel, DN^-2 (0: not one).
+    scale_dn
+        (ny, nx) noise scale of each stripe pixel's mean-free slopes, DN per group.
+    limit_dn
+        (ny, nx) largest mean-free slope (absolute, DN per group) of a pixel in the first
+        mean; it must allow for the stripes themselves.
+    nsigma
+        Clipping threshold of the second mean, in ``scale_dn``.
+    min_pixels
+        Fewest kept pixels for a column's own estimate.
+
+    Returns
+    -------
+    offsets
+        (n, G-1, nx) column offsets, DN per group, summing to zero over the differences.
+        A column with fewer than ``min_pixels`` kept pixels in an integration gets the
+        mean of the other columns' offsets (the frame's common mode; 0 if there are none).
+    keep
+        (n, ny, nx) bool: the pixels each integration's offsets were computed from.
+    """
+    slopes = np.asarray(slopes_dn, dtype=np.float64)
+    use = np.asarray(pixel_ok, dtype=bool) & (np.asarray(weight) > 0)[None]
+    free = _mean_free(slopes)  # a new array: modified in place below
+    np.copyto(free, 0.0, where=~use[:, None])  # no NaN from unused pixels
+
+    def average(keep: np.ndarray) -> np.ndarray:
+        w = np.where(keep, weight, 0.0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.einsum("iyx,ikyx->ikx", w, free) / w.sum(axis=1)[:, None]
+
+    work = np.abs(free)
+    keep = use & np.all(work <= limit_dn, axis=1)
+    first = np.nan_to_num(average(keep))
+    np.subtract(free, first[:, :, None, :], out=work)
+    with np.errstate(invalid="ignore"):
+        keep &= np.all(np.abs(work, out=work) <= nsigma * scale_dn, axis=1)
+    offsets = average(keep)
+    own = keep.sum(axis=1) >= max(int(min_pixels), 2)  # (n, nx)
+    n_own = own.sum(axis=1)
+    common = np.where(own[:, None], offsets, 0.0).sum(axis=2) / np.maximum(n_own, 1)[:, None]
+    return np.where(own[:, None], offsets, common[:, :, None]), keep
+
+
+@dataclass(frozen=True)
+class StripeModel:
+    """What :func:`remove_stripes` needs to know about an exposure (from the threshold
+    sample, :func:`fit_stripe_model`).
+
+    Attributes
+    ----------
+    weight
+        (ny, nx) weights of the stripe pixels, DN^-2: one over the square of their median
+        noise scale (0: not a stripe pixel).
+    scale_dn
+        (ny, nx) noise scale of each pixel's mean-free slopes once the stripes are
+        removed, DN per group (for the clipping).
+    limit_dn
+        (ny, nx) first-pass limit of :func:`stripe_offsets`: :data:`STRIPE_OUTLIER_NSIGMA`
+        times the scale of the mean-free slopes with the stripes in, DN per group.
+    gain
+        (nx,) factor applied to each column's measured offsets (0: nothing removed).
+    variance_dn2
+        Variance of the true column offsets (mean-free, per difference) estimated from
+        the sample, pooled over columns and differences, DN^2; 0 when none is detected.
+    noise_dn2
+        (nx,) mean variance of each column's measured offsets, DN^2 (NaN: not measured).
+    """
+
+    weight: np.ndarray
+    scale_dn: np.ndarray
+    limit_dn: np.ndarray
+    gain: np.ndarray
+    variance_dn2: float
+    noise_dn2: np.ndarray
+
+    @property
+    def active(self) -> bool:
+        """Whether :func:`remove_stripes` changes anything."""
+        return bool(np.any(self.gain > 0))
+
+    @property
+    def pixels_per_column(self) -> np.ndarray:
+        """(nx,) stripe pixels in each column."""
+        return np.count_nonzero(self.weight > 0, axis=0)
+
+
+def fit_stripe_model(
+    ramps_dn: np.ndarray,
+    usable: np.ndarray,
+    max_signal_dn: float = STRIPE_MAX_SIGNAL_DN,
+    nsigma: float = STRIPE_NSIGMA,
+) -> StripeModel:
+    """Choose the stripe pixels and the gains of :func:`remove_stripes` from a sample.
+
+    Stripe pixels are the reference rows and the pixels whose slope (the median over the
+    sample of the mean group difference) is below ``max_signal_dn``, and whose ``scale``,
+    the robust scale of the pixel's mean-free slopes once its column's offsets are removed
+    (1.4826 MAD over the sample), is at least :data:`MIN_SCALE_DN` (not dead) and at most
+    :data:`STRIPE_MAX_NOISE_RATIO` times the median (not hot or noisy). They all get the
+    same weight, ``1 / median scale^2``: their noise is the read noise give or take a few
+    per cent, and weights from each pixel's own scale, estimated from the same sample, are
+    noisy enough (20 % in scale for 30 integrations of 3 groups) to make the weighted
+    mean noisier than equal weights and its noise estimate too small by as much.
+
+    Each column's measured offset ``c = t + e`` is the true offset ``t`` plus the noise
+    ``e`` of the average; the gain ``var(t) / (var(t) + var(e))`` (the Wiener factor)
+    minimises the error of the removed ``gain * c``: close to 1 when the stripes dominate,
+    0 when there are none (nothing is then removed). ``var(e)`` is the variance of the
+    mean from the spread of the kept pixels about it (mean over the sample integrations),
+    ``var(t)`` the variance of ``c`` over the sample integrations minus ``var(e)``, pooled
+    over columns and differences. A column never measured gets the median gain.
+
+    At most :data:`STRIPE_FIT_INTS` integrations of the sample, evenly spread, are used.
+
+    Parameters
+    ----------
+    ramps_dn, usable
+        (n, G, ny, nx) ADC-corrected ramps of the sample (DN) and their usable-group mask.
+    max_signal_dn
+        Slope (DN per group) below which a pixel is a stripe pixel.
+    nsigma
+        Clipping threshold of :func:`stripe_offsets`.
+
+    Returns
+    -------
+    StripeModel
+        Inactive (all gains 0) with fewer than 3 groups (one difference: no mean-free
+        slope) or fewer than 2 sample integrations.
+    """
+    ramps = np.asarray(ramps_dn, dtype=np.float64)
+    n, ngroups, ny, nx = ramps.shape
+    nan_map = np.full((ny, nx), np.nan)
+    inactive = StripeModel(np.zeros((ny, nx)), nan_map, nan_map, np.zeros(nx), 0.0, nan_map[0])
+    if ngroups < 3 or n < 2:
+        return inactive
+    rows = np.unique(np.round(np.linspace(0, n - 1, min(n, STRIPE_FIT_INTS))).astype(np.int64))
+    n = rows.size
+    slopes = np.diff(ramps[rows], axis=1)
+    full = np.asarray(usable, dtype=bool)[rows, -1]  # usable groups form a prefix
+    with np.errstate(invalid="ignore"):
+        level = _nanmedian0(np.where(full, slopes.mean(axis=1), np.nan))
+        candidate = np.isfinite(level) & (
+            instrument.reference_row_mask(ny, nx) | (level < max_signal_dn)
+        )
+    free = _mean_free(slopes)
+
+    def weights(scale: np.ndarray) -> np.ndarray:
+        with np.errstate(invalid="ignore"):
+            live = candidate & (scale >= MIN_SCALE_DN)
+            if not np.any(live):
+                return np.zeros((ny, nx))
+            typical = float(np.median(scale[live]))
+            live &= scale <= STRIPE_MAX_NOISE_RATIO * typical
+        return np.where(live, 1.0 / typical**2, 0.0)
+
+    # The first scale includes the stripes (common to a column): it sets the outlier
+    # limit, and weights and clips a first estimate, which is removed for the final scale.
+    scale_all = _pixel_scale(free, full)
+    limit = STRIPE_OUTLIER_NSIGMA * scale_all
+    offsets, _ = stripe_offsets(slopes, full, weights(scale_all), scale_all, limit, nsigma)
+    scale = _pixel_scale(free - offsets[:, :, None, :], full)
+    weight = weights(scale)
+    offsets, keep = stripe_offsets(slopes, full, weight, scale, limit, nsigma)
+
+    # Variance of each column's estimate from the spread of its n kept pixels about it,
+    # sum w^2 (x - c)^2 / (sum w)^2 x n / (n - 1), averaged over the differences.
+    w = np.where(keep, weight, 0.0)
+    count = keep.sum(axis=1)  # (n, nx)
+    own = count >= max(STRIPE_MIN_PIXELS, 2)
+    resid = np.where(keep[:, None], free - offsets[:, :, None, :], 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        noise = (
+            np.einsum("iyx,ikyx->ix", w**2, resid**2)
+            / w.sum(axis=1) ** 2
+            * count
+            / ((ngroups - 1) * (count - 1))
+        )
+    n_own = own.sum(axis=0)  # (nx,)
+    measured = n_own >= 2
+    if not np.any(measured):
+        return inactive
+    values = np.where(own[:, None], offsets, 0.0)[:, :, measured]  # (n, G-1, m)
+    mask = own[:, None, measured]
+    mean = values.sum(axis=0) / n_own[measured]
+    var = (((values - mean) * mask) ** 2).sum(axis=0) / (n_own[measured] - 1)  # (G-1, m)
+    noise_col = np.full(nx, np.nan)
+    noise_col[measured] = np.where(own, noise, 0.0).sum(axis=0)[measured] / n_own[measured]
+    variance = max(0.0, float(np.mean(var - noise_col[measured])))
+    gain = np.zeros(nx)
+    if variance > 0:
+        gain[measured] = variance / (variance + noise_col[measured])
+        gain[~measured] = np.median(gain[measured])
+    return StripeModel(weight, scale, limit, gain, variance, noise_col)
+
+
+def remove_stripes(ramps_dn: np.ndarray, usable: np.ndarray, model: StripeModel) -> np.ndarray:
+    """Ramps with the 1/f column stripes removed (a new array; the input is unchanged).
+
+    The offsets of every column, integration and group difference
+    (:func:`stripe_offsets`, times the column's gain) are subtracted from the group
+    differences of every pixel of the column, i.e. their running sum from every ramp value
+    after the first group. Each integration is corrected from its own data and the
+    exposure's :class:`StripeModel`, so streaming over integrations gives the same result.
+
+    Parameters
+    ----------
+    ramps_dn
+        (n, G, ny, nx) ADC-corrected ramps, DN.
+    usable
+        (n, G, ny, nx) bool usable-group mask (a prefix per ramp).
+    model
+        From :func:`fit_stripe_model`.
+
+    Returns
+    -------
+    (n, G, ny, nx) corrected ramps, DN; the first group and each pixel's total rise
+    ``ramp[G-1] - ramp[0]`` are unchanged (the offsets sum to zero over the differences).
+    """
+    ramps = np.array(ramps_dn, dtype=np.float64)  # a copy
+    if not model.active or ramps.shape[1] < 3:
+        return ramps
+    full = np.asarray(usable, dtype=bool)[:, -1]
+    offsets, _ = stripe_offsets(
+        np.diff(ramps, axis=1), full, model.weight, model.scale_dn, model.limit_dn
+    )
+    ramps[:, 1:] -= np.cumsum(offsets * model.gain, axis=1)[:, :, None, :]
+    return ramps
+
+
+# --------------------------------------------------------------------------------------
 # The streaming driver
 # --------------------------------------------------------------------------------------
 
@@ -707,6 +1032,9 @@ class SlopeProduct:
     n_rejected_ramp, n_rejected_slope
         Ramp values / slopes lost to each clipping stage (counting a dropped rest of ramp),
         over all pixels and integrations.
+    stripes
+        The 1/f stripe correction applied (``settings.one_over_f == "stripes"``), else
+        ``None``.
     """
 
     slope_dn: np.ndarray
@@ -722,6 +1050,7 @@ class SlopeProduct:
     n_sample: int
     n_rejected_ramp: int
     n_rejected_slope: int
+    stripes: StripeModel | None = None
 
     def reason_counts(self) -> dict[str, int]:
         """Number of bad pixels per reason (a pixel may count under several)."""
@@ -805,6 +1134,10 @@ def process_ramps(
         raise ValueError(f"the source gave {start} integrations, expected {nints}")
     sample_ramps, sample_usable = _prepare(sample_raw, sample_dq, settings)
     del sample_raw, sample_dq
+    stripes: StripeModel | None = None
+    if settings.one_over_f == "stripes":
+        stripes = fit_stripe_model(sample_ramps, sample_usable, settings.stripe_max_signal_dn)
+        sample_ramps = remove_stripes(sample_ramps, sample_usable, stripes)
     thresholds = estimate_thresholds(sample_ramps, sample_usable, settings.nsigma)
     del sample_ramps, sample_usable
 
@@ -815,6 +1148,8 @@ def process_ramps(
     n_rejected_ramp = n_rejected_slope = 0
     for raw, dq in wrap(source.chunks(chunk), nchunks, "means and covariances"):
         ramps, usable = _prepare(raw, dq, settings)
+        if stripes is not None:
+            ramps = remove_stripes(ramps, usable, stripes)
         t = thresholds
         keep_ramp = clip_ramps(ramps, usable, t.ramp_centre_dn, t.ramp_scale_dn, t.nsigma)
         slopes = np.diff(ramps, axis=1)
@@ -859,6 +1194,7 @@ def process_ramps(
         n_sample=int(wanted.size),
         n_rejected_ramp=n_rejected_ramp,
         n_rejected_slope=n_rejected_slope,
+        stripes=stripes,
     )
 
 

@@ -43,14 +43,29 @@ from amigo.errors import InputError
     type=click.FloatRange(min=0, min_open=True),
     help="Raw count at which a group is saturated [default: 65535, the ADC full scale].",
 )
+@click.option(
+    "--one-over-f",
+    "one_over_f",
+    default="stripes",
+    show_default=True,
+    type=click.Choice(["stripes", "none"]),
+    help="1/f noise: remove each column's offset per integration and group difference, "
+    "measured on the faint pixels and reference rows (stripes), or leave it (none).",
+)
 def command(
-    uncal: tuple[Path, ...], out_dir: Path, sigma: float, no_adc: bool, saturation_dn: float | None
+    uncal: tuple[Path, ...],
+    out_dir: Path,
+    sigma: float,
+    no_adc: bool,
+    saturation_dn: float | None,
+    one_over_f: str,
 ) -> None:
     """Reduce raw ramps (uncal files) to mean slopes and their covariance (calslope files).
 
-    Corrects the ADC non-linearity, rejects outliers (cosmic rays) at SIGMA along the
-    integrations, first on the ramps then on the slopes, and writes means, covariances of
-    the means, supports and a bad-pixel map (docs/process.md).
+    Corrects the ADC non-linearity, removes 1/f column stripes, rejects outliers (cosmic
+    rays) at SIGMA along the integrations, first on the ramps then on the slopes, and
+    writes means, covariances of the means, supports and a bad-pixel map
+    (docs/process.md).
     """
     from amigo.io.calslope import calslope_name
     from amigo.process import SATURATION_DN, ProcessSettings, process_file
@@ -60,6 +75,7 @@ def command(
         nsigma=sigma,
         adc_correction=not no_adc,
         saturation_dn=SATURATION_DN if saturation_dn is None else saturation_dn,
+        one_over_f=one_over_f,
     )
     failed = 0
     claimed: dict[str, Path] = {}

@@ -4,7 +4,7 @@ Layout (the public contract of docs/interfaces; ``ng`` groups, ``(ny, nx)`` = (8
 
     PRIMARY    the uncal primary header + AMIGOVER, ADC_CORR (T/F), NSIGCLIP, and the
                processing record (SATLEVEL, MINSUP, CLIPSAMP, NREJRAMP, NREJSLOP, NBADPIX,
-               UNCALFIL)
+               UNCALFIL, ONEOVERF: the 1/f treatment, absent from older files = none)
     SLOPE      float32 (ng-1, ny, nx)        mean group differences, DN per group; its
                header is the uncal SCI header (WCS and orientation keywords included)
     SLOPE_COV  float32 (ng-1, ng-1, ny, nx)  covariance of SLOPE, DN^2
@@ -171,6 +171,7 @@ def write_calslope(
     primary["NREJRAMP"] = (product.n_rejected_ramp, "ramp values dropped by ramp clipping")
     primary["NREJSLOP"] = (product.n_rejected_slope, "ramp values dropped by slope clipping")
     primary["NBADPIX"] = (int(np.count_nonzero(product.badpix)), "pixels flagged in BADPIX")
+    primary["ONEOVERF"] = (settings.one_over_f, "1/f noise: stripes removed, or none")
     if uncal_name is not None:
         primary["UNCALFIL"] = (uncal_name, "raw-ramp file processed")
 
