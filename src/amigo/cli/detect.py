@@ -192,8 +192,16 @@ def _detect(
         click.echo(
             f"companion {c.id}: sep {e.sep_mas:.2f}±{e.sep_err_mas:.2f} mas, "
             f"PA {e.pa_deg:.2f}±{e.pa_err_deg:.2f} deg, dmag {dmag}, "
-            f"{c.detection_sigma:.1f} sigma ({c.method})"
+            f"{c.detection_sigma:.1f} sigma ({c.method}"
+            + (
+                ""
+                if c.significance is None
+                else f"; false-alarm probability {c.significance.false_alarm_probability:.2g}"
+            )
+            + ")"
         )
+    for r in result.rejected:
+        click.echo(f"not a detection: {r.note}")
     scales = ", ".join(f"{f} {v:.2f}" for f, v in result.sigma_scale.items())
     click.echo(f"sigma_scale: {scales}")
     for message in result.warnings:

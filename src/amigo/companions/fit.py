@@ -22,6 +22,9 @@ from amigo.companions.observables import Dataset
 LOG10_CONTRAST_FLOOR = -10.0
 
 
+# Compiled as one program per dataset layout and companion count: evaluated op by op,
+# every primitive of every block is compiled on its own (minutes on a small CPU).
+@eqx.filter_jit
 def block_residuals(
     dataset: Dataset,
     offsets_mas: jax.Array,
@@ -218,11 +221,28 @@ def fit_companions(
     )
 
 
+def scaled_chi2(
+    dataset: Dataset,
+    offsets_mas: jax.Array,
+    contrasts: jax.Array,
+    group_scales: np.ndarray,
+    primary_diameter_mas: float = 0.0,
+) -> float:
+    """chi2 of a scene (companions at ``offsets_mas`` (n, 2) with linear ``contrasts``
+    (n, F)) with every group's errors multiplied by its scale (summed in NumPy)."""
+    parts = block_residuals(dataset, offsets_mas, contrasts, primary_diameter_mas)
+    scales = dataset.scale_vectors(group_scales)
+    return float(
+        sum(
+            np.sum((np.asarray(r) / np.asarray(s)) ** 2) for r, s in zip(parts, scales, strict=True)
+        )
+    )
+
+
 def background_chi2(
     dataset: Dataset, group_scales: np.ndarray, primary_diameter_mas: float = 0.0
 ) -> float:
     """chi2 of the primary alone (no companion), with scaled errors."""
     empty = jnp.zeros((0, 2))
-    parts = block_residuals(dataset, empty, jnp.zeros((0, dataset.n_filters)), primary_diameter_mas)
-    scale_vectors = dataset.scale_vectors(group_scales)
-    return float(sum(jnp.sum((r / s) ** 2) for r, s in zip(parts, scale_vectors, strict=True)))
+    no_contrast = jnp.zeros((0, dataset.n_filters))
+    return scaled_chi2(dataset, empty, no_contrast, group_scales, primary_diameter_mas)

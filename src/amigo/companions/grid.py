@@ -25,10 +25,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy import ndimage, special, stats
+from scipy import ndimage
 
 from amigo.companions.models import MAS_TO_RAD, scene_terms
 from amigo.companions.observables import Dataset, Observables
+from amigo.companions.significance import log_chi2_sf, sigma_from_log_p
 
 #: Bounds of the contrast solved at each grid point (flux ratios).
 CONTRAST_BOUNDS: tuple[float, float] = (-0.5, 0.95)
@@ -155,13 +156,7 @@ def sigma_from_chi2(dchi2: np.ndarray | float, dof: int) -> np.ndarray:
     dchi2 = np.clip(np.asarray(dchi2, dtype=float), 0.0, None)
     if dof == 1:
         return np.sqrt(dchi2)
-    log_p = np.asarray(stats.chi2.logsf(dchi2, dof), dtype=float)
-    lost = ~np.isfinite(log_p)
-    if np.any(lost):
-        # Far tail, where SciPy underflows: Gamma(s, y) ~ y^(s-1) e^-y (1 + (s-1)/y).
-        s, y = 0.5 * dof, 0.5 * dchi2[lost]
-        log_p[lost] = (s - 1) * np.log(y) - y - special.gammaln(s) + np.log1p((s - 1) / y)
-    return np.clip(-special.ndtri_exp(log_p - np.log(2.0)), 0.0, None)
+    return sigma_from_log_p(log_chi2_sf(dchi2, dof))
 
 
 # ---------------------------------------------------------------------------- solver
@@ -172,14 +167,16 @@ class _Background(eqx.Module):
     denominators: tuple[jax.Array, ...]
 
 
-def _axis_phasors(block: Observables, axis_mas: np.ndarray, column: int) -> jax.Array:
-    """exp(-2 pi i b_axis * axis / lambda): (n_axis, n_uv, n_wl)."""
+def _axis_phasors(block: Observables, axis_mas: np.ndarray, column: int) -> np.ndarray:
+    """exp(-2 pi i b_axis * axis / lambda): (n_axis, n_uv, n_wl), in NumPy (the grid's
+    axes change size from one search step to the next, and eager JAX would compile its
+    operations again for every size)."""
     path = (
-        jnp.asarray(axis_mas)[:, None, None]
+        np.asarray(axis_mas, float)[:, None, None]
         * MAS_TO_RAD
-        * jnp.asarray(block.uv_m)[None, :, column, None]
+        * np.asarray(block.uv_m, float)[None, :, column, None]
     )
-    return jnp.exp(-2j * jnp.pi * path / jnp.asarray(block.wavelengths_m)[None])
+    return np.exp(-2j * np.pi * path / np.asarray(block.wavelengths_m, float)[None])
 
 
 def _gauss_newton(residual_and_jacobian, r0, n_steps):
@@ -321,8 +318,8 @@ def contrast_grid(
         r0 = jnp.concatenate(
             [b.residuals(t[0] / t[1]) / s for b, t, s in zip(blocks, terms, scales, strict=True)]
         )
-        y_ph = tuple(_axis_phasors(b, grid.y_mas, 1) for b in blocks)
-        x_ph = tuple(_axis_phasors(b, grid.x_mas, 0) * jnp.asarray(b.weights)[None] for b in blocks)
+        y_ph = tuple(jnp.asarray(_axis_phasors(b, grid.y_mas, 1)) for b in blocks)
+        x_ph = tuple(_axis_phasors(b, grid.x_mas, 0) * np.asarray(b.weights)[None] for b in blocks)
         n_uv = sum(b.n_uv for b in blocks)
         n_x = grid.x_mas.size
         step = chunk_columns or max(1, min(n_x, int(2e5 // (n_uv * grid.y_mas.size)) or 1))
@@ -330,7 +327,7 @@ def contrast_grid(
         for start in range(0, n_x, step):
             stop = min(start + step, n_x)
             pad = step - (stop - start)  # keep one compiled shape for every chunk
-            xs = tuple(jnp.pad(x[start:stop], ((0, pad), (0, 0), (0, 0))) for x in x_ph)
+            xs = tuple(jnp.asarray(np.pad(x[start:stop], ((0, pad), (0, 0), (0, 0)))) for x in x_ph)
             c, sigma, dchi2 = _solve_chunk(blocks, background, scales, r0, xs, y_ph, n_steps)
             outputs.append([np.asarray(a)[:, : stop - start] for a in (c, sigma, dchi2)])
         c, sigma, dchi2 = (np.concatenate([o[k] for o in outputs], axis=1) for k in range(3))

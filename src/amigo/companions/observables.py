@@ -471,7 +471,7 @@ class Dataset(eqx.Module):
         return Dataset.from_blocks([b for b in self.blocks if b.filter_name == filter_name])
 
     def scale_vectors(self, group_scales: Array | np.ndarray) -> tuple[Array, ...]:
-        """Per-block (n_obs,) error-scale vectors from (n_groups,) group scales."""
-        return tuple(
-            jnp.asarray(group_scales)[self.group_index(i)] for i in range(len(self.blocks))
-        )
+        """Per-block (n_obs,) error-scale vectors from (n_groups,) group scales (NumPy in,
+        NumPy out: an eager JAX gather would be compiled for every block's shape)."""
+        scales = group_scales if isinstance(group_scales, Array) else np.asarray(group_scales)
+        return tuple(scales[self.group_index(i)] for i in range(len(self.blocks)))

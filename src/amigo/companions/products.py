@@ -2,8 +2,10 @@
 
 The keys of ``companions.json`` listed in the project's interfaces are a public contract;
 amigo adds (never removes) keys: per-companion ``dra_err_mas``, ``ddec_err_mas``,
-``per_filter``; top-level ``sigma_scale_by_kind``, ``photon_count``, ``search``, ``hmc``,
-``warnings``, ``sky_convention``. See docs/detect.md.
+``per_filter``, ``local_sigma``, ``false_alarm_probability``; top-level
+``rejected_candidates`` (above the threshold but inside the inner working angle or with
+contrasts no spectrum has), ``sigma_scale_by_kind``, ``photon_count``, ``search``,
+``hmc``, ``warnings``, ``sky_convention``. See docs/detect.md.
 """
 
 from __future__ import annotations
@@ -32,6 +34,12 @@ def _r(x: float, digits: int = 4) -> float | None:
     return round(x, digits) if np.isfinite(x) else None
 
 
+def _significant(x: float) -> float | None:
+    """A probability to three significant figures (null if not finite)."""
+    x = float(x)
+    return float(f"{x:.3g}") if np.isfinite(x) else None
+
+
 def _estimate_dict(e: Estimate) -> dict[str, Any]:
     return {
         "sep_mas": _r(e.sep_mas),
@@ -57,9 +65,26 @@ def companions_document(result: DetectionResult, inputs: list[str]) -> dict[str,
             "detection_sigma": _r(c.detection_sigma, 2),
             "method": c.method,
         }
+        if c.significance is not None:
+            entry["local_sigma"] = _r(c.significance.local_sigma, 2)
+            entry["false_alarm_probability"] = _significant(c.significance.false_alarm_probability)
         if c.per_filter:
             entry["per_filter"] = {f: _estimate_dict(e) for f, e in c.per_filter.items()}
         companions.append(entry)
+    rejected = [
+        {
+            **_estimate_dict(r.estimate),
+            "reason": r.reason,
+            "detection_sigma": _r(r.significance.sigma, 2),
+            "local_sigma": _r(r.significance.local_sigma, 2),
+            "false_alarm_probability": _significant(r.significance.false_alarm_probability),
+            "spectrum_chi2": None if r.spectrum is None else _r(r.spectrum.chi2, 2),
+            "spectrum_dof": None if r.spectrum is None else r.spectrum.dof,
+            "spectrum_p": None if r.spectrum is None else _significant(r.spectrum.p_value),
+            "note": r.note,
+        }
+        for r in result.rejected
+    ]
     limits = {
         curve.filter_name: {
             "sep_mas": [_r(x, 2) for x in curve.sep_mas],
@@ -76,6 +101,7 @@ def companions_document(result: DetectionResult, inputs: list[str]) -> dict[str,
         "inputs": [os.path.basename(p) for p in inputs],
         "filters": list(result.dataset.filters),
         "companions": companions,
+        "rejected_candidates": rejected,
         "sigma_scale": {f: _r(v) for f, v in result.sigma_scale.items()},
         "sigma_scale_by_kind": {
             f: {k: _r(v) for k, v in d.items()} for f, d in result.sigma_scale_by_kind.items()
@@ -96,6 +122,8 @@ def companions_document(result: DetectionResult, inputs: list[str]) -> dict[str,
             "step_mas": _r(result.grid.step_mas),
             "inner_working_angle_mas": _r(result.detection_maps[0].iwa_mas, 2),
             "threshold_sigma": result.settings.threshold_sigma,
+            "threshold_is": "global significance (trials of the grid included)",
+            "trials": _r(result.trials, 1),
             "iterations": len(result.detection_maps),
             "max_joint_sigma_per_iteration": [
                 _r(float(np.max(m.joint_significance)), 2) for m in result.detection_maps

@@ -11,16 +11,19 @@
    observable kind, ``max(1, sqrt(chi2 / N))`` of the scene *with* the candidate: data
    that scatter more than their errors do not produce detections, and errors are never
    shrunk to make one.
-4. Accept the candidate if it exceeds the threshold, refit all companions jointly and go
-   back to 1; otherwise stop.
+4. **Detection** (:mod:`~amigo.companions.significance`): the candidate's significance is
+   corrected for the trials of the grid (its false-alarm probability anywhere in the
+   searched field) and must reach the threshold; a candidate that the joint fit places
+   inside the inner working angle, or whose per-filter contrasts no stellar spectrum
+   has, is reported as a rejected candidate, not a detection. Accept, refit all
+   companions jointly and go back to 1; otherwise stop.
 5. **Posterior** (:mod:`~amigo.companions.posterior`) of all companions jointly over all
    filters and, when there are several filters, per filter.
 6. **Limits** (:mod:`~amigo.companions.limits`) from a last grid search on the
    companion-subtracted data, with the fitted ``sigma_scale``.
 
-Significances are *local* (at the best position); the grid tests many positions, so a
-few-sigma peak is expected from noise alone (about 3.5 sigma for ~1000 independent
-resolution elements): the default 5-sigma threshold accounts for that.
+``detection_sigma`` is the *global* significance (trials included); the local one and
+the false-alarm probability are reported beside it.
 """
 
 from __future__ import annotations
@@ -36,11 +39,18 @@ from amigo.companions.grid import (
     GridResult,
     contrast_grid,
     default_step_mas,
-    sigma_from_chi2,
+    inner_working_angle_mas,
 )
 from amigo.companions.limits import ContrastCurve, contrast_limits, photon_limit_dmag
 from amigo.companions.observables import KIND_NAMES, Dataset
 from amigo.companions.posterior import Posterior, Priors, sample_posterior
+from amigo.companions.significance import (
+    Significance,
+    SpectrumTest,
+    effective_trials,
+    significance,
+    spectrum_test,
+)
 from amigo.orientation import separation_pa
 from amigo.progress import step
 
@@ -88,13 +98,44 @@ class Estimate:
 
 @dataclass(frozen=True)
 class Companion:
-    """A detected companion: its estimate, significance and how it was obtained."""
+    """A detected companion: its estimate, significance and how it was obtained.
+
+    ``detection_sigma`` is the global significance (trials of the grid included),
+    ``significance`` has the local one and the false-alarm probability too.
+    """
 
     id: int
     estimate: Estimate
     detection_sigma: float
     method: str
     per_filter: dict[str, Estimate] = field(default_factory=dict)
+    significance: Significance | None = None
+
+
+@dataclass(frozen=True)
+class Rejected:
+    """A candidate above the threshold that is not a detection, and why: ``reason`` is
+    ``"inner_working_angle"`` or ``"spectrum"`` (``note`` says it in words)."""
+
+    estimate: Estimate
+    significance: Significance
+    reason: str
+    note: str
+    spectrum: SpectrumTest | None = None
+
+
+@dataclass(frozen=True)
+class _Context:
+    """What the search judges candidates by: the inner working angle (mas), the number
+    of independent positions searched and each filter's mean wavelength (um)."""
+
+    iwa_mas: float
+    trials: float
+    wavelengths_um: np.ndarray
+    rejected: dict = field(default_factory=dict)
+
+    def significance(self, dataset: Dataset, dchi2: float) -> Significance:
+        return significance(dchi2, dataset.n_filters, self.trials)
 
 
 @dataclass(frozen=True)
@@ -114,6 +155,8 @@ class DetectionResult:
     limits: tuple[ContrastCurve, ...]
     photon_counts: dict[str, float]
     warnings: tuple[str, ...]
+    rejected: tuple[Rejected, ...] = ()
+    trials: float = 1.0
 
     @property
     def sigma_scale(self) -> dict[str, float]:
@@ -212,13 +255,7 @@ def _search_one(
 
 
 def _chi2(dataset, offsets, log10c, scales, diameter) -> float:
-    residuals = fitting.block_residuals(dataset, offsets, 10.0**log10c, diameter)
-    return float(
-        sum(
-            np.sum((np.asarray(r) / np.asarray(s)) ** 2)
-            for r, s in zip(residuals, dataset.scale_vectors(scales), strict=True)
-        )
-    )
+    return fitting.scaled_chi2(dataset, offsets, 10.0**log10c, scales, diameter)
 
 
 @dataclass(frozen=True)
@@ -227,7 +264,7 @@ class _Hypothesis:
 
     fit: fitting.FitResult | None
     chi2: float  # with unit error scales, to rank hypotheses on the same footing
-    significances: tuple[float, ...]
+    significances: tuple[Significance, ...]
     maps: tuple[GridResult, ...]
 
 
@@ -239,7 +276,7 @@ def _unit_chi2(dataset: Dataset, fit: fitting.FitResult | None, diameter: float)
 
 
 def _beam_search(
-    dataset: Dataset, grid: Grid, settings: SearchSettings, notes: list[str]
+    dataset: Dataset, grid: Grid, settings: SearchSettings, notes: list[str], context: _Context
 ) -> _Hypothesis:
     """Iterative search, keeping near-degenerate alternatives (aliases) alive.
 
@@ -266,28 +303,35 @@ def _beam_search(
             for rank, cand in enumerate(candidates):
                 if cand.dchi2 < candidates[0].dchi2 - ALIAS_DCHI2:
                     break
-                sigma = float(sigma_from_chi2(cand.dchi2, dataset.n_filters))
+                sig = context.significance(dataset, cand.dchi2)
                 if rank == 0:
                     dra, ddec = cand.fit.offsets_mas[-1]
                     step(
-                        f"  best candidate at dRA={dra:.1f} dDec={ddec:.1f} mas: {sigma:.1f} sigma"
+                        f"  best candidate at dRA={dra:.1f} dDec={ddec:.1f} mas: "
+                        f"{sig.sigma:.1f} sigma ({sig.local_sigma:.1f} local, false-alarm "
+                        f"probability {sig.false_alarm_probability:.2g})"
                     )
-                if sigma >= settings.threshold_sigma and not _outside(cand.fit, settings, notes):
-                    expansions.append(
-                        _Hypothesis(
-                            cand.fit,
-                            _unit_chi2(dataset, cand.fit, diameter),
-                            (*parent.significances, sigma),
-                            (*parent.maps, result),
-                        )
+                if sig.sigma < settings.threshold_sigma or _outside(cand.fit, settings, notes):
+                    continue
+                if _rejected(dataset, cand.fit, sig, context):
+                    if rank == 0:
+                        break  # its aliases explain the same signal
+                    continue
+                expansions.append(
+                    _Hypothesis(
+                        cand.fit,
+                        _unit_chi2(dataset, cand.fit, diameter),
+                        (*parent.significances, sig),
+                        (*parent.maps, result),
                     )
+                )
         if not expansions:
             break
         expansions.sort(key=lambda h: h.chi2)
         if level == settings.max_companions:
             notes.append(
                 f"stopped at --max-companions={settings.max_companions}: one more candidate "
-                f"exceeds the threshold ({expansions[0].significances[-1]:.1f} sigma)"
+                f"exceeds the threshold ({expansions[0].significances[-1].sigma:.1f} sigma)"
             )
             break
         beam = expansions[:BEAM_WIDTH]
@@ -308,7 +352,11 @@ def _beam_search(
 
 
 def _prune(
-    dataset: Dataset, scene: _Hypothesis, settings: SearchSettings, notes: list[str]
+    dataset: Dataset,
+    scene: _Hypothesis,
+    settings: SearchSettings,
+    notes: list[str],
+    context: _Context,
 ) -> _Hypothesis:
     """Backward elimination on the final scene: every companion must stand at the
     threshold *given all the others*.
@@ -339,18 +387,67 @@ def _prune(
                 without = _chi2(dataset, rest.offsets_mas, rest.log10_contrasts, scales, diameter)
             else:
                 rest, without = None, fitting.background_chi2(dataset, scales, diameter)
-            sigmas.append(float(sigma_from_chi2(max(without - full, 0.0), dataset.n_filters)))
+            sigmas.append(context.significance(dataset, max(without - full, 0.0)))
             rests.append(rest)
-        weakest = int(np.argmin(sigmas))
-        if sigmas[weakest] >= settings.threshold_sigma:
+        weakest = int(np.argmin([s.sigma for s in sigmas]))
+        if sigmas[weakest].sigma >= settings.threshold_sigma:
             return _Hypothesis(fit, _unit_chi2(dataset, fit, diameter), tuple(sigmas), scene.maps)
         dra, ddec = fit.offsets_mas[weakest]
         notes.append(
             f"the companion found at (dRA, dDec) = ({dra:.0f}, {ddec:.0f}) mas is only "
-            f"{sigmas[weakest]:.1f} sigma given the others: dropped"
+            f"{sigmas[weakest].sigma:.1f} sigma given the others: dropped"
         )
         fit = rests[weakest]
     return _Hypothesis(None, _unit_chi2(dataset, None, diameter), (), scene.maps)
+
+
+def _filter_wavelengths_um(dataset: Dataset) -> np.ndarray:
+    """(F,) mean wavelength (um) of each filter's observables."""
+    return np.array(
+        [
+            1e6 * np.mean([b.mean_wavelength_m for b in dataset.blocks if b.filter_name == f])
+            for f in dataset.filters
+        ]
+    )
+
+
+def _rejected(
+    dataset: Dataset,
+    fit: fitting.FitResult,
+    sig: Significance,
+    context: _Context,
+) -> bool:
+    """Whether the newest companion of a candidate scene is not a detection although it
+    passes the threshold: inside the inner working angle, or with per-filter contrasts
+    that no stellar spectrum has. Rejections are recorded once in ``context.rejected``
+    (keyed by position; companions.json and the terminal list them)."""
+    k = fit.n_companions - 1
+    estimate = _estimate_from_fit(fit, k, dataset.filters)
+    contrasts = fit.contrasts[k]
+    errors = contrasts * np.log(10.0) * fit.log10_contrast_errors()[k]
+    spectrum = spectrum_test(contrasts, errors, context.wavelengths_um)
+    where = f"(dRA, dDec) = ({estimate.dra_mas:.0f}, {estimate.ddec_mas:.0f}) mas"
+    dmags = ", ".join(f"{f} {m:.2f}" for f, m in estimate.dmag.items())
+    if estimate.sep_mas < context.iwa_mas:
+        reason = "inner_working_angle"
+        note = (
+            f"a {sig.sigma:.1f}-sigma candidate at {where} is {estimate.sep_mas:.1f} mas from "
+            f"the star, inside the inner working angle ({context.iwa_mas:.0f} mas), where "
+            "a companion cannot be told from a calibration error: not a detection"
+        )
+    elif not spectrum.consistent:
+        reason = "spectrum"
+        note = (
+            f"a {sig.sigma:.1f}-sigma candidate at {where} has delta-mags {dmags} that no "
+            f"stellar spectrum gives (chi2 {spectrum.chi2:.1f} for {spectrum.dof} dof, "
+            f"p = {spectrum.p_value:.2g}): residual structure, not a detection"
+        )
+    else:
+        return False
+    key = (round(estimate.dra_mas), round(estimate.ddec_mas))
+    if key not in context.rejected:
+        context.rejected[key] = Rejected(estimate, sig, reason, note, spectrum)
+    return True
 
 
 def _outside(fit: fitting.FitResult, settings: SearchSettings, notes: list[str]) -> bool:
@@ -433,7 +530,14 @@ def _detect(dataset: Dataset, settings: SearchSettings) -> DetectionResult:
     step_mas = settings.step_mas or default_step_mas(dataset)
     grid = Grid.square(settings.rmax_mas, step_mas)
     notes: list[str] = []
-    path = _prune(dataset, _beam_search(dataset, grid, settings, notes), settings, notes)
+    iwa = inner_working_angle_mas(dataset.blocks)
+    context = _Context(
+        iwa_mas=iwa,
+        trials=effective_trials(settings.rmax_mas, iwa),
+        wavelengths_um=_filter_wavelengths_um(dataset),
+    )
+    scene = _beam_search(dataset, grid, settings, notes, context)
+    path = _prune(dataset, scene, settings, notes, context)
     current = path.fit
     significances = list(path.significances)
     maps = list(path.maps)
@@ -527,9 +631,10 @@ def _detect(dataset: Dataset, settings: SearchSettings) -> DetectionResult:
             Companion(
                 id=i + 1,
                 estimate=estimates[i],
-                detection_sigma=significances[i],
+                detection_sigma=significances[i].sigma,
                 method=method,
                 per_filter=per_filter_est[i],
+                significance=significances[i],
             )
             for i in range(k)
         ]
@@ -560,7 +665,17 @@ def _detect(dataset: Dataset, settings: SearchSettings) -> DetectionResult:
         limits=tuple(limits),
         photon_counts=photons,
         warnings=tuple(notes),
+        rejected=tuple(context.rejected.values()),
+        trials=context.trials,
     )
 
 
-__all__ = ["KIND_NAMES", "Companion", "DetectionResult", "Estimate", "SearchSettings", "detect"]
+__all__ = [
+    "KIND_NAMES",
+    "Companion",
+    "DetectionResult",
+    "Estimate",
+    "Rejected",
+    "SearchSettings",
+    "detect",
+]
