@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+import shutil
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -13,6 +15,44 @@ SHARED_DATA = SHARED / "data"
 
 # Keep JAX on the CPU and quiet in tests, whatever machine runs them.
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
+
+# One persistent XLA compilation cache for the whole session, the `amigo` subprocesses
+# included (they inherit the environment): many tests compile the same programs (the
+# fitting engine, the ramp model at the same shapes), and on a 2-core CPU compiling is
+# most of their time. Every program is kept, the small ones too: each process (two
+# workers, dozens of `amigo` subprocesses) would otherwise compile the same element-wise
+# operations again, at 0.3-1 s each. Set before JAX is imported; removed when the
+# session ends.
+_JAX_CACHE = None
+if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
+    _JAX_CACHE = tempfile.mkdtemp(prefix="amigo-tests-xla-")
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = _JAX_CACHE
+    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
+
+
+#: Tests slower than this are named, with their time, as they finish (a CI log that is cut
+#: off at its time limit still shows where the time went; --durations prints only at the end).
+SLOW_TEST_REPORT_S = 60.0
+_CONFIG = None
+
+
+def pytest_configure(config):
+    global _CONFIG
+    _CONFIG = config
+
+
+def pytest_runtest_logreport(report):
+    # Only the controlling process prints (xdist workers have no terminal of their own).
+    if _CONFIG is None or hasattr(_CONFIG, "workerinput") or report.duration < SLOW_TEST_REPORT_S:
+        return
+    reporter = _CONFIG.pluginmanager.get_plugin("terminalreporter")
+    if reporter is not None:
+        reporter.write_line(f"[slow] {report.duration:7.1f} s {report.when:8} {report.nodeid}")
+
+
+def pytest_sessionfinish(session, exitstatus):
+    if _JAX_CACHE is not None:
+        shutil.rmtree(_JAX_CACHE, ignore_errors=True)
 
 
 def _require(path: Path) -> Path:

@@ -269,7 +269,9 @@ def test_parameter_groups_are_disjoint_and_cover_the_instrument():
     pix = jax.tree.leaves(pixel_mask(base))
     assert not any(a and b for a, b in zip(phys, pix, strict=True))
     n_phys = sum(x.size for x in jax.tree.leaves(split(base, physical_mask(base))))
-    assert n_phys == 71 + 14 + 3 + 5
+    # Zernikes (71 over the filters), 7 hole centres x 2, detector jitter, rotation,
+    # anisotropy, skew and scale (5), intra-pixel response (5).
+    assert n_phys == 71 + 14 + 5 + 5
     n_pix = sum(x.size for x in jax.tree.leaves(split(base, pixel_mask(base))))
     assert n_pix == 2 * 16 * 16
 
@@ -286,7 +288,7 @@ def test_training_decreases_the_loss_on_a_tiny_synthetic_problem(cache, tmp_path
         truth,
         (
             jnp.asarray(rng.normal(0, 15.0, (7, 10)), jnp.float32),
-            jnp.asarray(0.3),
+            truth.detector.rotation_deg - 0.26,  # 0.26 deg from the nominal (SIAF) start
             jnp.asarray(1 + 0.03 * rng.normal(size=(16, 16)), jnp.float32),
         ),
     )

@@ -36,6 +36,13 @@ def test_demo_finds_the_simulated_companion(tmp_path, monkeypatch, capsys):
     assert "SIMULATED" in summary["model"]
     assert summary["detector"] == "full"
     assert summary["filters"]["F480M"]["detector"]["converged"]
+    # The detector geometry and jitter are fitted and reported per exposure, with errors;
+    # the simulator turns the image clockwise, as the SIAF does (docs/geometry.md).
+    for exposure in summary["exposures"]:
+        for key in ("rotation_deg", "anisotropy", "skew_deg", "scale", "jitter_mas"):
+            assert exposure[key] is not None and f"{key}_err" in exposure, key
+        assert exposure["rotation_deg"] < 0
+        assert abs(exposure["rotation_deg"] + 0.444) < 0.1
     companions = json.loads((out / "companions.json").read_text())["companions"]
     assert len(companions) >= 1
     c = companions[0]

@@ -12,7 +12,13 @@ import numpy as np
 import pytest
 from astropy.io import fits
 
-from amigo.basemodel import BaseModel, BaseModelConfig, load_base_model, read_metadata
+from amigo.basemodel import (
+    BaseModel,
+    BaseModelConfig,
+    load_base_model,
+    read_metadata,
+    save_base_model,
+)
 from amigo.io.calslope import write_calslope
 from amigo.process import ProcessSettings, SlopeProduct
 from amigo.slope_model import FlatParams, PointSourceParams, predict_slopes
@@ -73,16 +79,21 @@ def files(tmp_path_factory) -> dict[str, Path]:
 
 @pytest.mark.slow
 def test_train_writes_a_model_with_its_record_and_resumes(files):
+    # All three runs compute the optics on one pupil grid (192 samples, defocus by
+    # angular spectrum): they compile the same programs, and the later runs find them in
+    # the session's compilation cache (a training step's programs take minutes to
+    # compile on a 2-core CPU).
     out = files["folder"] / "model.npz"
+    optics = ["--pupil-npix", "192", "--defocus-method", "angular_spectrum"]
     args = ["train", "--cal", str(files["cal"]), "--flats", str(files["flat"]),
             "--val", str(files["val"]), "--out", str(out), "--steps", "2", "--stages", "1,1",
-            "--batches", "1"]  # fmt: skip
+            "--batches", "1", *optics]  # fmt: skip
     result = run_amigo(*args)
     assert result.returncode == 0, result.stderr
     assert "Traceback" not in result.stderr
     model = load_base_model(out)
     assert not model.linear and model.config.shape == SHAPE
-    assert (model.config.pupil_npix, model.config.defocus_method) == (256, "pupil")
+    assert (model.config.pupil_npix, model.config.defocus_method) == (192, "angular_spectrum")
     record = read_metadata(out)
     assert record["data"]["calibration"][0]["name"] == "cal"
     assert record["data"]["flats"][0]["name"] == "flat"
@@ -97,26 +108,30 @@ def test_train_writes_a_model_with_its_record_and_resumes(files):
     assert read_metadata(out)["history"] == record["history"]
 
     # Fine-tuning: training continues from the model, network included (no network-off
-    # stage, no restart), and the new file records where it started.
+    # stage, no restart), and the new file records where it started ...
+    # ... here from a model that computes its optics on the default grid (256 samples,
+    # defocus in the pupil), brought to the finer settings by the flags, as a model
+    # trained with older defaults is brought to the current ones.
+    older = files["folder"] / "older.npz"
+    save_base_model(
+        model.with_config(pupil_npix=256, defocus_method="pupil"), older, {"date": "older"}
+    )
     tuned_path = files["folder"] / "tuned.npz"
     tuned_args = [*args[:7], "--out", str(tuned_path), "--steps", "1", "--batches", "1"]
-    # ... here with the optics computed on another pupil grid, as a model trained with
-    # older defaults is brought to the current ones.
-    tuned_run = run_amigo(*tuned_args, "--init", str(out), "--pupil-npix", "192",
-                          "--defocus-method", "angular_spectrum")  # fmt: skip
+    tuned_run = run_amigo(*tuned_args, "--init", str(older), *optics)
     assert tuned_run.returncode == 0, tuned_run.stderr
     tuned_config = load_base_model(tuned_path).config
     assert (tuned_config.pupil_npix, tuned_config.defocus_method) == (192, "angular_spectrum")
     assert "fine-tuning the network" in tuned_run.stderr
     tuned_record = read_metadata(tuned_path)
-    assert tuned_record["initial_model"]["path"] == str(out)
-    assert tuned_record["initial_model"]["date"] == read_metadata(out)["date"]
+    assert tuned_record["initial_model"]["path"] == str(older)
+    assert tuned_record["initial_model"]["date"] == "older"
     assert tuned_record["initial_model"]["optics"]["pupil_npix"] == 256
-    assert tuned_record["settings"]["init"] == str(out)
+    assert tuned_record["settings"]["init"] == str(older)
     assert tuned_record["history"]["stage"] == [1]
     # One Adam step moves each weight by at most about the learning rate (3e-3): the
     # network is the initial model's, not new random weights.
-    start, tuned = load_base_model(out).ramp.network, load_base_model(tuned_path).ramp.network
+    start, tuned = model.ramp.network, load_base_model(tuned_path).ramp.network
     for a, b in zip(start.layers, tuned.layers, strict=True):
         assert float(jnp.max(jnp.abs(a.weight - b.weight))) <= 3.5e-3
         assert not np.array_equal(np.asarray(a.weight), np.asarray(b.weight))

@@ -121,6 +121,31 @@ def test_linear_ramp_is_exactly_linear():
     np.testing.assert_allclose(charge, expected, rtol=1e-10)
 
 
+@pytest.mark.parametrize("n_substeps", [2, 3, 8])
+def test_read_weights_are_the_not_a_knot_spline_through_the_substeps(n_substeps):
+    """The fixed matrix from the sub-steps to the reads equals interpax's C2 (not-a-knot)
+    spline, which the model evaluated before, applied to random charge histories (3 knots:
+    interpax's special case, a parabola; 4 and 9: the general system)."""
+    import interpax
+
+    from amigo.detector.ramp import read_weights
+
+    rng = np.random.default_rng(n_substeps)
+    states = np.cumsum(rng.uniform(0, 100, (n_substeps + 1, 50)), axis=0)
+    times = jnp.linspace(0.0, 1.0, n_substeps + 1)
+    spline = jax.jit(interpax.interp1d, static_argnames="method")  # one program, not op by op
+    for ngroups in (2, 5, 8):
+        expected = spline(
+            jnp.arange(1, ngroups + 1) / ngroups, times, jnp.asarray(states), method="cubic2"
+        )
+        got = read_weights(n_substeps, ngroups) @ states
+        np.testing.assert_allclose(got, np.asarray(expected), rtol=1e-5, atol=1e-3)
+    # The last read is the end of the ramp: the last sub-step's charge exactly.
+    np.testing.assert_allclose(
+        read_weights(n_substeps, 5)[-1], np.eye(n_substeps + 1)[-1], atol=1e-12
+    )
+
+
 def test_migration_conserves_total_charge_and_moves_it():
     y, x = np.mgrid[:60, :60]
     illuminance = 4e4 * np.exp(-((x - 30) ** 2 + (y - 30) ** 2) / (2 * 4.0**2))

@@ -30,6 +30,7 @@ from amigo.detector.read import default_ipc_kernel
 from amigo.extract import extract_filter
 from amigo.fitting import FilterFit, FitConfig, FitExposure
 from amigo.io.calslope import CalSlope
+from amigo.likelihood import ImageData
 from amigo.model import FilterSetup, Instrument, OpticsParams
 from amigo.newton import psfs_of
 from amigo.ramp_fit import RampDetector, RampInput, _slopes_and_image
@@ -65,9 +66,13 @@ def setting(tmp_path_factory):
         os.environ["AMIGO_CACHE_DIR"] = old
 
 
-def _theta(setup, position_arcsec, log_flux):
+def _theta(setup, instrument, position_arcsec, log_flux):
+    """The local vector ``[x, y, log_flux, slope, jitter_mas, latents]`` (newton.py)."""
     n_latent = setup.basis.n_amp + setup.basis.n_phase
-    return jnp.asarray([*position_arcsec, log_flux, 0.0, *np.zeros(n_latent)], jnp.float32)
+    jitter_mas = 1000.0 * float(instrument.detector.jitter_arcsec)
+    return jnp.asarray(
+        [*position_arcsec, log_flux, 0.0, jitter_mas, *np.zeros(n_latent)], jnp.float32
+    )
 
 
 def _truth(base, instrument, setup, position_arcsec, electrons=ELECTRONS):
@@ -82,11 +87,18 @@ def _truth(base, instrument, setup, position_arcsec, electrons=ELECTRONS):
         setup,
         psfs,
         anchor,
-        _theta(setup, position_arcsec, log_flux),
+        _theta(setup, instrument, position_arcsec, log_flux),
         jnp.asarray(scale, jnp.float32),
         NGROUPS,
     )
     return np.asarray(slopes, float), np.asarray(image, float), log_flux
+
+
+def _without_ipc(instrument: Instrument) -> Instrument:
+    """The instrument with a linear detector that has no IPC kernel."""
+    return dataclasses.replace(
+        instrument, detector=dataclasses.replace(instrument.detector, ipc_kernel=None)
+    )
 
 
 def _ipc(image: np.ndarray, kernel: np.ndarray) -> np.ndarray:
@@ -117,7 +129,9 @@ def test_correction_vanishes_for_a_linear_detector_and_is_the_ipc_otherwise(sett
             dark_e_per_group=jnp.asarray(0.0),
         ),
     )
-    slopes, image, _ = _truth(plain, instrument, setup, (0.02, -0.01))
+    # The fit's image without IPC (the instrument's linear detector has the base model's).
+    no_ipc = _without_ipc(instrument)
+    slopes, image, _ = _truth(plain, no_ipc, setup, (0.02, -0.01))
     expected = image * GROUP_TIME_S
     assert slopes.shape == (NGROUPS - 1, 80, 80)
     # float32 differences of reads of up to ~30,000 DN
@@ -127,13 +141,57 @@ def test_correction_vanishes_for_a_linear_detector_and_is_the_ipc_otherwise(sett
     ipc = dataclasses.replace(
         plain, read=dataclasses.replace(plain.read, ipc_kernel=jnp.asarray(default_ipc_kernel()))
     )
-    slopes, image, _ = _truth(ipc, instrument, setup, (0.02, -0.01))
+    slopes, image, _ = _truth(ipc, no_ipc, setup, (0.02, -0.01))
     expected = _ipc(image, np.asarray(default_ipc_kernel())) * GROUP_TIME_S
     np.testing.assert_allclose(
         slopes, np.broadcast_to(expected, slopes.shape), atol=1e-4 * expected.max()
     )
     # ... and the IPC is not negligible: the correction is what is left
     assert np.abs(expected - image * GROUP_TIME_S).max() > 50 * 1e-4 * expected.max()
+
+
+def test_level2_correction_is_the_pipeline_slope_of_the_model_ramp(setting):
+    """The level-2 forward model: the pipeline's estimator on the base model's ramp.
+
+    * For a linear, flat detector without IPC the correction vanishes (to float32).
+    * With the network (brighter-fatter), ``for_level2`` (flat, dark, non-linearity off:
+      the pipeline corrected them) gives a correction that is, pixel by pixel, the mean
+      of the calslope correction over the ramp's slopes divided by the group time, to
+      1e-3 of the peak: the pipeline's weights are symmetric about the ramp's middle,
+      so for a smoothly bending ramp its slope is the mean slope. Computed by two routes,
+      the stcal-equivalent estimator and the plain mean of group differences.
+    * A flat in the base model does not reach a level-2 correction.
+    """
+    from amigo.ramp_fit import Level2Input
+
+    base, instrument, setup = setting
+    data = ImageData(np.zeros((80, 80)), np.ones((80, 80)), np.ones((80, 80), bool))
+    level2 = Level2Input(data, NGROUPS, 1, GROUP_TIME_S)
+    linear = base.with_linear_detector().for_level2()
+    identity = np.zeros((5, 5))
+    identity[2, 2] = 1.0
+    plain = dataclasses.replace(
+        linear,
+        ramp=dataclasses.replace(linear.ramp, intra_pixel=IntraPixelResponse()),
+        read=dataclasses.replace(linear.read, ipc_kernel=jnp.asarray(identity)),
+    )
+    slopes, image, _ = _truth(plain, _without_ipc(instrument), setup, (0.02, -0.01))
+    correction = level2.correction(slopes, image)
+    assert correction.shape == (80, 80)
+    np.testing.assert_allclose(correction, 0.0, atol=2e-4 * image.max())
+
+    full = base.for_level2()
+    slopes, image, _ = _truth(full, instrument, setup, (0.02, -0.01))
+    correction = level2.correction(slopes, image)
+    calslope_route = (slopes - image[None] * GROUP_TIME_S).mean(axis=0) / GROUP_TIME_S
+    np.testing.assert_allclose(correction, calslope_route, atol=1e-3 * image.max())
+    # ... and the brighter-fatter part is well above that agreement.
+    assert np.abs(correction).max() > 10 * 1e-3 * image.max()
+
+    flat = 1.0 + 0.05 * np.random.default_rng(0).standard_normal((80, 80))
+    flatted = dataclasses.replace(base, ramp=dataclasses.replace(base.ramp, flat=jnp.asarray(flat)))
+    slopes_flat, _, _ = _truth(flatted.for_level2(), instrument, setup, (0.02, -0.01))
+    np.testing.assert_allclose(slopes_flat, slopes, rtol=1e-5, atol=1e-3)
 
 
 def _calslope(slopes: np.ndarray, rng, name: str) -> CalSlope:

@@ -97,6 +97,8 @@ def _physical_leaves(m: BaseModel) -> tuple:
         m.detector.jitter_arcsec,
         m.detector.rotation_deg,
         m.detector.anisotropy,
+        m.detector.skew_deg,
+        m.detector.scale,
         m.ramp.intra_pixel.coefficients,
     )
 
@@ -120,6 +122,8 @@ def physical_mask(base: BaseModel, filter_name: str | None = None) -> BaseModel:
             True,
             True,
             True,
+            True,
+            True,
         ),
     )
 
@@ -127,8 +131,8 @@ def physical_mask(base: BaseModel, filter_name: str | None = None) -> BaseModel:
 def physical_step_limits(base: BaseModel) -> BaseModel:
     """Largest move of each physical parameter in one step (the trust region), shaped
     like ``split(base, physical_mask(base))``: 2 nm of aberration, 5 nm of defocus, 2 mm
-    of hole position, 1 mas of jitter, 0.05 deg of rotation, 5e-4 of anisotropy, 0.05 of
-    intra-pixel response."""
+    of hole position, 1 mas of jitter, 0.05 deg of rotation, 5e-4 of anisotropy, 0.05 deg
+    of skew, 5e-4 of scale, 0.05 of intra-pixel response."""
     physical = split(base, physical_mask(base))
     limits = (
         {k: jnp.full_like(v, 2.0) for k, v in physical.zernikes_nm.items()},
@@ -137,6 +141,8 @@ def physical_step_limits(base: BaseModel) -> BaseModel:
         jnp.full_like(physical.detector.jitter_arcsec, 1e-3),
         jnp.full_like(physical.detector.rotation_deg, 0.05),
         jnp.full_like(physical.detector.anisotropy, 5e-4),
+        jnp.full_like(physical.detector.skew_deg, 0.05),
+        jnp.full_like(physical.detector.scale, 5e-4),
         jnp.full_like(physical.ramp.intra_pixel.coefficients, 0.05),
     )
     return eqx.tree_at(

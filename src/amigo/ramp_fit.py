@@ -47,12 +47,18 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from amigo.basemodel import BaseModel
-from amigo.detector.linear import bin_pixels
 from amigo.fitting import FilterFit, FitConfig, FitExposure, FitParams, FitResult
+from amigo.instrument import GAIN_E_PER_DN
 from amigo.io.calslope import CalSlope
 from amigo.likelihood import ImageData
 from amigo.model import FilterSetup, Instrument
-from amigo.newton import levenberg_marquardt, local_illuminance, local_vector, psfs_of
+from amigo.newton import (
+    levenberg_marquardt,
+    local_detector,
+    local_illuminance,
+    local_vector,
+    psfs_of,
+)
 from amigo.progress import step
 
 #: Stop when the whitened rms change of the correction between rounds is below this.
@@ -91,6 +97,76 @@ class RampInput:
             product = dataclasses.replace(product, slope_dn=product.slope_dn - correction_dn)
         return ImageData.from_calslope(product, self.group_time_s)
 
+    def correction(self, slopes_dn: np.ndarray, image_dn_s: np.ndarray) -> np.ndarray:
+        """``D = S - t_g M`` (m, ny, nx), DN per group: the detector's slopes ``S`` less
+        the linear image ``M`` (DN/s) accumulated over a group."""
+        return slopes_dn - image_dn_s[None] * self.group_time_s
+
+    def sigma(self) -> np.ndarray:
+        """(m, ny, nx) standard deviation of each slope (DN per group)."""
+        return np.sqrt(np.einsum("iiyx->iyx", self.product.slope_cov_dn2))
+
+
+#: CDS read noise (DN) given to the pipeline's estimator when it is applied to the
+#: model's noiseless ramp: it only picks the Fixsen exponent from the ramp's S/N (the
+#: simulator's 6.6 DN per read, times sqrt(2) for a difference of two reads), and the
+#: exponent barely matters there: the weights are symmetric about the ramp's middle, so a
+#: ramp bent by any quadratic gets the same slope whatever the exponent
+#: (docs/pipeline_slope.md).
+LEVEL2_READ_NOISE_CDS_DN = 6.6 * np.sqrt(2.0)
+
+
+@dataclass(frozen=True)
+class Level2Input:
+    """A level-2 exposure (``_cal``/``_calints``/``_rateints``) for the full detector.
+
+    The STScI pipeline fitted each pixel's ramp with its weighted least-squares slope
+    (:mod:`amigo.detector.pipeline_slope`); the forward model is that estimator applied
+    to the base model's ramp, so the image expects ``est(R(theta))`` (DN/s) where the
+    linear fit models ``M(theta)``; the correction is ``D = est(R) - M``.
+
+    Attributes
+    ----------
+    data
+        The exposure reduced to an image (:meth:`ImageData.from_exposure`).
+    ngroups, nframes
+        NGROUPS and NFRAMES of the read-out.
+    group_time_s
+        TGROUP (s).
+    """
+
+    data: ImageData
+    ngroups: int
+    nframes: int
+    group_time_s: float
+
+    def image(self, correction_dn_s: np.ndarray | None) -> ImageData:
+        """The image less ``correction_dn_s`` (ny, nx) DN/s (``None``: as read)."""
+        if correction_dn_s is None:
+            return self.data
+        corrected = np.where(self.data.mask, self.data.data - correction_dn_s, 0.0)
+        return dataclasses.replace(self.data, data=corrected)
+
+    def correction(self, slopes_dn: np.ndarray, image_dn_s: np.ndarray) -> np.ndarray:
+        """``D = est(R) - M`` (ny, nx), DN/s: the pipeline's slope of the base model's
+        ramp (its group differences ``slopes_dn``, (m, ny, nx) DN per group, summed from
+        zero: the estimator only sees differences) less the linear image."""
+        from amigo.detector.pipeline_slope import pipeline_slopes
+
+        ramp = np.concatenate([np.zeros_like(slopes_dn[:1]), np.cumsum(slopes_dn, axis=0)])
+        fitted = pipeline_slopes(
+            jnp.asarray(ramp[None]),
+            group_time=self.group_time_s,
+            read_noise=LEVEL2_READ_NOISE_CDS_DN,
+            gain=GAIN_E_PER_DN,
+            nframes=self.nframes,
+        )
+        return np.asarray(fitted.slope[0], np.float64) - image_dn_s
+
+    def sigma(self) -> np.ndarray:
+        """(1, ny, nx) standard deviation of the image (DN/s)."""
+        return self.data.error[None]
+
 
 @eqx.filter_jit
 def _slopes_and_image(
@@ -104,11 +180,14 @@ def _slopes_and_image(
     ngroups: int,
 ) -> tuple[Float[Array, "m 80 80"], Float[Array, "80 80"]]:
     """The base model's slopes (DN per group) and the fit's linear image (DN/s) of one
-    exposure with local vector ``theta = [x, y, log_flux, slope, latents]``."""
+    exposure with local vector ``theta = [x, y, log_flux, slope, jitter, latents]``."""
     optical = local_illuminance(theta, instrument, setup, psfs, anchor)
-    unit = instrument.detector.illuminance(optical)  # sums to the in-field fraction
+    detector = local_detector(theta, instrument)
+    unit = detector.illuminance(optical)  # sums to the in-field fraction
     flux = jnp.exp(theta[2])
-    image = flux * bin_pixels(unit, instrument.detector.oversample)
+    # The linear image exactly as the refit models it (IPC included where the detector
+    # has it), so that D = S - t_g M and the refit's M are the same M.
+    image = detector(optical, flux)
     # The ramp model runs in the base model's precision (its network is float32), whatever
     # the precision of the optics (float64 when x64 is on).
     electrons = (unit * (flux * electrons_per_dn_s)).astype(base.ramp.flat.dtype)
@@ -126,7 +205,9 @@ class RampDetector:
         without (``with_linear_detector``: linear charge accumulation, flat, IPC and
         non-linearity kept) for ``--detector linear``.
     inputs
-        The calslope exposures by :attr:`FitExposure.name`.
+        The exposures by :attr:`FitExposure.name`: :class:`RampInput` (calslope files,
+        the correction on the slopes) or :class:`Level2Input` (level-2 images, the
+        correction through the pipeline's slope estimator on the image).
     tolerance, max_rounds, refit_iterations
         Convergence of the correction and Gauss-Newton iterations per refit (see
         :func:`fit_through_detector`).
@@ -135,7 +216,7 @@ class RampDetector:
     def __init__(
         self,
         base: BaseModel,
-        inputs: dict[str, RampInput],
+        inputs: dict[str, RampInput | Level2Input],
         tolerance: float = DEFAULT_TOLERANCE,
         max_rounds: int = DEFAULT_MAX_ROUNDS,
         refit_iterations: int = DEFAULT_REFIT_ITERATIONS,
@@ -152,8 +233,10 @@ class RampDetector:
         return "linear" if self.base.linear else "full"
 
     def corrections(self, fit: FilterFit, params: FitParams) -> list[np.ndarray]:
-        """(m, 80, 80) ``D = S - t_g M`` of every exposure at ``params`` (DN per group)."""
-        setup, instrument = fit.setup, fit.instrument
+        """The correction ``D`` of every exposure at ``params``: (m, 80, 80) ``S - t_g M``
+        in DN per group for calslope inputs, (80, 80) ``est(R) - M`` in DN/s for level-2."""
+        setup = fit.setup.with_band_taper(params.optics.band_taper_per_um2)
+        instrument = fit.instrument.with_geometry(params.optics.geometry)
         anchor = fit.anchor.astype(setup.wavelengths_m.dtype)
         psfs = psfs_of(instrument, setup, params.optics, anchor)
         gain = self.base.read.gain_e_per_dn
@@ -166,9 +249,9 @@ class RampDetector:
             slopes, image = _slopes_and_image(
                 self.base, instrument, setup, psfs, anchor, theta, scale, ramp.ngroups
             )
-            slopes = np.asarray(slopes, np.float64)
-            linear = np.asarray(image, np.float64) * ramp.group_time_s
-            out.append(slopes - linear[None])
+            out.append(
+                ramp.correction(np.asarray(slopes, np.float64), np.asarray(image, np.float64))
+            )
         return out
 
     def corrected(
@@ -183,16 +266,16 @@ class RampDetector:
     def change(
         self, exposures: list[FitExposure], old: list[np.ndarray], new: list[np.ndarray]
     ) -> float:
-        """Whitened rms of ``new - old`` over the slopes in the likelihood (the largest
-        over exposures), in units of each slope's own standard deviation."""
+        """Whitened rms of ``new - old`` over the values in the likelihood (the largest
+        over exposures), in units of each value's own standard deviation (a slope's, or
+        a level-2 pixel's)."""
         worst = 0.0
         for exposure, a, b in zip(exposures, old, new, strict=True):
-            product = self.inputs[exposure.name].product
-            m = product.slope_dn.shape[0]
-            variance = np.einsum("iiyx->iyx", product.slope_cov_dn2)
-            used = np.broadcast_to(exposure.image.mask, (m, *exposure.image.mask.shape))
+            sigma = self.inputs[exposure.name].sigma()
+            delta = np.reshape(b - a, sigma.shape)
+            used = np.broadcast_to(exposure.image.mask, sigma.shape)
             with np.errstate(divide="ignore", invalid="ignore"):
-                z = (b - a)[used] / np.sqrt(variance[used])
+                z = delta[used] / sigma[used]
             z = z[np.isfinite(z)]
             worst = max(worst, float(np.sqrt(np.mean(z * z))) if z.size else 0.0)
         return worst

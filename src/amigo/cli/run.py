@@ -60,8 +60,10 @@ def pipeline(
 
 
 @click.command("run")
-@exposures_option("sci", "Raw science ramp (_uncal.fits; repeat the option for several).")
-@exposures_option("cal", "Raw calibrator ramp (_uncal.fits; repeat for several).")
+@exposures_option(
+    "sci", "Raw science ramps (_uncal.fits; several after one flag, or the flag repeated)."
+)
+@exposures_option("cal", "Raw calibrator ramps (_uncal.fits; several after one flag, or repeated).")
 @click.option("--out", "out", required=True, type=click.Path(path_type=Path), help="Output folder.")
 @model_options
 @click.option("--rmax-mas", type=float, default=1000.0, show_default=True, help="Search radius.")

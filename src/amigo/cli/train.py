@@ -9,43 +9,22 @@ never calibrate anything (docs/detector.md, "Training").
 from __future__ import annotations
 
 import json
+import zipfile
 from pathlib import Path
 
 import click
 
+from amigo.cli.options import ManyValues
 from amigo.errors import InputError
 
 _FILES = click.Path(dir_okay=False, path_type=Path)
-
-
-class _ManyValues(click.Option):
-    """An option that takes every following argument up to the next option, so that
-    ``--cal a.fits b.fits --flats c.fits`` works (shell globs); it can also be repeated."""
-
-    def __init__(self, *args, **kwargs) -> None:
-        super().__init__(*args, multiple=True, **kwargs)
-
-    def add_to_parser(self, parser, ctx) -> None:
-        super().add_to_parser(parser, ctx)
-        for name in self.opts:
-            option = parser._long_opt.get(name) or parser._short_opt.get(name)
-            if option is None:
-                continue
-            previous = option.process
-
-            def process(value, state, _previous=previous) -> None:
-                _previous(value, state)
-                while state.rargs and not state.rargs[0].startswith("-"):
-                    _previous(state.rargs.pop(0), state)
-
-            option.process = process
 
 
 @click.command("train")
 @click.option(
     "--cal",
     "cal",
-    cls=_ManyValues,
+    cls=ManyValues,
     required=True,
     type=_FILES,
     help="Calibration calslope file (point-source calibrator); several may follow.",
@@ -53,14 +32,14 @@ class _ManyValues(click.Option):
 @click.option(
     "--flats",
     "flats",
-    cls=_ManyValues,
+    cls=ManyValues,
     type=_FILES,
     help="Flat-field calslope file (uniform illumination); several may follow.",
 )
 @click.option(
     "--val",
     "val",
-    cls=_ManyValues,
+    cls=ManyValues,
     type=_FILES,
     help="Validation calslope file (fitted, never used to calibrate); several may follow.",
 )
@@ -166,8 +145,6 @@ def command(
     provenance_file: Path | None,
 ) -> None:
     """Train the base model (instrument state and BFE network) on calibration data."""
-    import jax
-
     from amigo.cli import fail_input
 
     stage_steps: tuple[int, ...] = ()
@@ -193,7 +170,12 @@ def command(
             fail_input(InputError(provenance_file, "must hold a JSON object"))
             return
         provenance.update(extra)
+    # Unusable inputs fail here, in seconds, before the model's modules are imported
+    # (tens of seconds on a small machine).
+    _check_inputs((*cal, *flats, *val), init)
     _warn_about_memory_maps()
+    import jax
+
     with jax.enable_x64(float64):
         import jax.numpy as jnp
 
@@ -247,6 +229,21 @@ def command(
         f"last losses (chi2/2 per value): cal {final['cal_loss'][-1]:.4g}, "
         f"val {final['val_loss'][-1]:.4g}"
     )
+
+
+def _check_inputs(slope_files: tuple[Path, ...], init: Path | None) -> None:
+    """Exit with the one-line error if a calslope file cannot be read or ``--init`` is
+    not a model archive (reads the files fully: the same checks as training's reader)."""
+    from amigo.cli import fail_input
+    from amigo.io.calslope import read_calslope
+
+    try:
+        for path in slope_files:
+            read_calslope(path)
+        if init is not None and not zipfile.is_zipfile(init):
+            raise InputError(init, "not a base-model file (the .npz archive amigo train writes)")
+    except InputError as error:
+        fail_input(error)
 
 
 def _summary(path: Path, metadata: dict) -> dict:

@@ -24,10 +24,10 @@ with ``.T``, which swapped pixel (r, c) with (c, r); see tests/test_ramp.py for 
 
 from __future__ import annotations
 
+import functools
 import itertools
 
 import equinox as eqx
-import interpax
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -109,6 +109,7 @@ class ChargeMigrationNetwork(eqx.Module):
         """Number of trainable weights."""
         return sum(int(np.prod(layer.weight.shape)) for layer in self.layers)
 
+    @eqx.filter_jit
     def __call__(self, charge_e: Float[Array, "ny nx"]) -> Float[Array, "12 ny nx"]:
         x = (charge_e / self.charge_scale_e)[None]
         # The fixed kernels are a compile-time constant, not a parameter.
@@ -137,6 +138,7 @@ def _overlap_1d(centre: Array) -> Array:
     return jnp.clip(right - left, 0.0, None)
 
 
+@eqx.filter_jit
 def migration_kernels(
     coefficients: Float[Array, "12 ny nx"], max_shift_pix: float = DEFAULT_MAX_SHIFT_PIX
 ) -> Float[Array, "ny nx 3 3 3 3"]:
@@ -160,6 +162,7 @@ def migration_kernels(
     return 9.0 * overlap_y[..., :, None] * overlap_x[..., None, :]
 
 
+@eqx.filter_jit
 def transport(
     subpixel_charge: Float[Array, "ny nx 3 3"], kernels: Float[Array, "ny nx 3 3 3 3"]
 ) -> Float[Array, "ny nx"]:
@@ -176,6 +179,25 @@ def transport(
             # Charge leaving pixel (q - t + 1) towards offset t lands on pixel q.
             total = total + padded[2 - ty : 2 - ty + ny, 2 - tx : 2 - tx + nx, ty, tx]
     return total
+
+
+@functools.cache
+def read_weights(n_substeps: int, ngroups: int) -> np.ndarray:
+    """(ngroups, n_substeps + 1) weights taking the charge at the sub-steps (times
+    ``k / n_substeps`` of the ramp, k = 0..n_substeps) to the charge at the group reads
+    (times ``(g + 1) / ngroups``), by a not-a-knot cubic spline through the sub-steps.
+
+    A spline is linear in the values it interpolates, so it is this fixed matrix: computed
+    once in NumPy (scipy's spline of the identity), it keeps the spline's tridiagonal
+    solve out of every compiled model and gradient.
+    """
+    from scipy.interpolate import CubicSpline
+
+    times = np.linspace(0.0, 1.0, n_substeps + 1)
+    read_times = np.arange(1, ngroups + 1) / ngroups
+    weights = CubicSpline(times, np.eye(n_substeps + 1), axis=0)(read_times)
+    weights.setflags(write=False)
+    return weights
 
 
 def to_subpixels(image: Float[Array, "ny3 nx3"]) -> Float[Array, "ny nx 3 3"]:
@@ -246,6 +268,7 @@ class RampModel(eqx.Module):
             n_substeps=n_substeps,
         )
 
+    @eqx.filter_jit
     def charge_states(self, illuminance_e: Float[Array, "ny3 nx3"]) -> Float[Array, "n ny nx"]:
         """Charge after each sub-step, including the empty start: (n_substeps + 1, ny, nx),
         in the illuminance's precision (constants promoted to float64 when x64 is on must
@@ -268,14 +291,11 @@ class RampModel(eqx.Module):
         _, states = jax.lax.scan(advance, start, None, length=self.n_substeps)
         return jnp.concatenate([start[None], states])
 
+    @eqx.filter_jit
     def __call__(
         self, illuminance_e: Float[Array, "ny3 nx3"], ngroups: int
     ) -> Float[Array, "ngroups ny nx"]:
         """Charge (electrons) at the group reads, times (k + 1) / ngroups of the ramp."""
         states = self.charge_states(illuminance_e)
-        times = jnp.linspace(0.0, 1.0, self.n_substeps + 1)
-        read_times = jnp.arange(1, ngroups + 1) / ngroups
-        ny, nx = states.shape[1:]
-        flat_states = states.reshape(self.n_substeps + 1, ny * nx)
-        at_reads = interpax.interp1d(read_times, times, flat_states, method="cubic2")
-        return at_reads.reshape(ngroups, ny, nx)
+        weights = jnp.asarray(read_weights(self.n_substeps, ngroups), states.dtype)
+        return jnp.tensordot(weights, states, 1)

@@ -43,6 +43,7 @@ def default_ipc_kernel() -> np.ndarray:
     return kernel
 
 
+@eqx.filter_jit
 def convolve_ipc(frames: Float[Array, "... ny nx"], kernel: Float[Array, "5 5"]) -> Array:
     """Convolve each frame with the IPC kernel (zero padding at the subarray edges).
 
@@ -92,6 +93,7 @@ class ReadModel(eqx.Module):
             nonlinearity=jnp.zeros(shape),
         )
 
+    @eqx.filter_jit
     def __call__(self, charge_e: Float[Array, "ng ny nx"]) -> Float[Array, "ng ny nx"]:
         ngroups = charge_e.shape[0]
         reads = jnp.arange(1, ngroups + 1, dtype=charge_e.dtype)[:, None, None]
