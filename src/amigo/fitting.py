@@ -75,6 +75,7 @@ from amigo.model import (
     locate,
 )
 from amigo.newton import (
+    JITTER_INDEX,
     N_LOCAL_SCALARS,
     Layout,
     NewtonConfig,
@@ -779,9 +780,17 @@ def _tree_dot(a, b) -> Array:
 # ------------------------------------------------------------------------------ information
 #: Names of the nuisance parameters nulled by the kernel projection, in column order.
 def nuisance_names(n_zernike_rows: int = 7, n_zernike: int = 10) -> list[str]:
-    """``z<hole>_<noll>`` for the Zernikes, then ``log_flux``, ``slope``, ``defocus``."""
+    """``z<hole>_<noll>`` for the Zernikes, then ``log_flux``, ``slope``, ``defocus`` and
+    ``jitter_mas``.
+
+    The jitter is a per-exposure nuisance like the flux: a Gaussian blur multiplies the
+    visibilities by a Gaussian in baseline, which the latent amplitudes can mimic; the
+    kernel nulls it so that the DISCOs do not depend on how the jitter was split between
+    the blur and the latents (a faint companion's amplitude signal otherwise leaks into a
+    science exposure's fitted jitter).
+    """
     names = [f"z{h}_{j + 1}" for h in range(n_zernike_rows) for j in range(n_zernike)]
-    return [*names, "log_flux", "slope", "defocus"]
+    return [*names, "log_flux", "slope", "defocus", "jitter_mas"]
 
 
 @dataclass
@@ -869,11 +878,12 @@ def latent_information(
                 step(f"{label}: kernel Jacobians of {fit.exposures[e].name} (point source)")
                 local, wave = fit.local_jacobians(point, e, instrument, setup, wavefront=True)
                 jac0 = np.asarray(local[N_LOCAL_SCALARS:]).reshape(n, -1)
-                # Columns in the order of nuisance_names(): Zernikes, log-flux, slope, defocus
-                # (the instrument block is [Zernikes, defocus, geometry]).
+                # Columns in the order of nuisance_names(): Zernikes, log-flux, slope,
+                # defocus, jitter (the instrument block is [Zernikes, defocus, geometry]).
                 n_zernike = params.optics.zernikes_nm.size
                 zernikes, defocus = wave[:n_zernike], wave[n_zernike : n_zernike + 1]
-                nuis = np.concatenate([zernikes, local[2:4], defocus])
+                jitter = local[JITTER_INDEX : JITTER_INDEX + 1]
+                nuis = np.concatenate([zernikes, local[2:4], defocus, jitter])
                 nuis = np.asarray(nuis).reshape(len(names), -1)
                 cross += (jac0 * w[e].ravel()) @ nuis.T
                 cal_hessian += (jac0 * w[e].ravel()) @ jac0.T
