@@ -237,7 +237,13 @@ def test_a_fit_on_corrected_data_keeps_the_psf_anchor(setting):
     assert np.linalg.norm(np.asarray(fit.anchor)) > 0.1  # located near the star
     corrected = fit.with_exposures(exposures)
     np.testing.assert_array_equal(corrected.anchor, fit.anchor)
-    np.testing.assert_array_equal(corrected.models(params), fit.models(params))
+    # Equal to float32 rounding, not bit for bit: two calls of one compiled program in
+    # flight at once (JAX dispatches asynchronously) were seen to round differently on a
+    # 2-core CPU (1e-7 of the peak). A fit that lost the anchor moves the PSF by pixels.
+    expected = np.asarray(fit.models(params))
+    np.testing.assert_allclose(
+        np.asarray(corrected.models(params)), expected, rtol=0, atol=1e-6 * expected.max()
+    )
     with pytest.raises(ValueError, match="other exposures"):
         fit.with_exposures([FitExposure("b", "calibrator", "STAR", ramp.image(None))])
 
