@@ -119,6 +119,13 @@ class BaseModelConfig:
         ``"angular_spectrum"`` (the paper's, applied to the finite focal field) gave the
         same fidelity floor at three times the cost of the image (95 ms against 30 ms).
         Files written before these defaults record 128 and ``"angular_spectrum"``.
+    data_level
+        What the detector half describes. ``"ramp"`` (trained on raw ramps, calslope
+        files): the flat field, dark current and non-linearity are the detector's own.
+        ``"level2"`` (trained on the STScI pipeline's level-2 images): the pipeline has
+        subtracted the dark, divided by its flat and linearised, so dark and
+        non-linearity are zero and the flat is the *residual* pixel response the
+        pipeline's flat leaves (:meth:`BaseModel.for_level2`).
     """
 
     filters: tuple[str, ...] = instrument.CALIBRATED_FILTERS
@@ -133,6 +140,7 @@ class BaseModelConfig:
     network_depth: int = 3
     gain_e_per_dn: float = instrument.GAIN_E_PER_DN
     defocus_method: str = "pupil"
+    data_level: str = "ramp"
 
     def to_json(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -297,8 +305,13 @@ class BaseModel(eqx.Module):
         subtracted the dark, divided by its flat and corrected the classical
         non-linearity, so those are switched off (unit flat, no dark, no quadratic
         term); the charge migration (brighter-fatter), the intra-pixel response and IPC,
-        which the pipeline leaves in, stay."""
-        return eqx.tree_at(
+        which the pipeline leaves in, stay.
+
+        A model trained on level-2 images (``config.data_level == "level2"``) is returned
+        as it is: its flat is the residual response behind the pipeline's flat."""
+        if self.config.data_level == "level2":
+            return self
+        behind = eqx.tree_at(
             lambda m: (m.ramp.flat, m.read.dark_e_per_group, m.read.nonlinearity),
             self,
             (
@@ -306,6 +319,9 @@ class BaseModel(eqx.Module):
                 jnp.zeros_like(self.read.dark_e_per_group),
                 jnp.zeros_like(self.read.nonlinearity),
             ),
+        )
+        return dataclasses.replace(
+            behind, config=dataclasses.replace(self.config, data_level="level2")
         )
 
     def with_network(self, network: ChargeMigrationNetwork | None) -> BaseModel:

@@ -27,6 +27,17 @@ The paper's "Base Model Training and Calibration", as code:
   best physical state found so far (the paper's staged optimisation).
 * **Checkpoints.** The full training state is written after every epoch (atomically);
   :func:`train` with ``resume=True`` continues from it.
+* **Level-2 calibrators.** Trained on the STScI pipeline's level-2 images
+  (``_cal``/``_calints``/``_rateints``) instead of calslope files, the model is the one
+  behind the pipeline (:meth:`~amigo.basemodel.BaseModel.for_level2`: no dark, no
+  non-linearity), each image is compared with the pipeline's slope estimator applied to
+  the model's ramp (:mod:`amigo.slope_model`), so the network still learns the
+  brighter-fatter bending, and the per-pixel group learnt from the calibrators is the
+  *residual sensitivity* the pipeline's flat leaves (in place of the dark current), with
+  a Gaussian prior of width :attr:`TrainSettings.sensitivity_prior` around one: dithers
+  move the PSF over the pixels and so tell a pixel's response from the PSF's shape.
+* **Loss curve.** :func:`train` draws the calibration and validation losses against the
+  step into ``MODEL_loss.png`` (:func:`loss_curve_path`).
 
 Everything is float32 unless the caller enables 64-bit JAX (the metadata records it).
 """
@@ -161,11 +172,18 @@ def pixel_mask(base: BaseModel) -> BaseModel:
     )
 
 
+def _calibrator_pixels(m: BaseModel):
+    """The per-pixel leaf trained on the calibrators: the dark current of a model of raw
+    ramps, the residual sensitivity (the flat) of a model behind the pipeline."""
+    return m.ramp.flat if m.config.data_level == "level2" else m.read.dark_e_per_group
+
+
 def dark_mask(base: BaseModel) -> BaseModel:
-    """Boolean pytree over the linear view: True on the per-pixel dark current (trained
-    on the calibrators)."""
+    """Boolean pytree over the linear view: True on the per-pixel leaf trained on the
+    calibrators (:func:`_calibrator_pixels`: the dark current, or for a level-2 model
+    the residual sensitivity)."""
     linear = base.with_linear_detector()
-    return eqx.tree_at(lambda m: m.read.dark_e_per_group, _false_like(linear), True)
+    return eqx.tree_at(_calibrator_pixels, _false_like(linear), True)
 
 
 def split(tree: BaseModel, mask: BaseModel) -> BaseModel:
@@ -294,20 +312,21 @@ def pixel_newton(grad: BaseModel, fisher: dict[str, Any], damping: float) -> Bas
 def dark_fisher(
     base: BaseModel, params: PointSourceParams, data: SlopeData, cache: PupilCache
 ) -> BaseModel:
-    """Per-pixel Fisher diagonal of the dark current from one calibration exposure,
-    shaped like ``split(base, dark_mask(base))`` (one forward-mode pass with a tangent
-    of ones, as :func:`pixel_fisher`; the dark charge of a pixel, IPC aside, reaches only
-    that pixel's slopes)."""
+    """Per-pixel Fisher diagonal of the calibrators' per-pixel leaf (the dark current, or
+    a level-2 model's residual sensitivity) from one calibration exposure, shaped like
+    ``split(base, dark_mask(base))`` (one forward-mode pass with a tangent of ones, as
+    :func:`pixel_fisher`; a pixel's dark charge or sensitivity, IPC and charge migration
+    aside, reaches only that pixel's slopes)."""
 
-    def slopes(dark):
-        b = eqx.tree_at(lambda m: m.read.dark_e_per_group, base, dark)
+    def slopes(value):
+        b = eqx.tree_at(_calibrator_pixels, base, value)
         return model_slopes(b, cache, params, data)
 
-    dark = base.read.dark_e_per_group
-    _, dslopes = jax.jvp(slopes, (dark,), (jnp.ones_like(dark),))
+    value = _calibrator_pixels(base)
+    _, dslopes = jax.jvp(slopes, (value,), (jnp.ones_like(value),))
     dz = whiten(dslopes, data)
     per_pixel = jnp.sum(dz**2, axis=1).reshape(data.shape)
-    return eqx.tree_at(lambda m: m.read.dark_e_per_group, split(base, dark_mask(base)), per_pixel)
+    return eqx.tree_at(_calibrator_pixels, split(base, dark_mask(base)), per_pixel)
 
 
 # ---------------------------------------------------------------------------- optimiser
@@ -376,6 +395,10 @@ class TrainSettings:
     from that model, network included, so stage 0 is empty: ``stage_steps`` (default all
     ``steps``) then lists the stages with the network on, the first continuing the
     model's network and every later one restarting it.
+
+    ``sensitivity_prior``: standard deviation of the Gaussian prior on each pixel's
+    residual sensitivity around one when training on level-2 images (the pipeline's flat
+    is good to about a per cent; unused otherwise).
     """
 
     steps: int = 200
@@ -392,6 +415,7 @@ class TrainSettings:
     damping: float = 0.1
     seed: int = 0
     diagonal: bool = False
+    sensitivity_prior: float = 0.01
 
     def stages(self) -> list[int]:
         if self.init is not None:
@@ -428,19 +452,46 @@ class TrainingData:
         if not cal:
             raise InputError("--cal", "at least one calibration exposure is needed")
         read = SlopeData.read
-        return cls(
+        data = cls(
             cal=[read(p, "calibrator", diagonal, dtype) for p in cal],
             flats=[read(p, "flat", diagonal, dtype) for p in flats],
             val=[read(p, "validation", diagonal, dtype) for p in val],
         )
+        data.check()
+        return data
 
     @property
     def filters(self) -> tuple[str, ...]:
         return tuple(sorted({d.filter for d in self.cal + self.val}))
 
+    @property
+    def level2(self) -> bool:
+        """Whether the exposures are level-2 images (:meth:`check` makes them all one
+        kind)."""
+        return bool(self.cal) and self.cal[0].level2
+
+    def check(self) -> None:
+        """Refuse a mix of level-2 images and calslope files (one model cannot stand both
+        in front of and behind the pipeline) and flat fields with level-2 images."""
+        kinds = {d.level2 for d in self.cal + self.val}
+        if len(kinds) > 1:
+            odd = next(d for d in self.cal + self.val if d.level2 != self.cal[0].level2)
+            raise InputError(
+                odd.name, "level-2 images and calslope files cannot be mixed in one training"
+            )
+        if self.level2 and self.flats:
+            raise InputError(
+                self.flats[0].name,
+                "flat fields train the detector of raw ramps; a level-2 model learns the "
+                "residual sensitivity from the calibrators",
+            )
+
     def describe(self) -> dict[str, Any]:
         def one(d: SlopeData) -> dict[str, Any]:
-            return {"name": d.name, "filter": d.filter, "ngroups": d.ngroups, "values": d.n_values}
+            described = {"name": d.name, "filter": d.filter, "ngroups": d.ngroups}
+            if d.level2:
+                described["level"] = "level2"
+            return {**described, "values": d.n_values}
 
         return {
             "calibration": [one(d) for d in self.cal],
@@ -521,6 +572,11 @@ class Trainer:
         if missing:
             raise InputError(where, f"the model configuration has no optics for {missing}")
         base = BaseModel.create(config, linear=True) if initial is None else initial
+        data.check()
+        if data.level2:
+            base = base.for_level2()  # the model behind the pipeline
+        elif base.config.data_level == "level2":
+            raise InputError(where, "was trained on level-2 images: raw ramps need a ramp model")
         self.cache = base.pupil_cache() if cache is None else cache
         self.rng = np.random.default_rng(settings.seed)
         self.history = History()
@@ -738,7 +794,12 @@ class Trainer:
         if use_network:
             mask = dark_mask(base)
             g_dark = jax.tree.map(lambda g: g * scale, split(grad_base, mask))
-            dark, dark_opt = dark_opt.update(split(base, mask), g_dark, self.fisher["dark"])
+            fisher = self.fisher["dark"]
+            if self.data.level2:
+                g_dark, fisher = self._sensitivity_prior(base, g_dark, fisher)
+            dark, dark_opt = dark_opt.update(split(base, mask), g_dark, fisher)
+            if self.data.level2:
+                dark = self._without_common_mode(split(base, mask), dark)
             base = merge(base, dark, mask)
         adam_state = state.adam_state
         if use_network and base.ramp.network is not None:
@@ -757,6 +818,29 @@ class Trainer:
             (base, cal_params, cal_opt, physical_opt, dark_opt, adam_state),
         )
         return loss / max(values, 1)
+
+    def _sensitivity_prior(self, base: BaseModel, grad: BaseModel, fisher: BaseModel):
+        """Add the Gaussian prior ``(s - 1)^2 / (2 sigma^2)`` on each pixel's residual
+        sensitivity ``s`` to its gradient and Fisher diagonal (level-2 training)."""
+        precision = 1.0 / self.settings.sensitivity_prior**2
+        flat = base.ramp.flat
+        grad = eqx.tree_at(lambda m: m.ramp.flat, grad, grad.ramp.flat + precision * (flat - 1.0))
+        # Pixels no calibrator sees had an infinite Fisher (never move): keep them so.
+        f = fisher.ramp.flat
+        fisher = eqx.tree_at(
+            lambda m: m.ramp.flat, fisher, jnp.where(jnp.isinf(f), f, f + precision)
+        )
+        return grad, fisher
+
+    def _without_common_mode(self, before: BaseModel, after: BaseModel) -> BaseModel:
+        """The sensitivity step less its mean over the calibrators' pixels: the mean
+        sensitivity is degenerate with every exposure's flux, which carries it."""
+        used = np.zeros(before.ramp.flat.shape, bool)
+        for d in self.data.cal:
+            used |= np.asarray(d.used) > 0
+        step = after.ramp.flat - before.ramp.flat
+        step = jnp.where(used, step - jnp.mean(step[used]), 0.0)
+        return eqx.tree_at(lambda m: m.ramp.flat, after, before.ramp.flat + step)
 
     def flat_step(self) -> float:
         """Update the flat field, the non-linearity and the flats' levels from the
@@ -1064,12 +1148,53 @@ def train(
         "n_parameters": model.n_parameters,
     }
     save_base_model(model, out, metadata)
+    write_loss_curve(trainer.history, loss_curve_path(out), title=out.name)
     return model, metadata
 
 
 def checkpoint_path(out: Path) -> Path:
     """Where :func:`train` keeps its checkpoint for the model file ``out``."""
     return out.with_name(out.name + ".ckpt.npz")
+
+
+def loss_curve_path(out: Path) -> Path:
+    """Where :func:`train` draws the loss curve of the model file ``out``."""
+    return out.with_name(out.name.removesuffix(".npz") + "_loss.png")
+
+
+def write_loss_curve(history: History, path: Path, title: str = "") -> Path:
+    """Draw the training (per step and per epoch) and validation (per epoch) losses,
+    chi2/2 per value, against the step, with the stage boundaries; written atomically."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from amigo.io.atomic import atomic_path
+
+    fig, ax = plt.subplots(figsize=(7, 4.2), dpi=110)
+    if history.step:
+        ax.plot(history.step, history.loss, ".", ms=3, color="0.6", label="calibration batch")
+    if history.epoch_step:
+        ax.plot(history.epoch_step, history.cal_loss, "-o", ms=3, label="calibration (epoch)")
+        val = np.asarray(history.val_loss, float)
+        if np.isfinite(val).any():
+            ax.plot(history.epoch_step, val, "-s", ms=3, label="validation (epoch)")
+    stages = np.asarray(history.stage)
+    for k in np.nonzero(np.diff(stages))[0]:
+        ax.axvline(history.step[k + 1] - 0.5, color="0.8", lw=0.8, ls="--")
+    values = np.asarray([*history.loss, *history.cal_loss, *history.val_loss], float)
+    if np.all(values[np.isfinite(values)] > 0) and np.isfinite(values).any():
+        ax.set_yscale("log")
+    ax.set_xlabel("step (dashed: a new stage)")
+    ax.set_ylabel("chi2 / 2 per value")
+    ax.set_title(title or "training loss")
+    ax.legend(frameon=False, fontsize=8)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+    return path
 
 
 def machine_description() -> str:

@@ -107,15 +107,6 @@ class RampInput:
         return np.sqrt(np.einsum("iiyx->iyx", self.product.slope_cov_dn2))
 
 
-#: CDS read noise (DN) given to the pipeline's estimator when it is applied to the
-#: model's noiseless ramp: it only picks the Fixsen exponent from the ramp's S/N (the
-#: simulator's 6.6 DN per read, times sqrt(2) for a difference of two reads), and the
-#: exponent barely matters there: the weights are symmetric about the ramp's middle, so a
-#: ramp bent by any quadratic gets the same slope whatever the exponent
-#: (docs/pipeline_slope.md).
-LEVEL2_READ_NOISE_CDS_DN = 6.6 * np.sqrt(2.0)
-
-
 @dataclass(frozen=True)
 class Level2Input:
     """A level-2 exposure (``_cal``/``_calints``/``_rateints``) for the full detector.
@@ -151,17 +142,12 @@ class Level2Input:
         """``D = est(R) - M`` (ny, nx), DN/s: the pipeline's slope of the base model's
         ramp (its group differences ``slopes_dn``, (m, ny, nx) DN per group, summed from
         zero: the estimator only sees differences) less the linear image."""
-        from amigo.detector.pipeline_slope import pipeline_slopes
+        from amigo.detector.pipeline_slope import pipeline_group_slope
 
-        ramp = np.concatenate([np.zeros_like(slopes_dn[:1]), np.cumsum(slopes_dn, axis=0)])
-        fitted = pipeline_slopes(
-            jnp.asarray(ramp[None]),
-            group_time=self.group_time_s,
-            read_noise=LEVEL2_READ_NOISE_CDS_DN,
-            gain=GAIN_E_PER_DN,
-            nframes=self.nframes,
+        per_group = pipeline_group_slope(
+            jnp.asarray(slopes_dn), self.group_time_s, GAIN_E_PER_DN, self.nframes
         )
-        return np.asarray(fitted.slope[0], np.float64) - image_dn_s
+        return np.asarray(per_group, np.float64) / self.group_time_s - image_dn_s
 
     def sigma(self) -> np.ndarray:
         """(1, ny, nx) standard deviation of the image (DN/s)."""

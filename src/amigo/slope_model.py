@@ -10,6 +10,13 @@
         -> slopes (ngroups - 1, 80, 80), DN per group
     whitened residuals z = W (data - model), W = L^-1, SLOPE_COV = L L^T per pixel
 
+A level-2 image (``_cal``/``_calints``/``_rateints``, DN/s: the STScI pipeline's ramp fit)
+enters the same likelihood as one "slope" per pixel, its rate times TGROUP (DN per group)
+with its ERR: the model side applies the pipeline's estimator
+(:func:`amigo.detector.pipeline_slope.pipeline_group_slope`) to the model's group
+differences, so the brighter-fatter bending of the ramp is seen as the pipeline saw it
+(:meth:`SlopeData.from_level2`).
+
 :func:`predict_slopes` is the detector half on its own: give it any illuminance (a
 visibility-injected one from the fitting engine, a uniform one for flat fields) and it
 returns the slopes. :class:`SlopeData` holds one exposure's data and whitening as JAX
@@ -29,9 +36,11 @@ from jaxtyping import Array, Float
 
 from amigo import instrument
 from amigo.basemodel import BaseModel, PupilCache
+from amigo.detector.pipeline_slope import pipeline_group_slope
 from amigo.errors import InputError
 from amigo.io.calslope import CalSlope, read_calslope
-from amigo.likelihood import SlopeNoise, auto_structure
+from amigo.io.jwst import DQ_SATURATED, Exposure, is_level2, read_exposure
+from amigo.likelihood import ImageData, SlopeNoise, auto_structure
 
 ROLES = ("calibrator", "flat", "validation")
 
@@ -50,6 +59,9 @@ class SlopeData(eqx.Module):
     name, filter, ngroups, role, n_values
         Static description: file stem, filter, groups, role in training, and the number
         of slope values in the likelihood.
+    level2, nframes, group_time_s
+        Static: whether the exposure is a level-2 image (then ``m = 1``: the pipeline's
+        slope times TGROUP, see :meth:`from_level2`), its NFRAMES and TGROUP (s).
     """
 
     slopes_dn: Float[Array, "m ny nx"]
@@ -60,6 +72,9 @@ class SlopeData(eqx.Module):
     ngroups: int = eqx.field(static=True)
     role: str = eqx.field(static=True)
     n_values: int = eqx.field(static=True)
+    level2: bool = eqx.field(static=True, default=False)
+    nframes: int = eqx.field(static=True, default=1)
+    group_time_s: float = eqx.field(static=True, default=0.0)
 
     @classmethod
     def from_calslope(
@@ -103,10 +118,90 @@ class SlopeData(eqx.Module):
         )
 
     @classmethod
+    def from_level2(cls, exposure: Exposure, role: str, dtype=jnp.float32) -> SlopeData:
+        """Build from a level-2 exposure (``_cal``/``_calints``/``_rateints``, DN/s).
+
+        The image (integrations averaged as :meth:`ImageData.from_exposure` does) becomes
+        one value per pixel, ``rate * TGROUP`` in DN per group, whitened by ``1 / (ERR *
+        TGROUP)``. Pixels the pipeline flagged SATURATED are left out: their slope comes
+        from fewer groups than the header's NGROUPS, a ramp the model does not evaluate.
+        A flat field cannot be level-2 (the pipeline has divided it out).
+        """
+        meta = exposure.meta
+        if role not in ROLES:
+            raise ValueError(f"role {role!r} not in {ROLES}")
+        if role == "flat":
+            raise InputError(meta.path, "a flat field must be a calslope file, not level-2")
+        if meta.bunit.strip().upper() not in ("DN/S", "DN S-1", "DN.S**-1"):
+            raise InputError(meta.path, f"BUNIT {meta.bunit!r}: level-2 images in DN/s needed")
+        if meta.ngroups < 2:
+            raise InputError(meta.path, f"NGROUPS {meta.ngroups}: at least 2 groups needed")
+        image = ImageData.from_exposure(exposure)
+        used = image.mask.copy()
+        if exposure.dq is not None:
+            dq = np.asarray(exposure.dq).reshape(-1, *used.shape)
+            used &= ~np.any((dq & DQ_SATURATED) != 0, axis=0)
+        if not used.any():
+            raise InputError(meta.path, "no usable pixel")
+        return cls.from_rate_image(
+            image.data,
+            image.error,
+            used,
+            ngroups=int(meta.ngroups),
+            group_time_s=float(meta.group_time_s),
+            nframes=int(meta.nframes),
+            name=_stem(meta.path),
+            filter_name=str(meta.filter).strip().upper(),
+            role=role,
+            dtype=dtype,
+        )
+
+    @classmethod
+    def from_rate_image(
+        cls,
+        rate_dn_s: np.ndarray,
+        error_dn_s: np.ndarray,
+        used: np.ndarray,
+        *,
+        ngroups: int,
+        group_time_s: float,
+        nframes: int = 1,
+        name: str = "level2",
+        filter_name: str = "F480M",
+        role: str = "calibrator",
+        dtype=jnp.float32,
+    ) -> SlopeData:
+        """A level-2 exposure from its (ny, nx) rate and error (DN/s) and the pixels to
+        use: one value per pixel, ``rate * TGROUP`` (DN per group), whitened by
+        ``1 / (error * TGROUP)``."""
+        used = np.asarray(used, bool)
+        t = float(group_time_s)
+        ny, nx = used.shape
+        whitening = np.zeros((ny * nx, 1, 1))
+        whitening[used.ravel(), 0, 0] = 1.0 / (np.asarray(error_dn_s)[used] * t)
+        slopes = np.where(used, np.asarray(rate_dn_s) * t, 0.0)[None]
+        return cls(
+            slopes_dn=jnp.asarray(slopes, dtype),
+            whitening=jnp.asarray(whitening, dtype),
+            used=jnp.asarray(used, dtype),
+            name=name,
+            filter=filter_name,
+            ngroups=int(ngroups),
+            role=role,
+            n_values=int(used.sum()),
+            level2=True,
+            nframes=int(nframes),
+            group_time_s=t,
+        )
+
+    @classmethod
     def read(cls, path, role: str, diagonal: bool = False, dtype=jnp.float32) -> SlopeData:
-        """Read a calslope file (raises :class:`~amigo.errors.InputError` if it is not one)."""
-        product = read_calslope(path)
-        data = cls.from_calslope(product, role, diagonal, dtype)
+        """Read a calslope file or a level-2 image (raises
+        :class:`~amigo.errors.InputError` if it is neither)."""
+        if is_level2(path):
+            data = cls.from_level2(read_exposure(path), role, dtype)
+        else:
+            data = cls.from_calslope(read_calslope(path), role, diagonal, dtype)
         if role != "flat" and data.filter not in instrument.CALIBRATED_FILTERS:
             raise InputError(path, f"FILTER {data.filter!r} is not a calibrated AMI filter")
         return data
@@ -117,9 +212,9 @@ class SlopeData(eqx.Module):
 
 
 def _stem(path) -> str:
-    """File name without ``_calslope.fits``."""
+    """File name without ``_calslope.fits`` (or a level-2 suffix)."""
     name = Path(str(path)).name
-    for suffix in ("_calslope.fits", ".fits"):
+    for suffix in ("_calslope.fits", "_calints.fits", "_rateints.fits", "_cal.fits", ".fits"):
         if name.endswith(suffix):
             return name[: -len(suffix)]
     return name
@@ -160,9 +255,14 @@ def predict_slopes(
 def point_source_slopes(
     base: BaseModel, cache: PupilCache, params: PointSourceParams, data: SlopeData
 ) -> Array:
-    """Model slopes of a point source for the exposure ``data`` (its filter and groups)."""
+    """Model slopes of a point source for the exposure ``data`` (its filter and groups);
+    for a level-2 image, (1, ny, nx): the pipeline's slope of the model ramp."""
     unit = base.illuminance(data.filter, params.position_arcsec, cache)
-    return predict_slopes(base, params.flux_e * unit, data.ngroups)
+    slopes = predict_slopes(base, params.flux_e * unit, data.ngroups)
+    if data.level2:
+        gain = base.read.gain_e_per_dn
+        return pipeline_group_slope(slopes, data.group_time_s, gain, data.nframes)[None]
+    return slopes
 
 
 def flat_slopes(base: BaseModel, params: FlatParams, data: SlopeData) -> Array:
@@ -252,7 +352,8 @@ def initial_point_source(
     cx = float((core * xx).sum() / core.sum()) - 0.5 * (nx - 1)
     cy = float((core * yy).sum() / core.sum()) - 0.5 * (ny - 1)
     position = base.detector.detector_to_optical(jnp.array([cx, cy]))
-    total_dn = image.sum() * data.ngroups / (data.ngroups - 1)
+    # Mean DN per group times the groups: the integration's charge.
+    total_dn = image.sum() / data.slopes_dn.shape[0] * data.ngroups
     flux = total_dn * base.read.gain_e_per_dn / fraction_in_field
     dtype = data.slopes_dn.dtype
     return PointSourceParams(jnp.asarray(position, dtype), jnp.asarray(flux, dtype))

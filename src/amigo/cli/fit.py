@@ -96,6 +96,12 @@ def _fit_model(model: Path | None, detector: str | None, level: str) -> FitModel
     from amigo.basemodel import load_base_model, read_metadata
 
     base = load_base_model(model)
+    if level == "calslope" and base.config.data_level == "level2":
+        raise InputError(
+            model,
+            "was trained on level-2 images (it has no dark current or non-linearity); "
+            "calslope files from raw ramps need a model trained on ramps",
+        )
     record = read_metadata(model)
     trained = record.get("trained_on", "?").split(":")[0]
     name = f"{model.name} (trained on {record.get('scenario', '?').split(' ')[0]}, {trained})"

@@ -3,7 +3,11 @@
 All instrument parameters and the charge-migration network are fitted jointly to the
 calibration exposures; the flat field and per-pixel non-linearity to the flat-field
 exposures only; the validation exposures are fitted (their own positions and fluxes) but
-never calibrate anything (docs/detector.md, "Training").
+never calibrate anything (docs/detector.md, "Training"). The calibration and validation
+exposures are calslope files (from raw ramps) or, all of them, the pipeline's level-2
+images: then the model stands behind the pipeline and learns each pixel's residual
+sensitivity from the calibrators (:mod:`amigo.calibration`). The loss curve is drawn
+into ``MODEL_loss.png``.
 """
 
 from __future__ import annotations
@@ -27,7 +31,9 @@ _FILES = click.Path(dir_okay=False, path_type=Path)
     cls=ManyValues,
     required=True,
     type=_FILES,
-    help="Calibration calslope file (point-source calibrator); several may follow.",
+    help="Calibration exposure of a point-source calibrator: calslope files, or the "
+    "pipeline's level-2 images (_cal/_calints/_rateints, DN/s; not mixed with calslope); "
+    "several may follow.",
 )
 @click.option(
     "--flats",
@@ -41,7 +47,8 @@ _FILES = click.Path(dir_okay=False, path_type=Path)
     "val",
     cls=ManyValues,
     type=_FILES,
-    help="Validation calslope file (fitted, never used to calibrate); several may follow.",
+    help="Validation exposure, of the same kind as --cal (fitted, never used to "
+    "calibrate); several may follow.",
 )
 @click.option("--out", "out", required=True, type=_FILES, help="Base-model file to write (.npz).")
 @click.option(
@@ -116,6 +123,15 @@ _FILES = click.Path(dir_okay=False, path_type=Path)
     type=click.Choice(["pupil", "angular_spectrum"]),
     help="How the optics applies the defocus [default: the --init model's, else pupil].",
 )
+@click.option(
+    "--sensitivity-prior",
+    "sensitivity_prior",
+    default=0.01,
+    show_default=True,
+    type=click.FloatRange(min=0, min_open=True),
+    help="Level-2 training: width of the Gaussian prior on each pixel's residual "
+    "sensitivity around 1 (what the pipeline's flat leaves).",
+)
 @click.option("--float64", "float64", is_flag=True, help="Train in float64 (default float32).")
 @click.option(
     "--provenance",
@@ -141,6 +157,7 @@ def command(
     init: Path | None,
     pupil_npix: int | None,
     defocus_method: str | None,
+    sensitivity_prior: float,
     float64: bool,
     provenance_file: Path | None,
 ) -> None:
@@ -208,6 +225,7 @@ def command(
             seed=seed,
             diagonal=diagonal,
             init=None if init is None else str(init),
+            sensitivity_prior=sensitivity_prior,
         )
         try:
             _, metadata = train(
@@ -223,23 +241,40 @@ def command(
         except InputError as error:
             fail_input(error)
             return
+    from amigo.calibration import loss_curve_path
+
     final = metadata["history"]
     click.echo(
         f"{out}: {metadata['steps_done']} steps in {metadata['training_seconds']:.0f} s; "
         f"last losses (chi2/2 per value): cal {final['cal_loss'][-1]:.4g}, "
-        f"val {final['val_loss'][-1]:.4g}"
+        f"val {final['val_loss'][-1]:.4g}; loss curve {loss_curve_path(out)}"
     )
 
 
 def _check_inputs(slope_files: tuple[Path, ...], init: Path | None) -> None:
-    """Exit with the one-line error if a calslope file cannot be read or ``--init`` is
-    not a model archive (reads the files fully: the same checks as training's reader)."""
+    """Exit with the one-line error if a calslope file or level-2 image cannot be read
+    or ``--init`` is not a model archive (reads the files fully: the same checks as
+    training's reader)."""
     from amigo.cli import fail_input
     from amigo.io.calslope import read_calslope
+    from amigo.io.jwst import is_level2, read_exposure
 
     try:
+        kinds = {}
         for path in slope_files:
-            read_calslope(path)
+            kinds[path] = is_level2(path)
+            if kinds[path]:
+                read_exposure(path)
+            else:
+                read_calslope(path)
+        # One model stands either in front of the pipeline (ramps) or behind it (level 2).
+        odd = [p for p in slope_files if kinds[p] != kinds[slope_files[0]]]
+        if odd:
+            first = "a level-2 image" if kinds[odd[0]] else "a calslope file"
+            raise InputError(
+                odd[0],
+                f"is {first}; level-2 images and calslope files cannot be mixed in one training",
+            )
         if init is not None and not zipfile.is_zipfile(init):
             raise InputError(init, "not a base-model file (the .npz archive amigo train writes)")
     except InputError as error:

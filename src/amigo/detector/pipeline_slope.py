@@ -347,3 +347,37 @@ def pipeline_slopes(
         ngood=ngood,
         power=power.astype(dtype),
     )
+
+
+#: CDS read noise (DN) given to the estimator when it is applied to a *model's* noiseless
+#: ramp: it only picks the Fixsen exponent from the ramp's S/N (the simulator's 6.6 DN per
+#: read, times sqrt(2) for a difference of two reads), and the exponent barely matters
+#: there: the weights are symmetric about the ramp's middle, so a ramp bent by any
+#: quadratic gets the same slope whatever the exponent (docs/pipeline_slope.md).
+MODEL_READ_NOISE_CDS_DN = 6.6 * 2.0**0.5
+
+
+def pipeline_group_slope(
+    differences_dn: Float[ArrayLike, "m ny nx"],
+    group_time: float,
+    gain: float,
+    nframes: int = 1,
+) -> Float[Array, "ny nx"]:
+    """The pipeline's slope of one noiseless model integration, in DN per group.
+
+    ``differences_dn`` are the model's group differences (``ngroups - 1``, DN per group:
+    the ramp summed from zero, the estimator only sees differences); the result is what
+    a level-2 image (DN/s) would hold, times ``group_time``, so that it compares with
+    the mean group difference a linear detector would give. Differentiable (the S/N
+    that picks the weights is held out of the gradient, as in :func:`pipeline_slopes`).
+    """
+    differences_dn = jnp.asarray(differences_dn)
+    ramp = jnp.concatenate([jnp.zeros_like(differences_dn[:1]), jnp.cumsum(differences_dn, axis=0)])
+    fitted = pipeline_slopes(
+        ramp[None],
+        group_time=group_time,
+        read_noise=MODEL_READ_NOISE_CDS_DN,
+        gain=gain,
+        nframes=nframes,
+    )
+    return fitted.slope[0] * group_time

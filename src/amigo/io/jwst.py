@@ -387,6 +387,18 @@ def meta_from_headers(
     )
 
 
+def is_level2(path: str | os.PathLike[str]) -> bool:
+    """Whether ``path`` is a FITS file with a SCI extension but neither SLOPE (an amigo
+    calslope file) nor a raw ramp's 4-d SCI: a level-2 image. Headers only."""
+    try:
+        with fits.open(path, memmap=True) as hdul:
+            names = {hdu.name for hdu in hdul}
+            naxis = int(hdul["SCI"].header.get("NAXIS", 0)) if "SCI" in names else 0
+    except Exception:
+        return False  # not FITS: the caller's reader names the problem
+    return "SCI" in names and "SLOPE" not in names and naxis in (2, 3)
+
+
 def read_exposure(path: str | os.PathLike[str], *, need_slopes: bool = False) -> Exposure:
     """Read a whole exposure (see :class:`Exposure` for shapes and units).
 

@@ -1,0 +1,189 @@
+"""Training on the pipeline's level-2 images (issue 22, item 2).
+
+Function level: the reader turns a level-2 image into one "slope" per pixel; the model
+compares it with the pipeline's estimator applied to the model's ramp, which must equal
+stcal's own fit of that ramp (the independent reference); the model behind the pipeline
+keeps what it learnt. Command line: ``amigo train`` on real COM 1093 calibrator files
+(../shared), the model file and the loss curve it writes, and the inputs it refuses.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from astropy.io import fits
+
+from amigo import instrument
+from amigo.basemodel import BaseModel, BaseModelConfig, read_metadata
+from amigo.detector.pipeline_slope import MODEL_READ_NOISE_CDS_DN
+from amigo.errors import InputError
+from amigo.slope_model import PointSourceParams, SlopeData, point_source_slopes
+from jwst_files import write_level2
+from test_cli_train import _write, run_amigo
+from test_pipeline_slope import _stcal
+
+TGROUP = 0.07544
+SHARED = Path(os.environ.get("AMIGO_SHARED", Path(__file__).resolve().parents[2] / "shared"))
+CALIBRATORS = SHARED / "data" / "jwst" / "com1093-calibrators"
+
+
+def _image(rng) -> tuple[np.ndarray, np.ndarray]:
+    yy, xx = np.mgrid[:80, :80]
+    rate = 50.0 + 2e4 * np.exp(-((xx - 40.3) ** 2 + (yy - 39.6) ** 2) / 18.0)
+    rate += rng.normal(0.0, 3.0, rate.shape)
+    return rate, np.sqrt(np.abs(rate) / 30.0 + 4.0)
+
+
+def test_a_level2_file_becomes_one_slope_per_pixel(tmp_path):
+    rate, err = _image(np.random.default_rng(1))
+    dq = np.zeros((80, 80), np.uint32)
+    dq[40, 40] = 2  # SATURATED: its slope came from fewer groups than NGROUPS
+    dq[10, 12] = 1  # DO_NOT_USE
+    path = write_level2(
+        tmp_path / "jw_star_cal.fits", rate, err, dq, overrides={"NGROUPS": 7, "FILTER": "F480M"}
+    )
+    data = SlopeData.read(path, "calibrator")
+    assert data.level2 and data.ngroups == 7 and data.nframes == 1
+    assert data.group_time_s == pytest.approx(TGROUP)
+    assert data.name == "jw_star" and data.filter == "F480M"
+    assert data.slopes_dn.shape == (1, 80, 80)
+    used = np.asarray(data.used) > 0
+    expected = ~instrument.reference_row_mask(80, 80)
+    expected[40, 40] = expected[10, 12] = False
+    np.testing.assert_array_equal(used, expected)
+    assert data.n_values == int(expected.sum())
+    np.testing.assert_allclose(
+        np.asarray(data.slopes_dn[0])[used], (rate * TGROUP)[used], rtol=1e-6
+    )
+    whitening = np.asarray(data.whitening).reshape(80, 80)
+    np.testing.assert_allclose(whitening[used], 1.0 / (err * TGROUP)[used], rtol=1e-6)
+    assert not whitening[~used].any()
+    with pytest.raises(InputError, match="calslope"):
+        SlopeData.read(path, "flat")
+    mjy = write_level2(tmp_path / "mjy_cal.fits", rate, err)
+    with fits.open(mjy, mode="update") as hdul:
+        hdul["SCI"].header["BUNIT"] = "MJy/sr"  # a photometrically calibrated image
+    with pytest.raises(InputError, match="DN/s"):
+        SlopeData.read(mjy, "calibrator")
+
+
+@pytest.fixture(scope="module")
+def bent_model() -> tuple[BaseModel, SlopeData, PointSourceParams]:
+    """A small linear-network model with a strong classical non-linearity (so that the
+    ramp bends and the pipeline's slope differs from the mean group difference), and a
+    level-2 exposure of 8 groups."""
+    config = BaseModelConfig(filters=("F480M",), shape=(80, 80), n_wavelengths=3, pupil_npix=64)
+    base = BaseModel.create(config, linear=True)
+    base = eqx_set_nonlinearity(base, -2e-6)
+    rate, err = _image(np.random.default_rng(2))
+    used = np.ones((80, 80), bool)
+    data = SlopeData.from_rate_image(rate, err, used, ngroups=8, group_time_s=TGROUP)
+    return base, data, PointSourceParams(jnp.array([0.02, -0.01]), jnp.asarray(2e6))
+
+
+def eqx_set_nonlinearity(base: BaseModel, value: float) -> BaseModel:
+    import equinox as eqx
+
+    return eqx.tree_at(
+        lambda m: m.read.nonlinearity, base, jnp.full_like(base.read.nonlinearity, value)
+    )
+
+
+def test_the_model_image_is_stcal_s_fit_of_the_model_ramp(bent_model):
+    base, data, source = bent_model
+    cache = base.pupil_cache()
+    with jax.enable_x64(True):
+        level2 = np.asarray(point_source_slopes(base, cache, source, data), np.float64)[0]
+        ramp_kind = dataclasses.replace(data, level2=False)
+        differences = np.asarray(point_source_slopes(base, cache, source, ramp_kind), np.float64)
+    assert differences.shape == (7, 80, 80)
+    ramp = np.concatenate([np.zeros((1, 80, 80)), np.cumsum(differences, axis=0)])
+    gain = base.read.gain_e_per_dn
+    rate, _ = _stcal(
+        ramp[None],
+        np.zeros((1, *ramp.shape), bool),
+        tgroup=TGROUP,
+        tframe=TGROUP,
+        nframes=1,
+        groupgap=0,
+        read_noise=np.full((80, 80), MODEL_READ_NOISE_CDS_DN),
+        gain=np.full((80, 80), gain),
+    )
+    bright = differences.mean(axis=0) > 20.0
+    assert bright.sum() > 50
+    np.testing.assert_allclose(level2[bright] / TGROUP, rate["slope"][bright], rtol=2e-5)
+    # The classical non-linearity bends the ramp by a quadratic, and the pipeline's weights
+    # are symmetric about the ramp's middle: its slope is the chord's, the mean difference
+    # (docs/pipeline_slope.md), whereas the differences themselves fall along the ramp.
+    mean = differences.mean(axis=0)
+    np.testing.assert_allclose(level2[bright], mean[bright], rtol=1e-5)
+    assert np.all(differences[-1][bright] < (1 - 5e-4) * differences[0][bright])
+
+
+def test_the_model_behind_the_pipeline_keeps_what_it_learnt():
+    config = BaseModelConfig(filters=("F480M",), shape=(8, 8))
+    base = BaseModel.create(config, linear=True)
+    base = eqx_set_nonlinearity(base, 1e-6)
+    behind = base.for_level2()
+    assert behind.config.data_level == "level2" and base.config.data_level == "ramp"
+    assert not np.asarray(behind.read.nonlinearity).any()
+    import equinox as eqx
+
+    learnt = eqx.tree_at(lambda m: m.ramp.flat, behind, behind.ramp.flat * 1.01)
+    assert learnt.for_level2() is learnt  # its flat is the residual sensitivity: kept
+
+
+needs_shared = pytest.mark.skipif(
+    not CALIBRATORS.is_dir(), reason=f"COM 1093 calibrator files not found in {CALIBRATORS}"
+)
+
+
+@pytest.mark.slow
+@needs_shared
+def test_amigo_train_on_real_level2_calibrators(tmp_path):
+    cal = [str(CALIBRATORS / f"jw01093020001_03102_0000{i}_nis_cal.fits") for i in (1, 2)]
+    val = [str(CALIBRATORS / "jw01093017001_03102_00001_nis_cal.fits")]
+    out = tmp_path / "real.npz"
+    args = ["train", "--cal", *cal, "--val", *val, "--out", str(out), "--steps", "2"]
+    args += ["--batches", "1", "--pupil-npix", "96", "--init", _shipped()]
+    result = run_amigo(*args)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "loss curve" in result.stdout
+    png = out.with_name("real_loss.png")
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    record = read_metadata(out)
+    assert record["config"]["data_level"] == "level2"
+    names = [e["name"] for e in record["data"]["calibration"]]
+    assert names == ["jw01093020001_03102_00001_nis", "jw01093020001_03102_00002_nis"]
+    assert all(e["level"] == "level2" for e in record["data"]["calibration"])
+    assert record["initial_model"]["path"] == _shipped()
+    history = record["history"]
+    assert len(history["cal_loss"]) == 2 and np.all(np.isfinite(history["val_loss"]))
+    print("level-2 training losses", json.dumps({k: history[k] for k in ("cal_loss", "val_loss")}))
+
+    # One model cannot stand both in front of and behind the pipeline: the model trained
+    # here refuses calslope files, and a training refuses a mix of the two kinds.
+    from amigo.cli.fit import _fit_model
+
+    with pytest.raises(InputError, match="level-2"):
+        _fit_model(out, None, "calslope")
+    calslope = _write(tmp_path / "ramp_calslope.fits", np.full((3, 16, 16), 50.0), "F480M", 0)
+    mixed = run_amigo(
+        "train", "--cal", cal[0], "--val", str(calslope), "--out", str(tmp_path / "x")
+    )
+    assert mixed.returncode == 2, mixed.stderr
+    error = mixed.stderr.strip().splitlines()[-1]  # (after a note on memory maps, if any)
+    assert "cannot be mixed" in error and "ramp_calslope.fits" in error, mixed.stderr
+
+
+def _shipped() -> str:
+    from amigo.basemodel import default_model_path
+
+    return str(default_model_path())
