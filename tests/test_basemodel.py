@@ -41,6 +41,7 @@ def test_parameter_count_of_the_full_model():
     expected = (
         3 * per_filter
         + 7 * 2  # hole centres
+        + 7  # hole sizes
         + 5  # jitter, rotation, anisotropy, skew, scale
         + 8640  # network (tests/test_ramp.py checks the architecture)
         + 80 * 80  # flat
@@ -179,12 +180,19 @@ def test_with_config_changes_only_how_finely_the_optics_is_computed():
     parameter shapes are refused."""
     model = _perturbed(BaseModel.create(SMALL, jax.random.PRNGKey(4), linear=True), seed=7)
     model = eqx.tree_at(  # a realistic wavefront and geometry, not random numbers
-        lambda m: (m.zernikes_nm["F430M"], m.defocus_nm["F430M"], m.hole_centres_m, m.detector),
+        lambda m: (
+            m.zernikes_nm["F430M"],
+            m.defocus_nm["F430M"],
+            m.hole_centres_m,
+            m.hole_sizes_m,
+            m.detector,
+        ),
         model,
         (
             jnp.asarray(np.random.default_rng(1).normal(0, 20, (7, 10)), jnp.float32),
             jnp.asarray(25.0),
             BaseModel.create(SMALL).hole_centres_m,
+            BaseModel.create(SMALL).hole_sizes_m,
             BaseModel.create(SMALL).detector,
         ),
     )
@@ -207,3 +215,32 @@ def test_with_config_changes_only_how_finely_the_optics_is_computed():
         model.with_config(shape=(16, 16))
     with pytest.raises(ValueError, match="n_zernike"):
         model.with_config(n_zernike=6)
+
+
+def test_hole_sizes_set_the_area_of_each_hole():
+    """Each drawn hole's transmitted area is the hexagon's, (sqrt(3) / 2) w^2 for flat to
+    flat w (analytic), for the nominal 0.80 m and for holes grown or shrunk by 2.5 %; an
+    older file (format 3, no sizes) loads with the nominal size in every hole."""
+    model = BaseModel.create(SMALL, linear=True)
+    cache = model.pupil_cache()
+    sizes = jnp.asarray([0.80, 0.78, 0.82, 0.80, 0.80, 0.79, 0.81])
+    holes = model.optics("F430M", cache).aperture
+    for w in (holes.sizes_m, sizes):
+        drawn = eqx.tree_at(lambda h: h.sizes_m, holes, w)
+        transmission = np.asarray(drawn.hole_transmissions(cache.grid, supersample=3))
+        area = transmission.sum(axis=(1, 2)) * cache.grid.pixel_m**2
+        np.testing.assert_allclose(area, np.sqrt(3) / 2 * np.asarray(w) ** 2, rtol=2e-3)
+    assert np.all(np.asarray(model.hole_sizes_m) == np.float32(0.80))
+
+
+def test_a_format_3_file_loads_with_nominal_hole_sizes(tmp_path):
+    model = eqx.tree_at(lambda m: m.hole_sizes_m, BaseModel.create(SMALL), jnp.full(7, 0.7))
+    path = save_base_model(model, tmp_path / "m.npz")
+    with np.load(path) as data:
+        arrays = dict(data)
+    record = json.loads(str(arrays["__metadata__"]))
+    arrays["__metadata__"] = np.asarray(json.dumps({**record, "format_version": 3}))
+    del arrays[".hole_sizes_m"]
+    np.savez(tmp_path / "v3.npz", **arrays)
+    sizes = np.asarray(load_base_model(tmp_path / "v3.npz").hole_sizes_m)
+    np.testing.assert_array_equal(sizes, np.full(7, np.float32(0.80)))

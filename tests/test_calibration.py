@@ -269,9 +269,9 @@ def test_parameter_groups_are_disjoint_and_cover_the_instrument():
     pix = jax.tree.leaves(pixel_mask(base))
     assert not any(a and b for a, b in zip(phys, pix, strict=True))
     n_phys = sum(x.size for x in jax.tree.leaves(split(base, physical_mask(base))))
-    # Zernikes (71 over the filters), 7 hole centres x 2, detector jitter, rotation,
-    # anisotropy, skew and scale (5), intra-pixel response (5).
-    assert n_phys == 71 + 14 + 5 + 5
+    # Zernikes (71 over the filters), 7 hole centres x 2, 7 hole sizes, detector jitter,
+    # rotation, anisotropy, skew and scale (5), intra-pixel response (5).
+    assert n_phys == 71 + 14 + 7 + 5 + 5
     n_pix = sum(x.size for x in jax.tree.leaves(split(base, pixel_mask(base))))
     assert n_pix == 2 * 16 * 16
 

@@ -12,6 +12,7 @@ Parameters and what trains them (see :mod:`amigo.calibration`)::
     zernikes_nm[filter]    (7, 10)  per-hole Noll Zernikes, rms OPD nm     physical
     defocus_nm[filter]     ()       Fresnel defocus, Noll Z4 rms nm        physical
     hole_centres_m         (7, 2)   hole centres on the mask, m            physical
+    hole_sizes_m           (7,)     hole sizes (flat to flat) on the mask, m physical
     detector               LinearDetector: jitter, rotation, anisotropy   physical
     ramp.intra_pixel       (5,)     quadratic intra-pixel response         physical
     read.dark_e_per_group  (80, 80) dark current per pixel, e- per group   dark (calibrators)
@@ -68,8 +69,9 @@ from amigo.optics.model import NRMOptics, OpticsConfig
 from amigo.optics.spectrum import LinearSpectrum
 
 FORMAT = "amigo-base-model"
-#: 2: the dark current is a per-pixel map (version 1 held one value for all pixels).
-FORMAT_VERSION = 3
+#: 2: the dark current is a per-pixel map (version 1 held one value for all pixels);
+#: 3: the SIAF's detector geometry (see GEOMETRY_KEYS); 4: the hole sizes are parameters.
+FORMAT_VERSION = 4
 #: Leaves of the linear detector's geometry (format 3 added skew and scale, and the SIAF's
 #: sense of rotation).
 GEOMETRY_KEYS = (
@@ -80,6 +82,8 @@ GEOMETRY_KEYS = (
 )
 METADATA_KEY = "__metadata__"
 DARK_KEY = ".read.dark_e_per_group"
+#: Hole sizes, fitted since format 4 (older files take the nominal 0.80 m for every hole).
+HOLE_SIZES_KEY = ".hole_sizes_m"
 #: Package-data location of the shipped base model.
 DEFAULT_MODEL_RESOURCE = ("data", "base_model", "amigo_base_model.npz")
 #: Settings of :class:`BaseModelConfig` that only set how finely the optics is computed.
@@ -166,18 +170,19 @@ class BaseModelConfig:
 
 
 class MovableHoles(eqx.Module):
-    """The mask with fittable hole centres and a fixed (precomputed) Zernike basis.
+    """The mask with fittable hole centres and sizes and a fixed (precomputed) Zernike basis.
 
     Implements the aperture interface of :class:`amigo.optics.NRMOptics`
-    (``hole_transmissions``, ``zernike_basis``). The hexagons are drawn at ``centres_m``
+    (``hole_transmissions``, ``zernike_basis``). The hexagons (flat to flat ``sizes_m``)
+    are drawn at ``centres_m``
     on every call (soft edges, so the image is differentiable in the centres); the
     Zernike basis stays on the nominal centres, because the wavefront belongs to the
     telescope, not to the mask.
     """
 
     centres_m: Float[Array, "7 2"]
+    sizes_m: Float[Array, " 7"]
     basis: Float[Array, "7 j ny nx"]
-    flat_to_flat_m: float = eqx.field(static=True, default=instrument.HOLE_FLAT_TO_FLAT_M)
 
     def hole_transmissions(
         self, grid: PupilGrid, softening_px: float = 1.0, supersample: int = 1
@@ -186,7 +191,7 @@ class MovableHoles(eqx.Module):
         pixel is the mean of ``supersample^2`` sub-samples (as the optics' aperture)."""
         x, y = grid.coordinates()
         edge = softening_px * grid.pixel_m / supersample
-        size = jnp.asarray(self.flat_to_flat_m, x.dtype)
+        size = self.sizes_m.astype(x.dtype)[:, None, None]  # flat to flat, per hole
         offsets = (np.arange(supersample) - 0.5 * (supersample - 1)) / supersample * grid.pixel_m
         # The seven holes broadcast along a leading axis, not a Python loop: one copy of
         # the hexagon's graph instead of seven (compile time, which dominates on a CPU).
@@ -225,6 +230,7 @@ class BaseModel(eqx.Module):
     zernikes_nm: dict[str, Float[Array, "7 nz"]]
     defocus_nm: dict[str, Float[Array, ""]]
     hole_centres_m: Float[Array, "7 2"]
+    hole_sizes_m: Float[Array, " 7"]
     detector: LinearDetector
     ramp: RampModel
     read: ReadModel
@@ -270,6 +276,7 @@ class BaseModel(eqx.Module):
             },
             defocus_nm={f: jnp.asarray(0.0) for f in config.filters},
             hole_centres_m=jnp.asarray(np.asarray(instrument.HOLE_CENTRES_M, dtype=float)),
+            hole_sizes_m=jnp.full(instrument.N_HOLES, float(instrument.HOLE_FLAT_TO_FLAT_M)),
             # IPC acts in the read model (on every group read), not on the linear image.
             detector=LinearDetector.create(ipc=False),
             ramp=ramp,
@@ -357,7 +364,9 @@ class BaseModel(eqx.Module):
         """The optical model of one filter (an :class:`amigo.optics.NRMOptics`)."""
         self.check_filter(filter_name)
         holes = MovableHoles(
-            centres_m=self.hole_centres_m, basis=cache.basis.astype(self.hole_centres_m.dtype)
+            centres_m=self.hole_centres_m,
+            sizes_m=self.hole_sizes_m,
+            basis=cache.basis.astype(self.hole_centres_m.dtype),
         )
         return NRMOptics(
             aperture=holes,
@@ -547,7 +556,11 @@ def load_base_model(path: str | os.PathLike[str] | None = None) -> BaseModel:
         # code's resampler meant for coordinates (+0.561 deg: the image turned the wrong
         # way) and no skew or scale: they take the SIAF-derived geometry instead.
         geometry = GEOMETRY_KEYS if version < 3 else ()
-        return fill_leaves(path, skeleton, data, broadcast=spread, from_skeleton=geometry)
+        # Files before format 4 hold no hole sizes: the nominal ones.
+        sizes = (HOLE_SIZES_KEY,) if version < 4 else ()
+        return fill_leaves(
+            path, skeleton, data, broadcast=spread, from_skeleton=(*geometry, *sizes)
+        )
 
 
 def default_model_path() -> Path:

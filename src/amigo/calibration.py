@@ -6,7 +6,7 @@ The paper's "Base Model Training and Calibration", as code:
   together with the per-exposure source parameters (position, flux) of the calibration
   exposures, on the slope likelihood (:mod:`amigo.slope_model`).
 * **Four groups of parameters, three data sets.** *Physical* parameters (aberrations,
-  defocus, hole positions, jitter, rotation, anisotropy, intra-pixel response), the
+  defocus, hole positions and sizes, jitter, rotation, anisotropy, intra-pixel response), the
   per-pixel *dark* current and the *network* learn from the calibration exposures; the
   *pixel* parameters (flat field and per-pixel non-linearity) learn only from the
   flat-field exposures (whose uniform light cannot tell a pixel's dark current from its
@@ -105,6 +105,7 @@ def _physical_leaves(m: BaseModel) -> tuple:
         m.zernikes_nm,
         m.defocus_nm,
         m.hole_centres_m,
+        m.hole_sizes_m,
         m.detector.jitter_arcsec,
         m.detector.rotation_deg,
         m.detector.anisotropy,
@@ -135,6 +136,7 @@ def physical_mask(base: BaseModel, filter_name: str | None = None) -> BaseModel:
             True,
             True,
             True,
+            True,
         ),
     )
 
@@ -142,13 +144,14 @@ def physical_mask(base: BaseModel, filter_name: str | None = None) -> BaseModel:
 def physical_step_limits(base: BaseModel) -> BaseModel:
     """Largest move of each physical parameter in one step (the trust region), shaped
     like ``split(base, physical_mask(base))``: 2 nm of aberration, 5 nm of defocus, 2 mm
-    of hole position, 1 mas of jitter, 0.05 deg of rotation, 5e-4 of anisotropy, 0.05 deg
+    of hole position, 1 mm of hole size, 1 mas of jitter, 0.05 deg of rotation, 5e-4 of anisotropy, 0.05 deg
     of skew, 5e-4 of scale, 0.05 of intra-pixel response."""
     physical = split(base, physical_mask(base))
     limits = (
         {k: jnp.full_like(v, 2.0) for k, v in physical.zernikes_nm.items()},
         {k: jnp.full_like(v, 5.0) for k, v in physical.defocus_nm.items()},
         jnp.full_like(physical.hole_centres_m, 2e-3),
+        jnp.full_like(physical.hole_sizes_m, 1e-3),
         jnp.full_like(physical.detector.jitter_arcsec, 1e-3),
         jnp.full_like(physical.detector.rotation_deg, 0.05),
         jnp.full_like(physical.detector.anisotropy, 5e-4),
