@@ -86,6 +86,9 @@ DARK_KEY = ".read.dark_e_per_group"
 HOLE_SIZES_KEY = ".hole_sizes_m"
 #: Package-data location of the shipped base model.
 DEFAULT_MODEL_RESOURCE = ("data", "base_model", "amigo_base_model.npz")
+#: Package-data location of the base model trained on real level-2 calibrator images (the
+#: default of ``amigo fit`` for level-2 images when it is shipped).
+LEVEL2_MODEL_RESOURCE = ("data", "base_model", "amigo_base_model_com1093_level2.npz")
 #: Settings of :class:`BaseModelConfig` that only set how finely the optics is computed.
 OPTICS_SETTINGS = ("pupil_npix", "n_wavelengths", "defocus_method")
 
@@ -564,6 +567,14 @@ def load_base_model(path: str | os.PathLike[str] | None = None) -> BaseModel:
 
 
 def default_model_path() -> Path:
-    """Path of the base model shipped in the package data."""
+    """Path of the base model shipped in the package data (trained on the project's
+    simulated raw ramps: the default for calslope files and the demo)."""
     resource = resources.files("amigo").joinpath(*DEFAULT_MODEL_RESOURCE)
     return Path(str(resource))
+
+
+def level2_model_path() -> Path | None:
+    """Path of the shipped base model trained on real level-2 calibrator images (the
+    default for level-2 images), ``None`` if this installation has none."""
+    path = Path(str(resources.files("amigo").joinpath(*LEVEL2_MODEL_RESOURCE)))
+    return path if path.is_file() else None

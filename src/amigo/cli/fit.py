@@ -74,11 +74,16 @@ class FitModel:
 
 def _fit_model(model: Path | None, detector: str | None, level: str) -> FitModel:
     """Resolve the options: calslope files default to the shipped base model with its
-    network; level-2 images to the nominal instrument with the linear detector, or with
-    ``--detector full`` to the base model's ramp seen through the pipeline's slope
-    estimator (:class:`amigo.ramp_fit.Level2Input`)."""
+    network; level-2 images to the shipped model trained on real level-2 calibrators
+    (:func:`amigo.basemodel.level2_model_path`; the nominal instrument where none is
+    shipped) with the linear detector, or with ``--detector full`` to its ramp seen
+    through the pipeline's slope estimator (:class:`amigo.ramp_fit.Level2Input`)."""
     from amigo.model import Instrument, load_instrument
 
+    if model is None and level == "level2":
+        from amigo.basemodel import level2_model_path
+
+        model = level2_model_path()
     if model is None and (level == "calslope" or detector == "full"):
         from amigo.basemodel import default_model_path
 
@@ -188,8 +193,9 @@ _MODEL_OPTIONS = [
         type=click.Path(path_type=Path),
         default=None,
         help="Base model: a trained base model (.npz, e.g. from 'amigo train'), or an "
-        "instrument file (default: the shipped base model for calslope files, the nominal "
-        "instrument for level-2 images).",
+        "instrument file (default: the shipped base model for calslope files; for level-2 "
+        "images the shipped model trained on real level-2 calibrators, or the nominal "
+        "instrument where none is shipped).",
     ),
     click.option(
         "--detector",
