@@ -133,3 +133,31 @@ def test_the_same_star_as_science_and_calibrator_stays_two_targets(tmp_path):
     keyed = key_targets(items)
     assert [e.target for e, _ in keyed] == ["HD-37093", "HD-37093 (cal obs 015)", "HD-36805"]
     assert [e.role for e, _ in keyed] == ["science", "calibrator", "calibrator"]
+
+
+def test_level2_images_default_to_the_shipped_real_data_model(tmp_path, monkeypatch):
+    """Level-2 images take the model trained on real level-2 calibrators when one is
+    shipped (its optics, with the linear detector unless --detector full), the nominal
+    instrument otherwise; calslope files keep the simulated-ramp model."""
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    import amigo.basemodel as basemodel
+    from amigo.basemodel import BaseModel, BaseModelConfig, save_base_model
+    from amigo.cli.fit import _fit_model
+
+    config = BaseModelConfig(filters=("F480M",), n_wavelengths=3, pupil_npix=64)
+    model = BaseModel.create(config).for_level2()
+    model = eqx.tree_at(lambda m: m.defocus_nm["F480M"], model, jnp.asarray(30.0))
+    path = save_base_model(model, tmp_path / "real.npz", {"trained_on": "real: test"})
+    monkeypatch.setattr(basemodel, "level2_model_path", lambda: None)
+    nominal = _fit_model(None, None, "level2")
+    assert nominal.base is None and nominal.detector == "linear"
+    monkeypatch.setattr(basemodel, "level2_model_path", lambda: path)
+    real = _fit_model(None, None, "level2")
+    assert real.detector == "linear" and real.base is None
+    assert float(real.instrument("F480M").optics.defocus_nm) == 30.0
+    full = _fit_model(None, "full", "level2")
+    assert full.detector == "full" and full.base.config.data_level == "level2"
+    ramp = _fit_model(None, None, "calslope")
+    assert ramp.base.config.data_level == "ramp"
