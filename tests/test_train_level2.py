@@ -167,6 +167,10 @@ def test_amigo_train_on_real_level2_calibrators(tmp_path):
     assert names == ["jw01093020001_03102_00001_nis", "jw01093020001_03102_00002_nis"]
     assert all(e["level"] == "level2" for e in record["data"]["calibration"])
     assert record["initial_model"]["path"] == _shipped()
+    # What made the model: the command as given, and the code's commit (None outside git).
+    assert record["command"].startswith("amigo train --cal ") and cal[1] in record["command"]
+    commit = record["source_commit"]
+    assert commit is None or len(commit.removesuffix("+dirty")) == 40
     history = record["history"]
     assert len(history["cal_loss"]) == 2 and np.all(np.isfinite(history["val_loss"]))
     print("level-2 training losses", json.dumps({k: history[k] for k in ("cal_loss", "val_loss")}))

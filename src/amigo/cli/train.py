@@ -13,6 +13,8 @@ into ``MODEL_loss.png``.
 from __future__ import annotations
 
 import json
+import shlex
+import sys
 import zipfile
 from pathlib import Path
 
@@ -176,7 +178,12 @@ def command(
             raise click.BadParameter(
                 f"positive steps summing to --steps ({steps})", param_hint="--stages"
             )
-    provenance = {"command": "amigo train", "float": "float64" if float64 else "float32"}
+    # The command exactly as given (file paths included): the record says what made the model.
+    argv = sys.argv[1:] if Path(sys.argv[0]).stem in ("amigo", "__main__") else ["train"]
+    provenance = {
+        "command": "amigo " + shlex.join(argv),
+        "float": "float64" if float64 else "float32",
+    }
     if provenance_file is not None:
         try:
             extra = json.loads(provenance_file.read_text(encoding="utf-8"))
