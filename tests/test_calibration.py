@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from astropy.io import fits
 
+from amigo import instrument
 from amigo.basemodel import BaseModel, BaseModelConfig
 from amigo.calibration import (
     FisherMomentum,
@@ -325,6 +326,11 @@ def test_training_decreases_the_loss_on_a_tiny_synthetic_problem(cache, tmp_path
     trainer.epoch()
     assert trainer.state.base.ramp.network is not None
     assert trainer.history.stage[-1] == 1
+    # The holes moved relative to each other, never together (the mask's centroid is
+    # not seen by the data, calibration.pin_mask_centroid).
+    shift = np.asarray(trainer.state.base.hole_centres_m) - np.asarray(instrument.HOLE_CENTRES_M)
+    np.testing.assert_allclose(shift.mean(axis=0), 0.0, atol=1e-7)
+    assert np.abs(shift).max() > 1e-6
     assert not trainer.result().linear
 
     # A checkpoint restores the whole state, and only for the model configuration it

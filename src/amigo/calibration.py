@@ -62,6 +62,7 @@ import optax
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Float
 
+from amigo import instrument
 from amigo._version import __version__
 from amigo.basemodel import (
     BaseModel,
@@ -187,6 +188,22 @@ def dark_mask(base: BaseModel) -> BaseModel:
     the residual sensitivity)."""
     linear = base.with_linear_detector()
     return eqx.tree_at(_calibrator_pixels, _false_like(linear), True)
+
+
+def pin_mask_centroid(base: BaseModel) -> BaseModel:
+    """``base`` with its hole centres moved together so that their mean is the nominal
+    mask's.
+
+    Moving the whole mask across the pupil multiplies the focal-plane field by a phase
+    ramp: the image does not change, only which part of the wavefront each hole samples,
+    which the per-hole Zernikes describe anyway. The data do not constrain that common
+    shift, so training let it drift (19 mm across 400 steps of the first real-data model,
+    2.4 % of a hole); pinning it leaves the 12 relative positions free.
+    """
+    nominal = jnp.asarray(instrument.HOLE_CENTRES_M, base.hole_centres_m.dtype)
+    centres = base.hole_centres_m
+    shift = jnp.mean(centres - nominal, axis=0)
+    return eqx.tree_at(lambda m: m.hole_centres_m, base, centres - shift)
 
 
 def split(tree: BaseModel, mask: BaseModel) -> BaseModel:
@@ -790,6 +807,7 @@ class Trainer:
             ravel_pytree(physical_step_limits(base))[0],
         )
         base = merge(base, unravel(moved_vector), mask)
+        base = pin_mask_centroid(base)
         # The dark current of every pixel, from the same batch gradient, once the optics
         # have settled (network-on stages): a per-pixel offset would otherwise soak up
         # the residuals of a still-wrong PSF.
