@@ -137,8 +137,8 @@ def test_the_same_star_as_science_and_calibrator_stays_two_targets(tmp_path):
 
 def test_level2_images_default_to_the_shipped_real_data_model(tmp_path, monkeypatch):
     """Level-2 images take the model trained on real level-2 calibrators when one is
-    shipped (its optics, with the linear detector unless --detector full), the nominal
-    instrument otherwise; calslope files keep the simulated-ramp model."""
+    shipped (with its detector unless --detector linear), the nominal instrument with the
+    linear detector otherwise; calslope files keep the simulated-ramp model."""
     import equinox as eqx
     import jax.numpy as jnp
 
@@ -154,10 +154,11 @@ def test_level2_images_default_to_the_shipped_real_data_model(tmp_path, monkeypa
     nominal = _fit_model(None, None, "level2")
     assert nominal.base is None and nominal.detector == "linear"
     monkeypatch.setattr(basemodel, "level2_model_path", lambda: path)
-    real = _fit_model(None, None, "level2")
-    assert real.detector == "linear" and real.base is None
+    real = _fit_model(None, None, "level2")  # a model made for level 2: its detector
+    assert real.detector == "full" and real.base.config.data_level == "level2"
     assert float(real.instrument("F480M").optics.defocus_nm) == 30.0
-    full = _fit_model(None, "full", "level2")
-    assert full.detector == "full" and full.base.config.data_level == "level2"
+    linear = _fit_model(None, "linear", "level2")
+    assert linear.detector == "linear" and linear.base is None
+    assert float(linear.instrument("F480M").optics.defocus_nm) == 30.0
     ramp = _fit_model(None, None, "calslope")
     assert ramp.base.config.data_level == "ramp"
