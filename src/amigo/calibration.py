@@ -63,7 +63,7 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, Float
 
 from amigo import instrument
-from amigo._version import __version__
+from amigo._version import __version__, source_commit
 from amigo.basemodel import (
     BaseModel,
     BaseModelConfig,
@@ -1151,6 +1151,7 @@ def train(
     dtype = str(np.asarray(model.hole_centres_m).dtype)
     metadata = {
         "trained_on": "simulated or real calibration exposures listed in 'data'",
+        "source_commit": source_commit(),  # the CLI's provenance holds the one at its start
         **(provenance or {}),
         "data": data.describe(),
         "settings": asdict(settings),
@@ -1166,7 +1167,6 @@ def train(
         "steps_done": trainer.step,
         "stopped_by_time_limit": trainer.stopped_early,
         "machine": machine_description(),
-        "source_commit": source_commit(),
         "n_parameters": model.n_parameters,
     }
     save_base_model(model, out, metadata)
@@ -1237,27 +1237,6 @@ def machine_description() -> str:
         f"{device.platform}:{device.device_kind}; {cpu}; {os.cpu_count()} cores; "
         f"{platform.system()} {platform.release()}"
     )
-
-
-def source_commit() -> str | None:
-    """The git commit of the amigo source tree this process runs (``None`` when amigo is
-    not run from a git checkout, e.g. an installed wheel), with ``+dirty`` when the tree
-    has uncommitted changes: a model's record names the code that trained it."""
-    import subprocess
-
-    root = Path(__file__).resolve().parents[2]
-    try:
-        commit = subprocess.run(
-            ["git", "-C", str(root), "rev-parse", "HEAD"],
-            capture_output=True, text=True, check=True, timeout=10,
-        ).stdout.strip()  # fmt: skip
-        status = subprocess.run(
-            ["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
-            capture_output=True, text=True, check=True, timeout=10,
-        ).stdout.strip()  # fmt: skip
-    except (OSError, subprocess.SubprocessError):
-        return None
-    return f"{commit}+dirty" if status else commit
 
 
 def process_flat_field(uncal_path: str | Path, out_dir: str | Path) -> Path:

@@ -180,8 +180,12 @@ def command(
             )
     # The command exactly as given (file paths included): the record says what made the model.
     argv = sys.argv[1:] if Path(sys.argv[0]).stem in ("amigo", "__main__") else ["train"]
+    from amigo._version import source_commit
+
+    # Taken now: the code that trains is the code imported at the start.
     provenance = {
         "command": "amigo " + shlex.join(argv),
+        "source_commit": source_commit(),
         "float": "float64" if float64 else "float32",
     }
     if provenance_file is not None:
