@@ -244,3 +244,25 @@ def test_a_format_3_file_loads_with_nominal_hole_sizes(tmp_path):
     np.savez(tmp_path / "v3.npz", **arrays)
     sizes = np.asarray(load_base_model(tmp_path / "v3.npz").hole_sizes_m)
     np.testing.assert_array_equal(sizes, np.full(7, np.float32(0.80)))
+
+
+def test_shipped_level2_model_is_trained_on_real_calibrators_and_says_which():
+    """The real-data model for level-2 images (issue 22, item 3): it stands behind the
+    pipeline, and its record names the files, the command and the commit."""
+    from amigo.basemodel import level2_model_path
+
+    path = level2_model_path()
+    if path is None:
+        pytest.fail("no shipped level-2 model")
+    model = load_base_model(path)
+    assert model.config.data_level == "level2" and not model.linear
+    assert not np.asarray(model.read.nonlinearity).any()
+    assert not np.asarray(model.read.dark_e_per_group).any()
+    record = read_metadata(path)
+    assert record["trained_on"].startswith("real JWST level-2 calibrators")
+    names = [e["name"] for e in record["data"]["calibration"]]
+    assert len(names) == 12 and all(n.startswith("jw01093") for n in names)
+    assert not any(n.startswith("jw01093012") for n in names)  # AB Dor: held out
+    assert all(e["level"] == "level2" for e in record["data"]["calibration"])
+    assert record["command"].startswith("amigo train --cal ")
+    assert len(record["source_commit"]) == 40
