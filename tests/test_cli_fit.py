@@ -157,6 +157,8 @@ def test_level2_images_default_to_the_shipped_real_data_model(tmp_path, monkeypa
     real = _fit_model(None, None, "level2")  # a model made for level 2: its detector
     assert real.detector == "full" and real.base.config.data_level == "level2"
     assert float(real.instrument("F480M").optics.defocus_nm) == 30.0
+    # What fit_summary.json's "model" says (it once held the detector's repr).
+    assert real.instrument("F480M").name == "real.npz (trained on real) (F480M; full detector)"
     linear = _fit_model(None, "linear", "level2")
     assert linear.detector == "linear" and linear.base is None
     assert float(linear.instrument("F480M").optics.defocus_nm) == 30.0

@@ -96,12 +96,12 @@ class Instrument(eqx.Module):
         ``"linear"``) only names the one in use."""
         optics = base.optics(filter_name, base.pupil_cache())
         # Images see the base model's own IPC kernel (its read model applies it to ramps).
-        detector = eqx.tree_at(
+        linear = eqx.tree_at(
             lambda d: d.ipc_kernel, base.detector, base.read.ipc_kernel, is_leaf=lambda x: x is None
         )
         return cls(
             optics=optics,
-            detector=detector,
+            detector=linear,
             n_wavelengths=int(base.config.n_wavelengths),
             name=f"{name} ({filter_name}; {detector} detector)",
         )

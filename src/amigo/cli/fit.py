@@ -111,7 +111,11 @@ def _fit_model(model: Path | None, detector: str | None, level: str) -> FitModel
         )
     record = read_metadata(model)
     trained = record.get("trained_on", "?").split(":")[0]
-    name = f"{model.name} (trained on {record.get('scenario', '?').split(' ')[0]}, {trained})"
+    scenario = record.get("scenario", "?").split(" ")[0]
+    # e.g. "(trained on cal4481, simulated ...)"; "(trained on real JWST ...)" when the
+    # scenario's first word only repeats the description.
+    about = trained if scenario == "?" or trained.startswith(scenario) else f"{scenario}, {trained}"
+    name = f"{model.name} (trained on {about})"
     if level == "level2" and detector is None and base.config.data_level == "level2":
         # A model trained behind the pipeline is made for level-2 images with its
         # detector: on held-out COM 1093 images it fits 0.1-0.6 closer to the noise (z
