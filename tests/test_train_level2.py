@@ -148,16 +148,14 @@ needs_shared = pytest.mark.skipif(
 @pytest.mark.slow
 @needs_shared
 def test_amigo_train_on_real_level2_calibrators(tmp_path):
-    # One dither of HD 36805 (obs 20) to train on, the same star's other visit (obs 18) to
-    # validate on: both F480M with 9 groups, so that one compiled model serves both (each
-    # filter and number of groups is a program of its own: minutes on a small CPU). From
-    # scratch with the network off (stage 0 only), on a coarse pupil: what is tested here
-    # is the command on real files; the shipped real-data model shows the training itself.
+    # One dither of HD 36805 (obs 20), from scratch with the network off (stage 0 only) on
+    # a coarse pupil: what is tested here is the command on real files (23 s on a 2-core
+    # CPU; with a validation file and a 64-pixel pupil it took 40 s); the shipped
+    # real-data model shows the training itself.
     cal = [str(CALIBRATORS / "jw01093020001_03102_00001_nis_cal.fits")]
-    val = [str(CALIBRATORS / "jw01093018001_03102_00001_nis_cal.fits")]
     out = tmp_path / "real.npz"
-    args = ["train", "--cal", *cal, "--val", *val, "--out", str(out), "--steps", "2"]
-    args += ["--stages", "2", "--batches", "1", "--pupil-npix", "64"]
+    args = ["train", "--cal", *cal, "--out", str(out), "--steps", "2"]
+    args += ["--stages", "2", "--batches", "1", "--pupil-npix", "32"]
     result = run_amigo(*args)
     assert result.returncode == 0, result.stderr[-3000:]
     assert "loss curve" in result.stdout
@@ -173,9 +171,8 @@ def test_amigo_train_on_real_level2_calibrators(tmp_path):
     commit = record["source_commit"]
     assert commit is None or len(commit.removesuffix("+dirty")) == 40
     history = record["history"]
-    assert len(history["cal_loss"]) == 2 and np.all(np.isfinite(history["val_loss"]))
-    assert history["cal_loss"][-1] < history["cal_loss"][0]
-    print("level-2 training losses", json.dumps({k: history[k] for k in ("cal_loss", "val_loss")}))
+    assert len(history["cal_loss"]) == 2 and history["cal_loss"][-1] < history["cal_loss"][0]
+    print("level-2 training losses", json.dumps(history["cal_loss"]))
 
     # One model cannot stand both in front of and behind the pipeline: the model trained
     # here refuses calslope files, and a training refuses a mix of the two kinds.
