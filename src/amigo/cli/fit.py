@@ -19,29 +19,12 @@ import click
 
 from amigo.errors import InputError
 
-LEVEL2_KINDS = ("cal", "calints", "rateints", "rate")
-
-
-def _kind_of(path: Path) -> str:
-    """'calslope', a level-2 kind or 'uncal', without reading pixels."""
-    from astropy.io import fits
-
-    if path.name.lower().endswith("_calslope.fits"):
-        return "calslope"
-    try:
-        with fits.open(path) as hdul:
-            if "SLOPE" in hdul:
-                return "calslope"
-    except (OSError, ValueError):
-        pass  # read_header reports unreadable files precisely
-    from amigo.io.jwst import read_header
-
-    return read_header(path).kind
-
 
 def _check_inputs(sci: tuple[Path, ...], cal: tuple[Path, ...], detector: str | None) -> str:
     """Validate the kinds of the inputs; return ``"calslope"`` or ``"level2"``."""
-    kinds = {path: _kind_of(path) for path in (*sci, *cal)}
+    from amigo.io.jwst import LEVEL2_KINDS, data_kind
+
+    kinds = {path: data_kind(path) for path in (*sci, *cal)}
     for path, kind in kinds.items():
         if kind == "uncal":
             raise InputError(path, "is a raw ramp (uncal): run 'amigo process' first")

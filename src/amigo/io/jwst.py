@@ -387,16 +387,29 @@ def meta_from_headers(
     )
 
 
-def is_level2(path: str | os.PathLike[str]) -> bool:
-    """Whether ``path`` is a FITS file with a SCI extension but neither SLOPE (an amigo
-    calslope file) nor a raw ramp's 4-d SCI: a level-2 image. Headers only."""
+#: Kinds of the STScI pipeline's level-2 images (its ramp fits), as :func:`read_header`
+#: names them.
+LEVEL2_KINDS = ("cal", "calints", "rateints", "rate")
+
+
+def data_kind(path: str | os.PathLike[str]) -> str:
+    """``"calslope"``, ``"uncal"`` or a level-2 kind (:data:`LEVEL2_KINDS`), from the
+    headers only; :class:`~amigo.errors.InputError` for a file that is none of them."""
+    path = Path(path)
+    if path.name.lower().endswith("_calslope.fits"):
+        return "calslope"
     try:
-        with fits.open(path, memmap=True) as hdul:
-            names = {hdu.name for hdu in hdul}
-            naxis = int(hdul["SCI"].header.get("NAXIS", 0)) if "SCI" in names else 0
-    except Exception:
-        return False  # not FITS: the caller's reader names the problem
-    return "SCI" in names and "SLOPE" not in names and naxis in (2, 3)
+        with fits.open(path) as hdul:
+            if "SLOPE" in hdul:
+                return "calslope"
+    except (OSError, ValueError):
+        pass  # read_header reports unreadable files precisely
+    return read_header(path).kind
+
+
+def is_level2(path: str | os.PathLike[str]) -> bool:
+    """Whether ``path`` is a level-2 image (:func:`data_kind`)."""
+    return data_kind(path) in LEVEL2_KINDS
 
 
 def read_exposure(path: str | os.PathLike[str], *, need_slopes: bool = False) -> Exposure:
