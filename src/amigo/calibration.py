@@ -190,6 +190,16 @@ def dark_mask(base: BaseModel) -> BaseModel:
     return eqx.tree_at(_calibrator_pixels, _false_like(linear), True)
 
 
+def _seen_by(datasets: Sequence[SlopeData]) -> np.ndarray:
+    """(ny, nx) True where a pixel enters the likelihood of any of ``datasets``."""
+    return np.logical_or.reduce([np.asarray(d.used) > 0 for d in datasets])
+
+
+def _less_common_mode(step: Array, used: np.ndarray) -> Array:
+    """A per-pixel step less its mean over the ``used`` pixels (the others as they are)."""
+    return jnp.where(used, step - jnp.mean(step[used]), step)
+
+
 def pin_mask_centroid(base: BaseModel) -> BaseModel:
     """``base`` with its hole centres moved together so that their mean is the nominal
     mask's.
@@ -855,12 +865,9 @@ class Trainer:
 
     def _without_common_mode(self, before: BaseModel, after: BaseModel) -> BaseModel:
         """The sensitivity step less its mean over the calibrators' pixels: the mean
-        sensitivity is degenerate with every exposure's flux, which carries it."""
-        used = np.zeros(before.ramp.flat.shape, bool)
-        for d in self.data.cal:
-            used |= np.asarray(d.used) > 0
-        step = after.ramp.flat - before.ramp.flat
-        step = jnp.where(used, step - jnp.mean(step[used]), 0.0)
+        sensitivity is degenerate with every exposure's flux, which carries it (pixels no
+        calibrator sees have an infinite Fisher diagonal: their step is zero)."""
+        step = _less_common_mode(after.ramp.flat - before.ramp.flat, _seen_by(self.data.cal))
         return eqx.tree_at(lambda m: m.ramp.flat, after, before.ramp.flat + step)
 
     def flat_step(self) -> float:
@@ -886,11 +893,8 @@ class Trainer:
         )
         # The flat's mean is degenerate with every flux: the flats' levels carry it, the
         # flat's step has none (a common-mode step would jolt every calibrator's flux).
-        used = np.zeros(base.ramp.flat.shape, bool)
-        for d in self.data.flats:
-            used |= np.asarray(d.used) > 0
-        step = direction.ramp.flat
-        step = jnp.where(used, step - jnp.mean(step[used]), step)
+        used = _seen_by(self.data.flats)
+        step = _less_common_mode(direction.ramp.flat, used)
         direction = eqx.tree_at(lambda m: m.ramp.flat, direction, step)
         ones = jax.tree.map(jnp.ones_like, direction)
         pixel, pixel_opt = state.pixel_opt.update(split(base, mask), direction, ones)
@@ -1170,7 +1174,10 @@ def train(
         "n_parameters": model.n_parameters,
     }
     save_base_model(model, out, metadata)
-    write_loss_curve(trainer.history, loss_curve_path(out), title=out.name)
+    from amigo.plots.optics import save
+    from amigo.plots.training import loss_curve_figure
+
+    save(loss_curve_figure(trainer.history, title=out.name), loss_curve_path(out))
     return model, metadata
 
 
@@ -1182,41 +1189,6 @@ def checkpoint_path(out: Path) -> Path:
 def loss_curve_path(out: Path) -> Path:
     """Where :func:`train` draws the loss curve of the model file ``out``."""
     return out.with_name(out.name.removesuffix(".npz") + "_loss.png")
-
-
-def write_loss_curve(history: History, path: Path, title: str = "") -> Path:
-    """Draw the training (per step and per epoch) and validation (per epoch) losses,
-    chi2/2 per value, against the step, with the stage boundaries; written atomically."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from amigo.io.atomic import atomic_path
-
-    fig, ax = plt.subplots(figsize=(7, 4.2), dpi=110)
-    if history.step:
-        ax.plot(history.step, history.loss, ".", ms=3, color="0.6", label="calibration batch")
-    if history.epoch_step:
-        ax.plot(history.epoch_step, history.cal_loss, "-o", ms=3, label="calibration (epoch)")
-        val = np.asarray(history.val_loss, float)
-        if np.isfinite(val).any():
-            ax.plot(history.epoch_step, val, "-s", ms=3, label="validation (epoch)")
-    stages = np.asarray(history.stage)
-    for k in np.nonzero(np.diff(stages))[0]:
-        ax.axvline(history.step[k + 1] - 0.5, color="0.8", lw=0.8, ls="--")
-    values = np.asarray([*history.loss, *history.cal_loss, *history.val_loss], float)
-    if np.all(values[np.isfinite(values)] > 0) and np.isfinite(values).any():
-        ax.set_yscale("log")
-    ax.set_xlabel("step (dashed: a new stage)")
-    ax.set_ylabel("chi2 / 2 per value")
-    ax.set_title(title or "training loss")
-    ax.legend(frameon=False, fontsize=8)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
-    return path
 
 
 def machine_description() -> str:
