@@ -482,13 +482,11 @@ class TrainingData:
         if not cal:
             raise InputError("--cal", "at least one calibration exposure is needed")
         read = SlopeData.read
-        data = cls(
+        return cls(
             cal=[read(p, "calibrator", diagonal, dtype) for p in cal],
             flats=[read(p, "flat", diagonal, dtype) for p in flats],
             val=[read(p, "validation", diagonal, dtype) for p in val],
         )
-        data.check()
-        return data
 
     @property
     def filters(self) -> tuple[str, ...]:
@@ -502,7 +500,8 @@ class TrainingData:
 
     def check(self) -> None:
         """Refuse a mix of level-2 images and calslope files (one model cannot stand both
-        in front of and behind the pipeline) and flat fields with level-2 images."""
+        in front of and behind the pipeline) and flat fields with level-2 images (the
+        :class:`Trainer` checks its data)."""
         kinds = {d.level2 for d in self.cal + self.val}
         if len(kinds) > 1:
             odd = next(d for d in self.cal + self.val if d.level2 != self.cal[0].level2)
