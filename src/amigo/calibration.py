@@ -792,6 +792,12 @@ class Trainer:
         for i in batch:
             d = self.data.cal[i]
             value, (gb, gp) = _loss_and_grad(base, state.cal_params[i], d, self.cache)
+            if not np.isfinite(float(value)):
+                # e.g. a detector geometry beyond the resampling's reach (NaN images)
+                raise FloatingPointError(
+                    f"training diverged at step {self.step + 1}: the loss of calibration "
+                    f"exposure {i} is not finite"
+                )
             loss, values = loss + float(value), values + d.n_values
             grad_base = gb if grad_base is None else jax.tree.map(jnp.add, grad_base, gb)
             grads[i] = gp

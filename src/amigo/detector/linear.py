@@ -159,8 +159,11 @@ def cubic_resample(
     ``x' = (a11 - a12 a21 / a22) x + (a12 / a22) y'``; then along y, every column at
     ``y' = a21 x + a22 y``; composed, ``(x', y') = A (x, y)``. The map is close to the
     identity, so each pass reads a fixed stencil of ``2 reach + 1`` shifted copies
-    (:func:`_shift_along`); displacements must stay below ``reach - 1`` samples (checked
-    at run time; :func:`displacement_reach` gives the reach a matrix needs).
+    (:func:`_shift_along`); displacements must stay below ``reach - 1`` samples
+    (:func:`displacement_reach` gives the reach a matrix needs). Beyond that the result is
+    NaN: the solvers reject a step whose loss is not finite, and training stops on it.
+    (Not ``eqx.error_if``: its host callback keeps every program that contains it out of
+    JAX's persistent compilation cache, and the fit's programs take minutes to compile.)
     """
     n, m = image.shape[-2:]
     a = jnp.linalg.inv(matrix)
@@ -170,8 +173,8 @@ def cubic_resample(
     ux = (a[0, 0] - a[0, 1] * a[1, 0] / a[1, 1] - 1) * x + (a[0, 1] / a[1, 1]) * y
     uy = a[1, 0] * x + (a[1, 1] - 1) * y
     too_far = jnp.maximum(jnp.abs(ux).max(), jnp.abs(uy).max()) >= reach - 1
-    image = eqx.error_if(image, too_far, "detector geometry exceeds the resampling reach")
-    return _shift_along(_shift_along(image, ux, -1, reach), uy, -2, reach)
+    resampled = _shift_along(_shift_along(image, ux, -1, reach), uy, -2, reach)
+    return jnp.where(too_far, jnp.asarray(jnp.nan, image.dtype), resampled)
 
 
 @eqx.filter_jit
