@@ -445,9 +445,15 @@ def write_leaves(path: str | os.PathLike[str], tree: Any, record: dict[str, Any]
     return path
 
 
+def _is_array_or_shape(x: Any) -> bool:
+    """An array leaf, or the shape of one (a skeleton from ``eqx.filter_eval_shape``)."""
+    return eqx.is_array(x) or isinstance(x, jax.ShapeDtypeStruct)
+
+
 def leaf_paths(tree: Any) -> dict[str, Array]:
-    """``{path: array}`` for every array leaf of ``tree`` (paths as ``jax.tree_util.keystr``)."""
-    arrays = eqx.filter(tree, eqx.is_array)
+    """``{path: array}`` for every array leaf of ``tree`` (paths as ``jax.tree_util.keystr``);
+    a leaf that is only a shape (``jax.ShapeDtypeStruct``) counts as an array."""
+    arrays = eqx.filter(tree, _is_array_or_shape)
     flat, _ = jax.tree_util.tree_flatten_with_path(arrays)
     return {jax.tree_util.keystr(path): leaf for path, leaf in flat}
 
@@ -480,7 +486,7 @@ def fill_leaves(
         if array.shape != tuple(leaf.shape):
             raise InputError(path, f"{name} has shape {array.shape}, expected {leaf.shape}")
         values[name] = array
-    arrays, static = eqx.partition(skeleton, eqx.is_array)
+    arrays, static = eqx.partition(skeleton, _is_array_or_shape)
     flat, treedef = jax.tree_util.tree_flatten_with_path(arrays)
     leaves = [jnp.asarray(values[jax.tree_util.keystr(p)]) for p, _ in flat]
     return eqx.combine(jax.tree_util.tree_unflatten(treedef, leaves), static)
@@ -551,7 +557,19 @@ def load_base_model(path: str | os.PathLike[str] | None = None) -> BaseModel:
     with open_npz(path) as data:
         record = _metadata(path, data)
         config = BaseModelConfig.from_json(record["config"])
-        skeleton = BaseModel.create(config, linear=not record.get("network", True))
+        skeleton = BaseModel.create(config, linear=True)
+        if record.get("network", True):
+            # The network's shapes only: the stored weights replace them, and drawing
+            # random ones would compile the random-number programs in every process.
+            key = jax.ShapeDtypeStruct((2,), jnp.uint32)
+            network = eqx.filter_eval_shape(
+                ChargeMigrationNetwork,
+                key,
+                width=config.network_width,
+                depth=config.network_depth,
+                charge_scale_e=config.charge_scale_e,
+            )
+            skeleton = skeleton.with_network(network)
         # Files before format 2 hold one dark current for all pixels: spread it.
         version = int(record.get("format_version", 1))
         spread = (DARK_KEY,) if version < 2 else ()
