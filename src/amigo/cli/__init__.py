@@ -75,7 +75,11 @@ def main(argv: list[str] | None = None) -> Any:
     # shapes skips the compilation, most of a cold run's time on a CPU.
     enable_compilation_cache()
     try:
-        return cli.main(args=argv, prog_name="amigo", standalone_mode=True)
+        # The arguments as given travel in the context: a command that records how it was
+        # run (amigo train) reads them there, whether a console script or a caller in
+        # Python invoked it.
+        args = list(sys.argv[1:] if argv is None else argv)
+        return cli.main(args=args, prog_name="amigo", standalone_mode=True, obj={"argv": args})
     except InputError as error:
         fail_input(error)
     except KeyboardInterrupt:

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import json
 import shlex
-import sys
 import zipfile
 from pathlib import Path
 
@@ -179,7 +178,8 @@ def command(
                 f"positive steps summing to --steps ({steps})", param_hint="--stages"
             )
     # The command exactly as given (file paths included): the record says what made the model.
-    argv = sys.argv[1:] if Path(sys.argv[0]).stem in ("amigo", "__main__") else ["train"]
+    root = click.get_current_context().find_root().obj
+    argv = root["argv"] if isinstance(root, dict) and "argv" in root else ["train"]
     from amigo._version import source_commit
 
     # Taken now: the code that trains is the code imported at the start.
