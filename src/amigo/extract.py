@@ -24,7 +24,14 @@ import numpy as np
 from amigo import instrument as nis
 from amigo import observables as obs
 from amigo.basis import BasisInfo, load_basis
-from amigo.fitting import FilterFit, FitConfig, FitExposure, FitResult, latent_information
+from amigo.fitting import (
+    FilterFit,
+    FitConfig,
+    FitExposure,
+    FitResult,
+    LatentInformation,
+    latent_information,
+)
 from amigo.model import FilterSetup, Instrument
 from amigo.progress import step
 from amigo.ramp_fit import DetectorRecord, RampDetector, fit_through_detector
@@ -84,6 +91,8 @@ class FilterProduct:
     models: np.ndarray
     products: list[TargetProduct]
     kernel: obs.Kernel
+    #: the float64 latent Hessians and nuisance cross terms the products rest on
+    information: LatentInformation
     seconds: float
     detector: DetectorRecord | None = None
 
@@ -230,6 +239,7 @@ def extract_filter(
         models=models,
         products=products,
         kernel=kernel,
+        information=information,
         seconds=seconds,
         detector=record,
     )
