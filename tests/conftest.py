@@ -50,6 +50,35 @@ def pytest_runtest_logreport(report):
         reporter.write_line(f"[slow] {report.duration:7.1f} s {report.when:8} {report.nodeid}")
 
 
+#: Seconds each of the longest test files takes on one worker (2-core AMD EPYC,
+#: 2026-11-26, -n 2). pytest-xdist (--dist loadfile) hands whole files to the two workers
+#: in collection order, so a long file collected last runs alone at the end while the
+#: other worker idles; collecting the longest first (longest-processing-time-first
+#: scheduling) keeps both busy to the end. Only the order depends on these figures: a
+#: stale or missing entry costs time, never a test.
+LONG_FILES_S = {
+    "test_cli_train.py": 45,
+    "test_ramp_fit.py": 88,
+    "test_cli_demo.py": 72,
+    "test_calibration.py": 56,
+    "test_fit_synthetic.py": 50,
+    "test_companions_search.py": 44,
+    "test_train_level2.py": 40,
+    "test_newton.py": 33,
+    "test_cli_detect.py": 33,
+    "test_optics.py": 24,
+    "test_fit_geometry.py": 23,
+    "test_basemodel.py": 21,
+    "test_detector_linear.py": 13,
+    "test_ramp.py": 13,
+}
+
+
+def pytest_collection_modifyitems(session, config, items):
+    # A stable sort: the tests of a file keep their order (module fixtures, readability).
+    items.sort(key=lambda item: -LONG_FILES_S.get(item.path.name, 0))
+
+
 def pytest_sessionfinish(session, exitstatus):
     if _JAX_CACHE is not None:
         shutil.rmtree(_JAX_CACHE, ignore_errors=True)

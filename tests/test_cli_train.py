@@ -1,4 +1,11 @@
-"""``amigo train`` through the command line, on small calslope files written here."""
+"""``amigo train`` through the command line, on small calslope files written here.
+
+The training runs call the command in this process (``amigo.cli.main``, what the console
+script runs): the three runs of one test then share their compiled programs in memory,
+where three interpreters would each trace and load them again (a training step's programs
+take minutes to compile on a 2-core CPU). Bad inputs are checked in a subprocess, which
+also proves that no traceback reaches the terminal.
+"""
 
 from __future__ import annotations
 
@@ -25,6 +32,26 @@ from amigo.slope_model import FlatParams, PointSourceParams, predict_slopes
 
 SRC = str(Path(__file__).resolve().parents[1] / "src")
 SHAPE = (16, 16)
+
+
+def amigo_here(capsys, *args: str) -> tuple[int, str, str]:
+    """``amigo *args`` in this process: (exit status, stdout, stderr)."""
+    from amigo.cli import main
+
+    capsys.readouterr()
+    try:
+        main(list(args))
+        status = 0
+    except SystemExit as exit_:
+        status = exit_.code or 0
+    printed = capsys.readouterr()
+    return status, printed.out, printed.err
+
+
+def train_here(capsys, *args: str) -> tuple[int, str]:
+    """``amigo *args`` in this process: (exit status, what it wrote to stderr)."""
+    status, _, stderr = amigo_here(capsys, *args)
+    return status, stderr
 
 
 def run_amigo(*args: str) -> subprocess.CompletedProcess[str]:
@@ -78,23 +105,22 @@ def files(tmp_path_factory) -> dict[str, Path]:
 
 
 @pytest.mark.slow
-def test_train_writes_a_model_with_its_record_and_resumes(files):
+def test_train_writes_a_model_with_its_record_and_resumes(files, capsys):
     # All three runs compute the optics on one pupil grid (192 samples, defocus by
-    # angular spectrum): they compile the same programs, and the later runs find them in
-    # the session's compilation cache (a training step's programs take minutes to
-    # compile on a 2-core CPU).
+    # angular spectrum): they compile the same programs, and the later runs reuse them.
     out = files["folder"] / "model.npz"
     optics = ["--pupil-npix", "192", "--defocus-method", "angular_spectrum"]
     args = ["train", "--cal", str(files["cal"]), "--flats", str(files["flat"]),
             "--val", str(files["val"]), "--out", str(out), "--steps", "2", "--stages", "1,1",
             "--batches", "1", *optics]  # fmt: skip
-    result = run_amigo(*args)
-    assert result.returncode == 0, result.stderr
-    assert "Traceback" not in result.stderr
+    status, stderr = train_here(capsys, *args)
+    assert status == 0, stderr
+    assert "Traceback" not in stderr
     model = load_base_model(out)
     assert not model.linear and model.config.shape == SHAPE
     assert (model.config.pupil_npix, model.config.defocus_method) == (192, "angular_spectrum")
     record = read_metadata(out)
+    assert record["command"] == "amigo " + " ".join(args)  # as given, whoever called it
     assert record["data"]["calibration"][0]["name"] == "cal"
     assert record["data"]["flats"][0]["name"] == "flat"
     assert record["data"]["validation"][0]["name"] == "val"
@@ -102,9 +128,9 @@ def test_train_writes_a_model_with_its_record_and_resumes(files):
     assert len(record["history"]["loss"]) == 2
     checkpoint = out.with_name(out.name + ".ckpt.npz")
     assert checkpoint.is_file()
-    again = run_amigo(*args, "--resume")
-    assert again.returncode == 0, again.stderr
-    assert "resumed" in again.stderr
+    status, stderr = train_here(capsys, *args, "--resume")
+    assert status == 0, stderr
+    assert "resumed" in stderr
     assert read_metadata(out)["history"] == record["history"]
 
     # Fine-tuning: training continues from the model, network included (no network-off
@@ -118,11 +144,11 @@ def test_train_writes_a_model_with_its_record_and_resumes(files):
     )
     tuned_path = files["folder"] / "tuned.npz"
     tuned_args = [*args[:7], "--out", str(tuned_path), "--steps", "1", "--batches", "1"]
-    tuned_run = run_amigo(*tuned_args, "--init", str(older), *optics)
-    assert tuned_run.returncode == 0, tuned_run.stderr
+    status, stderr = train_here(capsys, *tuned_args, "--init", str(older), *optics)
+    assert status == 0, stderr
     tuned_config = load_base_model(tuned_path).config
     assert (tuned_config.pupil_npix, tuned_config.defocus_method) == (192, "angular_spectrum")
-    assert "fine-tuning the network" in tuned_run.stderr
+    assert "fine-tuning the network" in stderr
     tuned_record = read_metadata(tuned_path)
     assert tuned_record["initial_model"]["path"] == str(older)
     assert tuned_record["initial_model"]["date"] == "older"

@@ -10,14 +10,15 @@ statistics tested do not depend on these choices.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from amigo.extract import extract_filter
-from amigo.fitting import FitConfig, FitExposure, latent_information
+from amigo.fitting import FitConfig, FitExposure
 from amigo.likelihood import ImageData
-from amigo.model import Instrument
+from amigo.model import Instrument, float64
 from amigo.optics import LinearSpectrum, NRMOptics
 from amigo.visibility import UVGrid, binary_log_visibility
 
@@ -103,13 +104,20 @@ def test_synthetic_single_and_binary(tmp_path, monkeypatch):
     # ... and the companion is detected: a point source is strongly rejected.
     assert point_chi2 > 2.0
 
-    # The latent Hessians read from the solver's float64 confirmation are those a direct
-    # float64 evaluation at the optimum gives (the covariances rest on them). The solver's
+    # The latent Hessians the products rest on, read from the solver's float64
+    # confirmation, are those a direct float64 evaluation at the optimum gives, here for
+    # the calibrator and the binary (one exposure per target: H = J^T W J). The solver's
     # point is float64; the returned parameters are float32, and rounding log-flux ~ 17 to
     # float32 (spacing 2e-6) moves the flux, which scales the Hessian, by ~1e-6: hence 1e-5.
     result = product.result
     assert result.fisher is not None and set(result.exact_exposures) == {0, 1, 2}
-    reused = latent_information(product.fit, result.params, "test", result.fisher, (0, 1, 2))
-    direct = latent_information(product.fit, result.params, "test")
-    for a, b in zip(reused.hessian, direct.hessian, strict=True):
-        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5 * np.abs(b).max())
+    fit = product.fit
+    weight = np.asarray(fit.pixels.inverse_sigma, np.float64) ** 2
+    with jax.enable_x64(True):
+        instrument64, setup64, params64 = float64((fit.instrument, fit.setup, result.params))
+        for e in (0, 2):
+            jac = np.asarray(fit.latent_jacobian(params64, e, instrument64, setup64))
+            jac = jac.reshape(len(jac), -1)
+            direct = (jac * weight[e].ravel()) @ jac.T
+            reused = product.information.hessian[fit.source_index[e]]
+            np.testing.assert_allclose(reused, direct, rtol=1e-5, atol=1e-5 * np.abs(direct).max())
