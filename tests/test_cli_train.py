@@ -176,6 +176,9 @@ def test_bad_inputs_exit_2_with_one_line(tmp_path, files):
     stages = run_amigo("train", "--cal", str(files["cal"]), "--out", str(tmp_path / "m.npz"),
                        "--steps", "3", "--stages", "1,1")  # fmt: skip
     assert stages.returncode == 2 and "--stages" in stages.stderr
+    nothing = run_amigo("train", "--cal", str(files["cal"]), "--out", str(tmp_path / "m.npz"),
+                        "--steps", "0")  # fmt: skip
+    assert nothing.returncode == 2 and "--steps" in nothing.stderr and "--init" in nothing.stderr
     init = run_amigo("train", "--cal", str(files["cal"]), "--out", str(tmp_path / "m.npz"),
                      "--init", str(not_fits))  # fmt: skip
     assert init.returncode == 2 and "x_calslope.fits" in init.stderr

@@ -21,7 +21,7 @@ import pytest
 from astropy.io import fits
 
 from amigo import instrument
-from amigo.basemodel import BaseModel, BaseModelConfig, read_metadata
+from amigo.basemodel import BaseModel, BaseModelConfig, load_base_model, read_metadata
 from amigo.detector.pipeline_slope import MODEL_READ_NOISE_CDS_DN
 from amigo.errors import InputError
 from amigo.slope_model import PointSourceParams, SlopeData, point_source_slopes
@@ -174,6 +174,19 @@ def test_amigo_train_on_real_level2_calibrators(tmp_path, capsys):
     history = record["history"]
     assert len(history["cal_loss"]) == 2 and history["cal_loss"][-1] < history["cal_loss"][0]
     print("level-2 training losses", json.dumps(history["cal_loss"]))
+    # The dark residual: solved after the steps, behind the file's dark reference, for
+    # its 9 group reads (docs/detector.md); --steps 0 solves it afresh, nothing else.
+    dark = record["dark_residual"]
+    assert dark["reference"] == "jwst_niriss_dark_0178.fits" and dark["groups"] == 9
+    assert dark["exposures"] == names and 0 < dark["rms_dn"] < 5
+    again = tmp_path / "again.npz"
+    args = ["train", "--cal", *cal, "--out", str(again), "--steps", "0", "--init", str(out)]
+    status, _, stderr = amigo_here(capsys, *args)
+    assert status == 0, stderr[-3000:]
+    assert read_metadata(again)["steps_done"] == 0 and "dark residual" in stderr
+    before, after = load_base_model(out), load_base_model(again)
+    assert after.config.dark_reference == "jwst_niriss_dark_0178.fits"
+    np.testing.assert_array_equal(after.zernikes_nm["F480M"], before.zernikes_nm["F480M"])
 
     # One model cannot stand both in front of and behind the pipeline: the model trained
     # here refuses calslope files, and a training refuses a mix of the two kinds.

@@ -20,6 +20,8 @@ Parameters and what trains them (see :mod:`amigo.calibration`)::
     ramp.flat              (80, 80) inter-pixel sensitivity                pixel (flats only)
     read.nonlinearity      (80, 80) quadratic non-linearity, 1/e-          pixel (flats only)
     read.ipc_kernel        (5, 5)   CRDS kernel                            fixed
+    read.group_offsets_dn  (G, 80, 80) level-2 models: what the pipeline's dark   solved after
+                                    subtraction left in each group read, DN   training
 
 File format (``.npz``, readable with ``numpy.load(path, allow_pickle=False)``)
 ------------------------------------------------------------------------------
@@ -70,8 +72,9 @@ from amigo.optics.spectrum import LinearSpectrum
 
 FORMAT = "amigo-base-model"
 #: 2: the dark current is a per-pixel map (version 1 held one value for all pixels);
-#: 3: the SIAF's detector geometry (see GEOMETRY_KEYS); 4: the hole sizes are parameters.
-FORMAT_VERSION = 4
+#: 3: the SIAF's detector geometry (see GEOMETRY_KEYS); 4: the hole sizes are parameters;
+#: 5: level-2 models may hold per-group read offsets (``dark_residual_groups`` > 0).
+FORMAT_VERSION = 5
 #: Leaves of the linear detector's geometry (format 3 added skew and scale, and the SIAF's
 #: sense of rotation).
 GEOMETRY_KEYS = (
@@ -133,6 +136,12 @@ class BaseModelConfig:
         subtracted the dark, divided by its flat and linearised, so dark and
         non-linearity are zero and the flat is the *residual* pixel response the
         pipeline's flat leaves (:meth:`BaseModel.for_level2`).
+    dark_residual_groups, dark_reference
+        Level-2 models: the number ``G`` of group reads whose per-pixel offsets the model
+        holds (``read.group_offsets_dn``, what the pipeline's dark subtraction left; 0:
+        none), and the dark reference file (the level-2 header's ``R_DARK``) they were
+        measured behind: they describe that file's noise, so they apply only to images
+        processed with it (:mod:`amigo.detector.dark_residual`).
     """
 
     filters: tuple[str, ...] = instrument.CALIBRATED_FILTERS
@@ -148,6 +157,8 @@ class BaseModelConfig:
     gain_e_per_dn: float = instrument.GAIN_E_PER_DN
     defocus_method: str = "pupil"
     data_level: str = "ramp"
+    dark_residual_groups: int = 0
+    dark_reference: str = ""
 
     def to_json(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -267,11 +278,15 @@ class BaseModel(eqx.Module):
             n_substeps=config.n_substeps,
             max_shift_pix=config.max_shift_pix,
         )
+        offsets = None
+        if config.dark_residual_groups > 0:
+            offsets = jnp.zeros((config.dark_residual_groups, *config.shape))
         read = ReadModel(
             dark_e_per_group=jnp.zeros(config.shape),
             ipc_kernel=jnp.asarray(default_ipc_kernel()),
             nonlinearity=jnp.zeros(config.shape),
             gain_e_per_dn=config.gain_e_per_dn,
+            group_offsets_dn=offsets,
         )
         return cls(
             zernikes_nm={
@@ -333,6 +348,33 @@ class BaseModel(eqx.Module):
         return dataclasses.replace(
             behind, config=dataclasses.replace(self.config, data_level="level2")
         )
+
+    def with_dark_residual(
+        self, offsets_dn: Float[Array, "G ny nx"] | None, reference: str = ""
+    ) -> BaseModel:
+        """The same instrument with per-group read offsets (``None``: none), measured
+        behind the dark reference file ``reference`` (see :class:`BaseModelConfig`)."""
+        groups = 0 if offsets_dn is None else int(offsets_dn.shape[0])
+        if groups and self.config.data_level != "level2":
+            raise ValueError("per-group read offsets describe level-2 images only")
+        model = eqx.tree_at(
+            lambda m: m.read.group_offsets_dn,
+            self,
+            None if offsets_dn is None else jnp.asarray(offsets_dn, self.ramp.flat.dtype),
+            is_leaf=lambda x: x is None,
+        )
+        config = dataclasses.replace(
+            self.config, dark_residual_groups=groups, dark_reference=reference if groups else ""
+        )
+        return dataclasses.replace(model, config=config)
+
+    def dark_residual_for(self, reference: str | None) -> BaseModel:
+        """The model for an image processed with the dark reference ``reference`` (its
+        ``R_DARK``): this one where its read offsets were measured behind that file, else
+        the same without them (they describe another file's noise)."""
+        if self.config.dark_residual_groups == 0 or reference == self.config.dark_reference:
+            return self
+        return self.with_dark_residual(None)
 
     def with_network(self, network: ChargeMigrationNetwork | None) -> BaseModel:
         """The same instrument with another network (``None``: linear)."""

@@ -36,6 +36,11 @@ The paper's "Base Model Training and Calibration", as code:
   *residual sensitivity* the pipeline's flat leaves (in place of the dark current), with
   a Gaussian prior of width :attr:`TrainSettings.sensitivity_prior` around one: dithers
   move the PSF over the pixels and so tell a pixel's response from the PSF's shape.
+* **Dark residual (level 2).** After the steps, the per-pixel offsets of each group read
+  that the pipeline's dark subtraction left (:mod:`amigo.detector.dark_residual`) are
+  solved in closed form from the calibrators' residuals at their fitted states, under a
+  Gaussian prior of :attr:`TrainSettings.dark_prior_dn` per read, and stored in the model
+  with the dark reference file they belong to (:func:`solve_dark_residual`).
 * **Loss curve.** :func:`train` draws the calibration and validation losses against the
   step into ``MODEL_loss.png`` (:func:`loss_curve_path`).
 
@@ -74,6 +79,8 @@ from amigo.basemodel import (
     save_base_model,
     write_leaves,
 )
+from amigo.detector.dark_residual import DEFAULT_PRIOR_DN, OffsetSystem, offset_jacobian
+from amigo.detector.pipeline_slope import pipeline_group_slope
 from amigo.detector.ramp import ChargeMigrationNetwork
 from amigo.errors import InputError
 from amigo.progress import step as report_step
@@ -417,7 +424,8 @@ class FisherMomentum(eqx.Module):
 class TrainSettings:
     """Hyper-parameters of :func:`train` (all recorded in the model's metadata).
 
-    ``steps`` batch steps in all; ``stage_steps`` the steps of each stage (stage 0 with
+    ``steps`` batch steps in all (0, with ``init``: none; only the closed-form dark
+    residual of level-2 training is solved afresh); ``stage_steps`` the steps of each stage (stage 0 with
     the network off, then one stage per network restart); by default a fifth of the
     steps with the network off and the rest split over two network restarts.
 
@@ -429,6 +437,10 @@ class TrainSettings:
     ``sensitivity_prior``: standard deviation of the Gaussian prior on each pixel's
     residual sensitivity around one when training on level-2 images (the pipeline's flat
     is good to about a per cent; unused otherwise).
+
+    ``dark_prior_dn``: level-2 training: width (DN) of the prior on the per-group read
+    offsets the pipeline's dark subtraction left (:func:`solve_dark_residual`); 0: none
+    solved.
     """
 
     steps: int = 200
@@ -446,6 +458,7 @@ class TrainSettings:
     seed: int = 0
     diagonal: bool = False
     sensitivity_prior: float = 0.01
+    dark_prior_dn: float = DEFAULT_PRIOR_DN
 
     def stages(self) -> list[int]:
         if self.init is not None:
@@ -520,6 +533,7 @@ class TrainingData:
             described = {"name": d.name, "filter": d.filter, "ngroups": d.ngroups}
             if d.level2:
                 described["level"] = "level2"
+                described["dark_reference"] = d.dark_reference
             return {**described, "values": d.n_values}
 
         return {
@@ -590,7 +604,7 @@ class Trainer:
         where = "--cal" if initial is None else settings.init
         if initial is not None:
             config = initial.config
-            if initial.linear:
+            if initial.linear and settings.steps > 0:
                 raise InputError(where, "has no network to fine-tune (a linear model)")
             if tuple(config.shape) != tuple(data.cal[0].shape):
                 raise InputError(
@@ -1154,8 +1168,18 @@ def train(
         report_step(f"train: resumed from {checkpoint} at step {trainer.step}")
     elif resume:
         report_step(f"train: no checkpoint at {checkpoint}; starting afresh")
-    trainer.run(checkpoint, progress, time_limit_s)
+    if settings.steps == 0:
+        # Fine-tuning of the closed-form parts only (the dark residual): the model stays
+        # as it is; the exposures' positions and fluxes are fitted under it.
+        trainer.warm_up(iterations=FIT_ITERATIONS)
+    else:
+        trainer.run(checkpoint, progress, time_limit_s)
     model = trainer.result()
+    dark_residual = None
+    if data.level2 and settings.dark_prior_dn > 0:
+        model, dark_residual = solve_dark_residual(
+            model, data.cal, trainer.state.cal_params, trainer.cache, settings.dark_prior_dn
+        )
     stats = trainer.statistics(model)
     dtype = str(np.asarray(model.hole_centres_m).dtype)
     metadata = {
@@ -1178,6 +1202,8 @@ def train(
         "machine": machine_description(),
         "n_parameters": model.n_parameters,
     }
+    if dark_residual is not None:
+        metadata["dark_residual"] = dark_residual
     save_base_model(model, out, metadata)
     from amigo.plots.optics import save
     from amigo.plots.training import loss_curve_figure
@@ -1242,11 +1268,77 @@ def process_flat_field(uncal_path: str | Path, out_dir: str | Path) -> Path:
     return out
 
 
+@eqx.filter_jit
+def _ramp_differences(base: BaseModel, params: PointSourceParams, data: SlopeData, cache):
+    """(ngroups - 1, ny, nx) group differences (DN per group) of a point source's model
+    ramp: what the pipeline's estimator sees, before it."""
+    unit = base.illuminance(data.filter, params.position_arcsec, cache)
+    return base.slopes(params.flux_e * unit, data.ngroups)
+
+
+def solve_dark_residual(
+    base: BaseModel,
+    datasets: Sequence[SlopeData],
+    params: Sequence[PointSourceParams],
+    cache: PupilCache,
+    prior_dn: float = DEFAULT_PRIOR_DN,
+) -> tuple[BaseModel, dict[str, Any]]:
+    """``base`` with the per-group read offsets that best explain the level-2
+    calibrators ``datasets`` at their fitted ``params`` (see
+    :mod:`amigo.detector.dark_residual`), and a record of the solve.
+
+    Only images behind one dark reference file can share offsets: those of the most
+    common ``R_DARK`` are used (the others are listed as skipped). Offsets are solved for
+    the reads of the longest ramp among them; the model's own offsets, where they were
+    measured behind the same file with as many reads, are the starting point (the
+    residuals are taken with them), else they are dropped first.
+    """
+    usable = [(d, p) for d, p in zip(datasets, params, strict=True) if d.level2]
+    references = sorted({d.dark_reference for d, _ in usable if d.dark_reference})
+    if not references:
+        return base, {"solved": False, "reason": "no level-2 image names its dark reference"}
+    reference = max(references, key=lambda r: sum(d.dark_reference == r for d, _ in usable))
+    chosen = [(d, p) for d, p in usable if d.dark_reference == reference]
+    groups = max(d.ngroups for d, _ in chosen)
+    config = base.config
+    same = config.dark_reference == reference and config.dark_residual_groups == groups
+    model = base if same else base.with_dark_residual(None)
+    current = np.asarray(base.read.group_offsets_dn, np.float64) if same else None
+    system = OffsetSystem.empty(groups, base.config.shape)
+    gain = model.read.gain_e_per_dn
+    for d, p in chosen:
+        differences = _ramp_differences(model, p, d, cache)
+        estimate = pipeline_group_slope(differences, d.group_time_s, gain, d.nframes)
+        jacobian = offset_jacobian(differences, groups, d.group_time_s, gain, d.nframes)
+        weight = np.asarray(d.whitening, np.float64)[:, 0, 0].reshape(d.shape) ** 2
+        residual = np.asarray(d.slopes_dn[0], np.float64) - np.asarray(estimate, np.float64)
+        system.add(jacobian, residual * (np.asarray(d.used) > 0), weight, d.ngroups)
+    offsets = system.solve(prior_dn, current)
+    report_step(
+        f"train: dark residual: {groups} group reads solved from {len(chosen)} exposures "
+        f"behind {reference} (rms {np.sqrt(np.mean(offsets**2)):.2f} DN)"
+    )
+    record = {
+        "solved": True,
+        "reference": reference,
+        "prior_dn": prior_dn,
+        "groups": groups,
+        "exposures": [d.name for d, _ in chosen],
+        "skipped": [d.name for d, _ in usable if d.dark_reference != reference],
+        "rms_dn": round(float(np.sqrt(np.mean(offsets**2))), 4),
+    }
+    return base.with_dark_residual(offsets, reference), record
+
+
+#: Newton steps of an exposure's own parameters under a fixed instrument (fit_exposure).
+FIT_ITERATIONS = 8
+
+
 def fit_exposure(
     base: BaseModel,
     data: SlopeData,
     cache: PupilCache,
-    iterations: int = 8,
+    iterations: int = FIT_ITERATIONS,
     params: Any = None,
 ) -> tuple[Any, FitStatistics]:
     """Fit one exposure's own parameters (position and flux of a point source, or a flat's

@@ -89,6 +89,11 @@ class RampInput:
     def ngroups(self) -> int:
         return int(self.product.slope_dn.shape[0]) + 1
 
+    @property
+    def dark_reference(self) -> str:
+        """None: amigo processed the raw ramps itself, no pipeline dark was subtracted."""
+        return ""
+
     def image(self, correction_dn: np.ndarray | None) -> ImageData:
         """The exposure reduced to an image after subtracting ``correction_dn``
         (m, ny, nx) DN per group from its slopes (``None``: none)."""
@@ -124,12 +129,17 @@ class Level2Input:
         NGROUPS and NFRAMES of the read-out.
     group_time_s
         TGROUP (s).
+    dark_reference
+        The dark reference file the pipeline subtracted (``R_DARK``): a base model's
+        per-group read offsets apply only behind the file they were measured behind
+        (:meth:`~amigo.basemodel.BaseModel.dark_residual_for`).
     """
 
     data: ImageData
     ngroups: int
     nframes: int
     group_time_s: float
+    dark_reference: str = ""
 
     def image(self, correction_dn_s: np.ndarray | None) -> ImageData:
         """The image less ``correction_dn_s`` (ny, nx) DN/s (``None``: as read)."""
@@ -232,8 +242,9 @@ class RampDetector:
             # Electrons per integration for 1 DN/s: reads at t_g, 2 t_g, ... ngroups t_g.
             scale = jnp.asarray(gain * ramp.ngroups * ramp.group_time_s, setup.wavelengths_m.dtype)
             theta = local_vector(params, e, int(fit.source_index[e]))
+            base = self.base.dark_residual_for(ramp.dark_reference)
             slopes, image = _slopes_and_image(
-                self.base, instrument, setup, psfs, anchor, theta, scale, ramp.ngroups
+                base, instrument, setup, psfs, anchor, theta, scale, ramp.ngroups
             )
             out.append(
                 ramp.correction(np.asarray(slopes, np.float64), np.asarray(image, np.float64))

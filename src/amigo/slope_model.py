@@ -62,6 +62,9 @@ class SlopeData(eqx.Module):
     level2, nframes, group_time_s
         Static: whether the exposure is a level-2 image (then ``m = 1``: the pipeline's
         slope times TGROUP, see :meth:`from_level2`), its NFRAMES and TGROUP (s).
+    dark_reference
+        Static: the dark reference file the pipeline subtracted (level-2 images; see
+        :mod:`amigo.detector.dark_residual`), empty otherwise.
     """
 
     slopes_dn: Float[Array, "m ny nx"]
@@ -75,6 +78,7 @@ class SlopeData(eqx.Module):
     level2: bool = eqx.field(static=True, default=False)
     nframes: int = eqx.field(static=True, default=1)
     group_time_s: float = eqx.field(static=True, default=0.0)
+    dark_reference: str = eqx.field(static=True, default="")
 
     @classmethod
     def from_calslope(
@@ -154,6 +158,7 @@ class SlopeData(eqx.Module):
             filter_name=str(meta.filter).strip().upper(),
             role=role,
             dtype=dtype,
+            dark_reference=meta.dark_reference,
         )
 
     @classmethod
@@ -170,10 +175,11 @@ class SlopeData(eqx.Module):
         filter_name: str = "F480M",
         role: str = "calibrator",
         dtype=jnp.float32,
+        dark_reference: str = "",
     ) -> SlopeData:
         """A level-2 exposure from its (ny, nx) rate and error (DN/s) and the pixels to
         use: one value per pixel, ``rate * TGROUP`` (DN per group), whitened by
-        ``1 / (error * TGROUP)``."""
+        ``1 / (error * TGROUP)``; ``dark_reference`` names the pipeline's dark file."""
         used = np.asarray(used, bool)
         t = float(group_time_s)
         ny, nx = used.shape
@@ -192,6 +198,7 @@ class SlopeData(eqx.Module):
             level2=True,
             nframes=int(nframes),
             group_time_s=t,
+            dark_reference=dark_reference,
         )
 
     @classmethod

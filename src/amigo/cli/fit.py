@@ -140,7 +140,9 @@ def _read_fit_exposure(path: Path, role: str, level: str):
         exposure = read_exposure(path)
         meta = exposure.meta
         image = ImageData.from_exposure(exposure)
-        ramp = Level2Input(image, meta.ngroups, meta.nframes, meta.group_time_s)
+        ramp = Level2Input(
+            image, meta.ngroups, meta.nframes, meta.group_time_s, meta.dark_reference
+        )
     return FitExposure(path.name, role, meta.target, image), meta, ramp
 
 

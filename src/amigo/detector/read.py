@@ -8,7 +8,10 @@ the detector writes. Applied to the charge at every group read, in this order:
 3. per-pixel quadratic non-linearity: ``q -> q + nl * q**2`` (``nl`` per pixel, 1/e-;
    negative for the H2RG's sub-linear response);
 4. gain: ``DN = q / gain``;
-5. optionally 1/f noise: a low-order polynomial along each column, per group (DN).
+5. optionally 1/f noise: a low-order polynomial along each column, per group (DN);
+6. optionally a fixed offset of each pixel in each group read (DN, ``group_offsets_dn``):
+   behind the STScI pipeline (level-2 images), what its dark subtraction left in the ramp
+   (:mod:`amigo.detector.dark_residual`).
 
 Slopes are the group differences of the result: (ngroups - 1, ny, nx) DN per group.
 """
@@ -76,6 +79,10 @@ class ReadModel(eqx.Module):
     one_over_f
         ``None``, or (ngroups, nx, order + 1) polynomial coefficients (DN) of a per-column,
         per-group offset in the normalised row coordinate.
+    group_offsets_dn
+        ``None``, or (G, ny, nx) offsets (DN) added to group reads 0 .. G-1 of every
+        integration (later reads get none): the same in every exposure processed with one
+        dark reference file (see :mod:`amigo.detector.dark_residual`).
     """
 
     dark_e_per_group: Float[Array, "ny nx"] | Float[Array, ""]
@@ -83,6 +90,7 @@ class ReadModel(eqx.Module):
     nonlinearity: Float[Array, "ny nx"]
     gain_e_per_dn: float = eqx.field(static=True, default=instrument.GAIN_E_PER_DN)
     one_over_f: Float[Array, "ng nx k"] | None = None
+    group_offsets_dn: Float[Array, "G ny nx"] | None = None
 
     @classmethod
     def create(cls, shape: tuple[int, int] = (80, 80)) -> ReadModel:
@@ -106,7 +114,15 @@ class ReadModel(eqx.Module):
             rows = jnp.linspace(-1.0, 1.0, ny)
             powers = rows[:, None] ** jnp.arange(self.one_over_f.shape[-1])  # (ny, k)
             dn = dn + jnp.einsum("yk,gxk->gyx", powers, self.one_over_f)
+        if self.group_offsets_dn is not None:
+            dn = dn + group_offsets(self.group_offsets_dn, ngroups).astype(dn.dtype)
         return dn
+
+
+def group_offsets(offsets_dn: Float[Array, "G ny nx"], ngroups: int) -> Float[Array, "ng ny nx"]:
+    """The first ``ngroups`` of the per-group offsets (zeros past the ``G`` stored)."""
+    n = min(ngroups, offsets_dn.shape[0])
+    return jnp.pad(offsets_dn[:n], ((0, ngroups - n), (0, 0), (0, 0)))
 
 
 def slopes(ramp: Float[Array, "ng ny nx"]) -> Float[Array, "ng-1 ny nx"]:

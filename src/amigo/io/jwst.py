@@ -125,6 +125,12 @@ class ExposureMeta:
         return self.kind in RAMP_KINDS
 
     @property
+    def dark_reference(self) -> str:
+        """The dark reference file the pipeline subtracted (``R_DARK`` without its
+        ``crds://`` prefix; empty when the header names none, e.g. raw ramps)."""
+        return str(self.primary_header.get("R_DARK", "")).strip().removeprefix("crds://")
+
+    @property
     def is_flat(self) -> bool:
         """A flat-field (lamp) exposure, used only to calibrate per-pixel response."""
         return self.exp_type in FLAT_EXP_TYPES

@@ -31,5 +31,6 @@ def loss_curve_figure(history, title: str = "") -> Figure:
     ax.set_xlabel("step (dashed: a new stage)")
     ax.set_ylabel("chi2 / 2 per value")
     ax.set_title(title or "training loss")
-    ax.legend(frameon=False, fontsize=8)
+    if ax.get_legend_handles_labels()[0]:  # nothing to draw after zero steps
+        ax.legend(frameon=False, fontsize=8)
     return fig

@@ -1,0 +1,137 @@
+"""What the pipeline's dark subtraction leaves in a level-2 image, and how it is measured.
+
+The STScI pipeline subtracts a dark *reference ramp* from every integration, group by
+group (``dark_current`` step, the reference file named by the level-2 header's
+``R_DARK``), before it fits each pixel's slope. That reference is itself an average of a
+finite number of dark ramps: each of its group frames carries its own noise, a fixed
+offset ``f_p(g)`` (DN) of pixel ``p`` in group read ``g``. Subtracted from every
+integration alike, it does not average down over integrations; it enters the level-2
+image as the pipeline's slope estimator applied to the offsets of the first NGROUPS
+reads::
+
+    rate_p += est_N(f_p(0), ..., f_p(N - 1))          (DN/s)
+
+For pixels limited by read noise (the faint halo, most of an AMI image) the estimator is
+the ordinary least-squares slope, ``est_N(f) = sum_g (g - (N-1)/2) f(g) / (t_g N (N^2 -
+1) / 12)``: a pattern fixed on the detector whose amplitude *and shape* change with
+NGROUPS (two exposures with 9 and 12 groups see patterns correlated by ``sqrt(60/143) =
+0.65``, the 12-group one ``60/143 = 0.42`` times the 9-group one projected on it).
+
+Measured on real COM 1093 level-2 calibrators (CAL_VER 1.5.3, R_DARK
+``jwst_niriss_dark_0178.fits``): the halo residual of HD 36805 at 9 groups (25 dithers)
+reappears in other stars, filters and visits at 9 groups (regression coefficient 1.01 and
+0.92) and at 12 groups with coefficient 0.39-0.41 (white per-group offsets predict 0.42);
+differences of same-configuration pairs (one star, one position, one NGROUPS, an hour
+apart), in which the offsets cancel, are at the noise the files' ERR states (z std
+1.05-1.13 beyond 25 pixels), while a fit of either leaves z std 2.0-2.1 there. Offsets
+learned from other visits bring held-out calibrator halos from z std 2.0-2.9 to 1.07-2.3
+(docs/detector.md).
+
+So a model behind the pipeline holds ``f`` (``BaseModel.read.group_offsets_dn``, (G, ny,
+nx)) and applies it only to images processed with the same ``R_DARK``. The offsets are
+linear parameters of the image: given the model's ramps at the calibrators' fitted
+states, :class:`OffsetSystem` accumulates each pixel's normal equations and solves them
+under a white Gaussian prior of width ``prior_dn`` per group read (the offsets' own
+scale, which the prior also uses to share what one NGROUPS measures with another).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from amigo.detector.pipeline_slope import pipeline_group_slope
+
+#: Prior width of each group read's offset (DN). Measured: on COM 1093 (R_DARK
+#: jwst_niriss_dark_0178.fits), offsets solved with 0.8 / 1.6 / 3.2 / 6.4 DN from two of
+#: the calibrator visits 15, 17, 18 and 20 predict the held-out third's halo best at 1.6
+#: (held-out z std beyond 15 pixels 1.17 / 1.31 / 1.07 for obs 15 / 17 / 18 in F480M).
+DEFAULT_PRIOR_DN = 1.6
+
+
+@eqx.filter_jit
+def offset_jacobian(
+    differences_dn: Float[Array, "m ny nx"],
+    n_offsets: int,
+    group_time: float,
+    gain: float,
+    nframes: int = 1,
+) -> Float[Array, "G ny nx"]:
+    """``d est / d f(g)`` for ``g < n_offsets``: how the pipeline's slope of each pixel
+    (DN per group, :func:`pipeline_group_slope`) moves with an offset of its group read
+    ``g`` (DN), at the ramp whose group differences are ``differences_dn``.
+
+    The weights the pipeline picks from each pixel's S/N are those of this ramp; reads
+    past the ramp's end have no effect (zero rows).
+    """
+    ngroups = differences_dn.shape[0] + 1
+
+    def slope(differences):
+        return pipeline_group_slope(differences, group_time, gain, nframes)
+
+    def column(g):
+        read = jnp.zeros(ngroups, differences_dn.dtype).at[g].set(1.0)
+        tangent = jnp.broadcast_to(jnp.diff(read)[:, None, None], differences_dn.shape)
+        return jax.jvp(slope, (differences_dn,), (tangent,))[1]
+
+    columns = jax.vmap(column)(jnp.arange(min(n_offsets, ngroups)))
+    return jnp.pad(columns, ((0, max(n_offsets - ngroups, 0)), (0, 0), (0, 0)))
+
+
+@dataclass
+class OffsetSystem:
+    """Per-pixel normal equations of the group offsets, accumulated over exposures.
+
+    Attributes
+    ----------
+    precision
+        (ny, nx, G, G) ``sum_e w J J^T``.
+    projection
+        (ny, nx, G) ``sum_e w J r``.
+    ngroups
+        NGROUPS of the exposures added, in order.
+    """
+
+    precision: np.ndarray
+    projection: np.ndarray
+    ngroups: list[int]
+
+    @classmethod
+    def empty(cls, n_offsets: int, shape: tuple[int, int]) -> OffsetSystem:
+        ny, nx = shape
+        return cls(np.zeros((ny, nx, n_offsets, n_offsets)), np.zeros((ny, nx, n_offsets)), [])
+
+    @property
+    def n_offsets(self) -> int:
+        return self.projection.shape[-1]
+
+    def add(
+        self,
+        jacobian: Float[Array, "G ny nx"],
+        residual: np.ndarray,
+        weight: np.ndarray,
+        ngroups: int,
+    ) -> None:
+        """One exposure: ``jacobian`` from :func:`offset_jacobian`, its ``residual``
+        (ny, nx) data less model and ``weight`` (ny, nx) inverse variance (0 where a
+        pixel is not used), both in the jacobian's unit (DN per group)."""
+        j = np.moveaxis(np.asarray(jacobian, np.float64), 0, -1)  # (ny, nx, G)
+        w = np.asarray(weight, np.float64)[..., None]
+        self.precision += (w * j)[..., :, None] * j[..., None, :]
+        self.projection += (w * j) * np.asarray(residual, np.float64)[..., None]
+        self.ngroups.append(int(ngroups))
+
+    def solve(self, prior_dn: float, current: np.ndarray | None = None) -> np.ndarray:
+        """(G, ny, nx) maximum a-posteriori offsets (DN) under a white Gaussian prior of
+        width ``prior_dn``, the residuals having been taken with ``current`` offsets in
+        the model (``None``: none): ``(P + I / s^2) (f - f0) = b - f0 / s^2``."""
+        g = self.n_offsets
+        f0 = np.zeros_like(self.projection) if current is None else np.moveaxis(current, 0, -1)
+        matrix = self.precision + np.eye(g) / prior_dn**2
+        step = np.linalg.solve(matrix, (self.projection - f0 / prior_dn**2)[..., None])[..., 0]
+        return np.moveaxis(f0 + step, -1, 0)

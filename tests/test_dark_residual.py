@@ -1,0 +1,192 @@
+"""The dark residual of level-2 images (amigo.detector.dark_residual).
+
+* The offset Jacobian against independent calculations: the ordinary least-squares slope
+  of a read offset (analytic) where the pipeline's weights are uniform (faint pixels),
+  and stcal's own ramp fit of a ramp with one read offset added (bright pixels too).
+* The read model adds the offsets to the group reads it has, none past them.
+* The normal equations recover white per-group offsets from exposures of a few NGROUPS
+  and predict the pattern at NGROUPS they never saw as well as the prior allows.
+* ``solve_dark_residual`` on simulated level-2 calibrators of a small model, behind one
+  dark reference file; a model applies its offsets only behind that file.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from amigo.basemodel import BaseModel, BaseModelConfig
+from amigo.calibration import solve_dark_residual
+from amigo.detector.dark_residual import OffsetSystem, offset_jacobian
+from amigo.detector.pipeline_slope import MODEL_READ_NOISE_CDS_DN
+from amigo.detector.read import ReadModel, group_offsets
+from amigo.slope_model import PointSourceParams, SlopeData, point_source_slopes
+from test_pipeline_slope import _stcal
+
+TGROUP = 0.07544
+GAIN = 1.61
+
+
+def _ols_weights(n: int) -> np.ndarray:
+    """d(OLS slope * t_g)/d(read g): (g - mean) / sum (g - mean)^2."""
+    g = np.arange(n) - 0.5 * (n - 1)
+    return g / np.sum(g**2)
+
+
+@pytest.mark.parametrize("ngroups", [2, 3, 5, 9, 13])
+def test_offset_jacobian_of_a_faint_ramp_is_the_least_squares_slope(ngroups):
+    # 0.5 DN per group: S/N far below 5, where the pipeline weights every read alike.
+    differences = jnp.full((ngroups - 1, 4, 4), 0.5)
+    jac = np.asarray(offset_jacobian(differences, 15, TGROUP, GAIN))
+    assert jac.shape == (15, 4, 4)
+    np.testing.assert_allclose(jac[:ngroups, 0, 0], _ols_weights(ngroups), atol=1e-6)
+    assert not jac[ngroups:].any()  # reads past the ramp's end do not enter it
+
+
+def test_offset_jacobian_is_stcal_s_response_to_a_read_offset():
+    # Pixels from faint to bright (the pipeline's weights change with S/N); one
+    # integration of 9 groups. stcal fits the ramp with read g raised by delta and
+    # lowered by delta: the central difference of its slope is the Jacobian's row g.
+    rates = np.array([[2.0, 40.0, 300.0], [2e3, 1e4, 4e4]])  # DN/s
+    n = 9
+    differences = np.broadcast_to(rates * TGROUP, (n - 1, *rates.shape)).copy()
+    ramp = np.concatenate([np.zeros((1, *rates.shape)), np.cumsum(differences, axis=0)])
+    with jax.enable_x64(True):
+        jac = np.asarray(offset_jacobian(jnp.asarray(differences), n, TGROUP, GAIN))
+    noise = np.full(rates.shape, MODEL_READ_NOISE_CDS_DN)
+    gains = np.full(rates.shape, GAIN)
+    delta = 2.0
+    worst = 0.0
+    for g in range(n):
+        slopes = []
+        for sign in (1, -1):
+            bumped = ramp.copy()
+            bumped[g] += sign * delta
+            rate, _ = _stcal(
+                bumped[None], np.zeros((1, *ramp.shape), bool), tgroup=TGROUP, tframe=TGROUP,
+                nframes=1, groupgap=0, read_noise=noise, gain=gains,
+            )  # fmt: skip
+            slopes.append(np.asarray(rate["slope"], np.float64))
+        response = (slopes[0] - slopes[1]) / (2 * delta) * TGROUP
+        worst = max(worst, float(np.abs(response - jac[g]).max()))
+    print(f"largest difference from stcal: {worst:.2e} (DN per group per DN)")
+    # stcal computes in float32 (ramps to ~3e4 DN); measured 3.3e-5
+    assert worst < 2e-4, worst
+    # ... and the bright pixels' weights are not the faint ones': the test has teeth.
+    assert abs(jac[0, 1, 2] - jac[0, 0, 0]) > 0.02
+
+
+def test_read_offsets_enter_the_group_reads_they_cover():
+    offsets = jnp.asarray(np.random.default_rng(0).normal(0, 2.0, (4, 3, 3)))
+    np.testing.assert_array_equal(group_offsets(offsets, 3), offsets[:3])
+    padded = np.asarray(group_offsets(offsets, 6))
+    np.testing.assert_array_equal(padded[:4], offsets)
+    assert not padded[4:].any()
+    read = ReadModel.create((3, 3))
+    charge = jnp.full((6, 3, 3), 100.0)
+    with_offsets = ReadModel(
+        read.dark_e_per_group, read.ipc_kernel, read.nonlinearity, group_offsets_dn=offsets
+    )
+    np.testing.assert_allclose(with_offsets(charge) - read(charge), padded, atol=1e-5)
+
+
+def test_normal_equations_recover_white_offsets_and_predict_unseen_ngroups():
+    """Exposures at 3, 6, 9 (x8) and 12 groups, as the COM 1093 calibrators, read-noise
+    limited; the offsets' pattern at 5 and 13 groups, which no exposure has, is predicted
+    as well as the Gaussian conditional allows (computed here from the same Jacobians)."""
+    rng = np.random.default_rng(4)
+    prior, n_off, shape = 1.6, 12, (40, 40)
+    truth = rng.normal(0, prior, (n_off, *shape))
+    faint = {n: offset_jacobian(jnp.full((n - 1, *shape), 0.5), n_off, TGROUP, GAIN)
+             for n in (3, 5, 6, 9, 12, 13)}  # fmt: skip
+    system, again = OffsetSystem.empty(n_off, shape), OffsetSystem.empty(n_off, shape)
+    sigma = 0.05  # DN per group: the noise of a 60-integration level-2 halo pixel
+    exposures = []
+    for n in (3, 6, *[9] * 8, 12):
+        j = np.asarray(faint[n])
+        residual = np.einsum("gyx,gyx->yx", j, truth) + rng.normal(0, sigma, shape)
+        system.add(j, residual, np.full(shape, sigma**-2), n)
+        exposures.append((j, residual, n))
+    assert system.ngroups == [3, 6, 9, 9, 9, 9, 9, 9, 9, 9, 12]
+    solved = system.solve(prior)
+    # Residuals taken with the solved offsets in the model, solved from there: a fixed point.
+    for j, residual, n in exposures:
+        again.add(j, residual - np.einsum("gyx,gyx->yx", j, solved), np.full(shape, sigma**-2), n)
+    np.testing.assert_allclose(again.solve(prior, current=solved), solved, atol=1e-8)
+
+    def pattern(offsets, n):
+        return np.einsum("gyx,gyx->yx", np.asarray(faint[n]), offsets)
+
+    for n in (9, 12):  # seen: recovered to the noise of the exposures
+        error = pattern(solved, n) - pattern(truth, n)
+        assert np.std(error) < 2 * sigma, (n, np.std(error))
+    # Unseen: the part of the pattern the Gaussian posterior leaves, on average
+    # row^T C row / (prior^2 |row|^2), C = (sum_e J_e J_e^T / sigma^2 + I / prior^2)^-1.
+    posterior = np.linalg.inv(system.precision[0, 0] + np.eye(n_off) / prior**2)
+    for n in (5, 13):
+        left = np.var(pattern(truth, n) - pattern(solved, n)) / np.var(pattern(truth, n))
+        row = np.asarray(faint[n])[:, 0, 0]
+        expected = row @ posterior @ row / (prior**2 * row @ row)
+        print(f"{n} groups: {left:.3f} of the pattern left, {expected:.3f} expected")
+        assert left < 0.5
+        assert left == pytest.approx(expected, rel=0.1)
+
+
+@pytest.fixture(scope="module")
+def small_level2():
+    config = BaseModelConfig(filters=("F480M",), shape=(80, 80), n_wavelengths=3, pupil_npix=64)
+    return BaseModel.create(config, linear=True).for_level2()
+
+
+def test_solve_dark_residual_on_simulated_calibrators(small_level2):
+    base = small_level2
+    cache = base.pupil_cache()
+    rng = np.random.default_rng(7)
+    n = 6
+    truth = base.with_dark_residual(
+        jnp.asarray(rng.normal(0, 1.6, (n, 80, 80)), jnp.float32), "dark_A.fits"
+    )
+    positions = [(0.02, -0.01), (-0.03, 0.02), (0.01, 0.04), (0.0, 0.0), (-0.02, -0.03)]
+    datasets, params = [], []
+    for i, position in enumerate(positions):
+        source = PointSourceParams(jnp.asarray(position), jnp.asarray(3e5))
+        shape_only = SlopeData.from_rate_image(
+            np.zeros((80, 80)), np.ones((80, 80)), np.ones((80, 80), bool),
+            ngroups=n, group_time_s=TGROUP,
+        )  # fmt: skip
+        rate = np.asarray(point_source_slopes(truth, cache, source, shape_only))[0] / TGROUP
+        error = np.sqrt(np.abs(rate) / 200.0 + 0.3**2)  # DN/s
+        noisy = rate + error * rng.normal(size=rate.shape)
+        reference = "dark_B.fits" if i == 3 else "dark_A.fits"
+        datasets.append(SlopeData.from_rate_image(
+            noisy, error, np.ones((80, 80), bool), ngroups=n, group_time_s=TGROUP,
+            name=f"cal{i}", dark_reference=reference,
+        ))  # fmt: skip
+        params.append(source)
+    held_out, held_params = datasets.pop(), params.pop()  # never in the solve
+    solved, record = solve_dark_residual(base, datasets, params, cache, prior_dn=1.6)
+    assert record["reference"] == "dark_A.fits" and record["groups"] == n
+    assert record["skipped"] == ["cal3"] and record["exposures"] == ["cal0", "cal1", "cal2"]
+    assert solved.config.dark_reference == "dark_A.fits"
+    assert solved.config.dark_residual_groups == n
+
+    # The held-out exposure's residuals: at the noise with the solved offsets, well above
+    # it without them.
+    def z_std(model):
+        slope = point_source_slopes(model, cache, held_params, held_out)
+        z = (held_out.slopes_dn - slope)[0] * np.asarray(held_out.whitening).reshape(80, 80)
+        return float(np.std(np.asarray(z)))
+
+    before, after = z_std(base), z_std(solved)
+    print(f"held-out z std: {before:.3f} without offsets, {after:.3f} with")
+    assert before > 3.0 and after < 1.6
+    # Offsets belong to their dark reference file; elsewhere the model has none.
+    assert solved.dark_residual_for("dark_A.fits") is solved
+    other = solved.dark_residual_for("dark_B.fits")
+    assert other.read.group_offsets_dn is None and other.config.dark_residual_groups == 0
+    with pytest.raises(ValueError, match="level-2"):
+        BaseModel.create(BaseModelConfig(filters=("F480M",)), linear=True).with_dark_residual(
+            jnp.zeros((3, 80, 80)), "x"
+        )
