@@ -54,7 +54,6 @@ from amigo.detector.pipeline_slope import pipeline_group_slope
 DEFAULT_PRIOR_DN = 1.6
 
 
-@eqx.filter_jit
 def offset_jacobian(
     differences_dn: Float[Array, "m ny nx"],
     n_offsets: int,
@@ -70,17 +69,27 @@ def offset_jacobian(
     past the ramp's end have no effect (zero rows).
     """
     ngroups = differences_dn.shape[0] + 1
-
-    def slope(differences):
-        return pipeline_group_slope(differences, group_time, gain, nframes)
-
-    def column(g):
-        read = jnp.zeros(ngroups, differences_dn.dtype).at[g].set(1.0)
-        tangent = jnp.broadcast_to(jnp.diff(read)[:, None, None], differences_dn.shape)
-        return jax.jvp(slope, (differences_dn,), (tangent,))[1]
-
-    columns = jax.vmap(column)(jnp.arange(min(n_offsets, ngroups)))
+    # The group differences of a unit offset of each read, one row per read. An argument
+    # of the compiled program, not a constant in it: XLA would spend seconds folding the
+    # estimator's cumulative products over a constant.
+    unit = np.diff(np.eye(ngroups)[: min(n_offsets, ngroups)], axis=1)
+    columns = _responses(jnp.asarray(differences_dn), jnp.asarray(unit, differences_dn.dtype),
+                         group_time, gain, nframes)  # fmt: skip
     return jnp.pad(columns, ((0, max(n_offsets - ngroups, 0)), (0, 0), (0, 0)))
+
+
+@eqx.filter_jit
+def _responses(differences, unit_differences, group_time: float, gain: float, nframes: int):
+    """The estimator's response (G, ny, nx) to each row of ``unit_differences`` (G, m)."""
+
+    def slope(d):
+        return pipeline_group_slope(d, group_time, gain, nframes)
+
+    def response(row):
+        tangent = jnp.broadcast_to(row[:, None, None], differences.shape)
+        return jax.jvp(slope, (differences,), (tangent,))[1]
+
+    return jax.vmap(response)(unit_differences)
 
 
 @dataclass
