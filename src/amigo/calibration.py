@@ -1268,6 +1268,10 @@ def process_flat_field(uncal_path: str | Path, out_dir: str | Path) -> Path:
     return out
 
 
+#: Fraction of the model image counted as model error when the dark residual is solved
+#: (:func:`solve_dark_residual`): keeps PSF residuals in the bright core out of it.
+MODEL_ERROR = 0.01
+
 @eqx.filter_jit
 def _ramp_differences(base: BaseModel, params: PointSourceParams, data: SlopeData, cache):
     """(ngroups - 1, ny, nx) group differences (DN per group) of a point source's model
@@ -1282,10 +1286,16 @@ def solve_dark_residual(
     params: Sequence[PointSourceParams],
     cache: PupilCache,
     prior_dn: float = DEFAULT_PRIOR_DN,
+    model_error: float = MODEL_ERROR,
 ) -> tuple[BaseModel, dict[str, Any]]:
     """``base`` with the per-group read offsets that best explain the level-2
     calibrators ``datasets`` at their fitted ``params`` (see
     :mod:`amigo.detector.dark_residual`), and a record of the solve.
+
+    Each pixel's variance in the solve is its noise plus ``(model_error * model)^2``: the
+    PSF model's own errors where the star is bright (1-4 % of the signal in the cores of
+    the COM 1093 calibrators) must not be taken for a detector offset. The offsets there
+    come from the prior and the halo's exposures, where the noise is read noise.
 
     Only images behind one dark reference file can share offsets: those of the most
     common ``R_DARK`` are used (the others are listed as skipped). Offsets are solved for
@@ -1310,9 +1320,12 @@ def solve_dark_residual(
         differences = _ramp_differences(model, p, d, cache)
         estimate = pipeline_group_slope(differences, d.group_time_s, gain, d.nframes)
         jacobian = offset_jacobian(differences, groups, d.group_time_s, gain, d.nframes)
-        weight = np.asarray(d.whitening, np.float64)[:, 0, 0].reshape(d.shape) ** 2
-        residual = np.asarray(d.slopes_dn[0], np.float64) - np.asarray(estimate, np.float64)
-        system.add(jacobian, residual * (np.asarray(d.used) > 0), weight, d.ngroups)
+        white = np.asarray(d.whitening, np.float64)[:, 0, 0].reshape(d.shape)
+        estimate = np.asarray(estimate, np.float64)
+        with np.errstate(divide="ignore"):
+            variance = np.where(white > 0, 1.0 / white**2, np.inf) + (model_error * estimate) ** 2
+        residual = np.asarray(d.slopes_dn[0], np.float64) - estimate
+        system.add(jacobian, residual * (white > 0), 1.0 / variance, d.ngroups)
     offsets = system.solve(prior_dn, current)
     report_step(
         f"train: dark residual: {groups} group reads solved from {len(chosen)} exposures "
@@ -1322,6 +1335,7 @@ def solve_dark_residual(
         "solved": True,
         "reference": reference,
         "prior_dn": prior_dn,
+        "model_error": model_error,
         "groups": groups,
         "exposures": [d.name for d, _ in chosen],
         "skipped": [d.name for d, _ in usable if d.dark_reference != reference],
