@@ -1272,6 +1272,7 @@ def process_flat_field(uncal_path: str | Path, out_dir: str | Path) -> Path:
 #: (:func:`solve_dark_residual`): keeps PSF residuals in the bright core out of it.
 MODEL_ERROR = 0.01
 
+
 @eqx.filter_jit
 def _ramp_differences(base: BaseModel, params: PointSourceParams, data: SlopeData, cache):
     """(ngroups - 1, ny, nx) group differences (DN per group) of a point source's model
