@@ -67,7 +67,6 @@ LONG_FILES_S = {
     "test_newton.py": 33,
     "test_cli_detect.py": 33,
     "test_optics.py": 24,
-    "test_fit_geometry.py": 23,
     "test_basemodel.py": 21,
     "test_detector_linear.py": 13,
     "test_ramp.py": 13,

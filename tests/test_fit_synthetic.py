@@ -1,7 +1,11 @@
 """End to end on synthetic images made with the project's own optics (no visibility model):
 a single star and a binary (contrast 1e-2 at 150 mas, photon noise) against a single-star
 calibrator. The DISCOs of the single star must be consistent with zero, and those of the
-binary with the binary model evaluated through the calvis matrices alone.
+binary with the binary model evaluated through the calvis matrices alone. The images are
+made with a detector geometry and a jitter away from the nominal ones (0.25 deg more
+clockwise, 0.3 deg more skew, 0.2 % more anisotropy; 8 mas of jitter against 21.4), far
+outside the errors of these bright exposures: the fit must recover them (they are fitted,
+not frozen).
 
 To stay within the CPU budget of the test suite, the model propagates 3 wavelengths and
 the knot grid is 27 x 27 at 0.5 m (the defaults are 9 and 51 x 51 at 0.259 m); the
@@ -9,6 +13,8 @@ statistics tested do not depend on these choices.
 """
 
 from __future__ import annotations
+
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -28,14 +34,14 @@ PHOTONS = 2e7  # per exposure, in DN/s x 1 s: the image unit is arbitrary here
 READ_NOISE = 10.0
 
 
-def _scene(instrument, zernikes_nm, sources, rng):
-    """(flux-weighted sum of point sources) -> detector image with Gaussian photon noise."""
+def _scene(detector, instrument, zernikes_nm, sources, rng):
+    """(flux-weighted sum of point sources) -> ``detector`` image with Gaussian photon noise."""
     optics = NRMOptics.create(zernikes_nm=jnp.asarray(zernikes_nm))
     spectrum = LinearSpectrum.from_filter(FILTER, instrument.n_wavelengths)
     illuminance = sum(
         flux * optics.illuminance(spectrum, jnp.asarray(position)) for position, flux in sources
     )
-    model = np.asarray(instrument.detector(illuminance, PHOTONS), dtype=float)
+    model = np.asarray(detector(illuminance, PHOTONS), dtype=float)
     sigma = np.sqrt(np.clip(model, 0, None) + READ_NOISE**2)
     data = model + sigma * rng.normal(size=model.shape)
     mask = np.ones(model.shape, bool)
@@ -51,18 +57,22 @@ def test_synthetic_single_and_binary(tmp_path, monkeypatch):
     zernikes = rng.normal(0.0, 4.0, (7, 10))  # nm rms, the same wavefront for all
     contrast, offset = 1e-2, np.array([0.120, 0.090])  # 150 mas, optical frame (arcsec)
     star = np.array([0.02, -0.01])
+    geometry = np.asarray(instrument.detector.geometry()) + np.array([-0.25, 2e-3, 0.3, 0.0])
+    jitter_mas = 8.0
+    detector = instrument.detector.with_geometry(jnp.asarray(geometry)).with_jitter(
+        jitter_mas / 1000
+    )
+    scene = functools.partial(_scene, detector)
     exposures = [
         FitExposure(
-            "cal", "calibrator", "CAL", _scene(instrument, zernikes, [((0.01, 0.02), 1.0)], rng)
+            "cal", "calibrator", "CAL", scene(instrument, zernikes, [((0.01, 0.02), 1.0)], rng)
         ),
-        FitExposure(
-            "single", "science", "SINGLE", _scene(instrument, zernikes, [(star, 1.0)], rng)
-        ),
+        FitExposure("single", "science", "SINGLE", scene(instrument, zernikes, [(star, 1.0)], rng)),
         FitExposure(
             "binary",
             "science",
             "BINARY",
-            _scene(
+            scene(
                 instrument,
                 zernikes,
                 [(star, 1 / (1 + contrast)), (star + offset, contrast / (1 + contrast))],
@@ -74,6 +84,14 @@ def test_synthetic_single_and_binary(tmp_path, monkeypatch):
     assert product.result.converged
     for stats in product.stats:
         assert abs(stats.zscore_std - 1) < 0.05, stats
+    params = product.result.params
+    fitted = np.asarray(params.optics.geometry, np.float64)
+    jitters = np.abs(np.asarray(params.exposures.jitter_mas, np.float64))
+    print(f"geometry truth {geometry}, fitted {fitted}; jitter fitted {jitters} mas")
+    assert fitted[0] == pytest.approx(geometry[0], abs=0.02)  # rotation (deg)
+    assert fitted[2] == pytest.approx(geometry[2], abs=0.03)  # skew (deg)
+    assert fitted[1] == pytest.approx(geometry[1], abs=5e-4)  # anisotropy
+    np.testing.assert_allclose(jitters, jitter_mas, atol=3.0)
 
     by_target = {p.target: p for p in product.products}
     basis = product.fit.setup.basis
