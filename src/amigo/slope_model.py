@@ -26,6 +26,7 @@ that one compiled function serves every exposure with the same number of groups.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -216,6 +217,12 @@ class SlopeData(eqx.Module):
     @property
     def shape(self) -> tuple[int, int]:
         return tuple(self.slopes_dn.shape[1:])  # type: ignore[return-value]
+
+    def layout(self) -> SlopeData:
+        """The same arrays without the description the likelihood does not read (name,
+        role, value count, dark reference): what a compiled program is keyed on, so that
+        exposures of one filter and number of groups share it."""
+        return dataclasses.replace(self, name="", role="calibrator", n_values=0, dark_reference="")
 
 
 def _stem(path) -> str:
