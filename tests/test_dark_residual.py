@@ -17,9 +17,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from amigo.basemodel import BaseModel, BaseModelConfig
+from amigo.basemodel import BaseModel, BaseModelConfig, load_base_model, save_base_model
 from amigo.calibration import solve_dark_residual
-from amigo.detector.dark_residual import OffsetSystem, offset_jacobian
+from amigo.detector.dark_residual import (
+    OffsetSystem,
+    level2_offset_variance,
+    offset_jacobian,
+    offset_variance,
+)
 from amigo.detector.pipeline_slope import MODEL_READ_NOISE_CDS_DN
 from amigo.detector.read import ReadModel, group_offsets
 from amigo.slope_model import PointSourceParams, SlopeData, point_source_slopes
@@ -134,13 +139,51 @@ def test_normal_equations_recover_white_offsets_and_predict_unseen_ngroups():
         assert left == pytest.approx(expected, rel=0.1)
 
 
+def test_offset_variance_states_what_the_solve_left_unknown():
+    """The variance the fit adds to an image at NGROUPS the calibrators never had (2 and 4,
+    as AB Dor's F380M and HD 37093's obs 15 F380M; 20, past the reads solved) is the
+    spread of the truth about the solved offsets: prediction errors divided by its square
+    root have unit variance. Without a posterior (another dark reference) the prior's."""
+    rng = np.random.default_rng(7)
+    prior, n_off, shape = 1.6, 12, (60, 60)
+    truth = rng.normal(0, prior, (n_off + 8, *shape))  # reads past the 12 solved exist too
+    sigma = 0.05
+    system = OffsetSystem.empty(n_off, shape)
+    for n in (3, 6, 9, 9, 12):
+        j = np.asarray(offset_jacobian(jnp.full((n - 1, *shape), 0.5), n_off, TGROUP, GAIN))
+        residual = np.einsum("gyx,gyx->yx", j, truth[:n_off]) + rng.normal(0, sigma, shape)
+        system.add(j, residual, np.full(shape, sigma**-2), n)
+    solved = system.solve(prior)
+    chol = system.posterior_cholesky(prior)
+    assert chol.shape == (n_off, n_off, *shape)
+    for n in (2, 4, 20):
+        j = np.asarray(offset_jacobian(jnp.full((n - 1, *shape), 0.5), n, TGROUP, GAIN))
+        error = np.einsum("gyx,gyx->yx", j, truth[:n]) - np.einsum(
+            "gyx,gyx->yx", j[:n_off], solved[: min(n, n_off)]
+        )
+        variance = offset_variance(j, prior, chol)
+        z = error / np.sqrt(variance)
+        print(f"{n} groups: z std {np.std(z):.3f}, sigma {np.sqrt(variance.mean()):.3f} DN")
+        assert np.std(z) == pytest.approx(1.0, abs=0.05)
+        # Some of it is known: less than the prior alone would say.
+        assert variance.mean() < 0.9 * offset_variance(j, prior).mean()
+    # The prior alone: the OLS slope's variance of white reads, 12 s^2 / (N (N^2 - 1)).
+    j = np.asarray(offset_jacobian(jnp.full((1, 2, 2), 0.5), 2, TGROUP, GAIN))
+    np.testing.assert_allclose(offset_variance(j, prior), 2 * prior**2, rtol=1e-5)
+    # A level-2 image: the same in (DN/s)^2, from the image's own rate.
+    rate = np.full(shape, 0.5 / TGROUP)
+    image = level2_offset_variance(rate, 4, TGROUP, GAIN, prior, chol)
+    j = np.asarray(offset_jacobian(jnp.full((3, *shape), 0.5), 4, TGROUP, GAIN))
+    np.testing.assert_allclose(image, offset_variance(j, prior, chol) / TGROUP**2, rtol=1e-5)
+
+
 @pytest.fixture(scope="module")
 def small_level2():
     config = BaseModelConfig(filters=("F480M",), shape=(80, 80), n_wavelengths=3, pupil_npix=64)
     return BaseModel.create(config, linear=True).for_level2()
 
 
-def test_solve_dark_residual_on_simulated_calibrators(small_level2):
+def test_solve_dark_residual_on_simulated_calibrators(small_level2, tmp_path):
     base = small_level2
     cache = base.pupil_cache()
     rng = np.random.default_rng(7)
@@ -186,6 +229,27 @@ def test_solve_dark_residual_on_simulated_calibrators(small_level2):
     assert solved.dark_residual_for("dark_A.fits") is solved
     other = solved.dark_residual_for("dark_B.fits")
     assert other.read.group_offsets_dn is None and other.config.dark_residual_groups == 0
+    assert other.read.group_offsets_chol_dn is None
+
+    # The uncertainty they leave travels with them: behind their file the posterior's
+    # variance (small where three exposures at these groups measured them), behind
+    # another the prior's, none where no dark was subtracted.
+    assert solved.config.dark_prior_dn == 1.6
+    assert solved.read.group_offsets_chol_dn.shape == (n, n, 80, 80)
+    rate = np.full((80, 80), 5.0)
+    known = solved.dark_offset_variance("dark_A.fits", rate, n, TGROUP)
+    unknown = solved.dark_offset_variance("dark_B.fits", rate, n, TGROUP)
+    prior = 1.6**2 * 12 / (n * (n**2 - 1)) / TGROUP**2  # OLS slope of white reads
+    np.testing.assert_allclose(unknown, prior, rtol=1e-4)
+    assert np.median(known) < 0.5 * prior
+    assert not solved.dark_offset_variance("", rate, n, TGROUP).any()
+    # ... and through the model file (format 6).
+    path = save_base_model(solved, tmp_path / "dark.npz")
+    again = load_base_model(path)
+    np.testing.assert_array_equal(
+        again.read.group_offsets_chol_dn, solved.read.group_offsets_chol_dn
+    )
+    np.testing.assert_allclose(again.dark_offset_variance("dark_A.fits", rate, n, TGROUP), known)
     with pytest.raises(ValueError, match="level-2"):
         BaseModel.create(BaseModelConfig(filters=("F480M",)), linear=True).with_dark_residual(
             jnp.zeros((3, 80, 80)), "x"

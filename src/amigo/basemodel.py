@@ -22,6 +22,8 @@ Parameters and what trains them (see :mod:`amigo.calibration`)::
     read.ipc_kernel        (5, 5)   CRDS kernel                            fixed
     read.group_offsets_dn  (G, 80, 80) level-2 models: what the pipeline's dark   solved after
                                     subtraction left in each group read, DN   training
+    read.group_offsets_chol_dn (G, G, 80, 80) their posterior's Cholesky factor   solved after
+                                    (DN): the uncertainty they leave             training
 
 File format (``.npz``, readable with ``numpy.load(path, allow_pickle=False)``)
 ------------------------------------------------------------------------------
@@ -55,6 +57,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from amigo import instrument
+from amigo.detector.dark_residual import level2_offset_variance
 from amigo.detector.linear import LinearDetector
 from amigo.detector.ramp import (
     DEFAULT_CHARGE_SCALE_E,
@@ -73,8 +76,9 @@ from amigo.optics.spectrum import LinearSpectrum
 FORMAT = "amigo-base-model"
 #: 2: the dark current is a per-pixel map (version 1 held one value for all pixels);
 #: 3: the SIAF's detector geometry (see GEOMETRY_KEYS); 4: the hole sizes are parameters;
-#: 5: level-2 models may hold per-group read offsets (``dark_residual_groups`` > 0).
-FORMAT_VERSION = 5
+#: 5: level-2 models may hold per-group read offsets (``dark_residual_groups`` > 0);
+#: 6: and their posterior uncertainty (``dark_prior_dn`` > 0, ``read.group_offsets_chol_dn``).
+FORMAT_VERSION = 6
 #: Leaves of the linear detector's geometry (format 3 added skew and scale, and the SIAF's
 #: sense of rotation).
 GEOMETRY_KEYS = (
@@ -142,6 +146,11 @@ class BaseModelConfig:
         none), and the dark reference file (the level-2 header's ``R_DARK``) they were
         measured behind: they describe that file's noise, so they apply only to images
         processed with it (:mod:`amigo.detector.dark_residual`).
+    dark_prior_dn
+        Level-2 models: the prior width (DN) of each read's offset that the solve used;
+        with the posterior it left (``read.group_offsets_chol_dn``) it gives the variance
+        the offsets the model does not know add to an image
+        (:meth:`BaseModel.dark_offset_variance`). 0 (files before format 6): none added.
     """
 
     filters: tuple[str, ...] = instrument.CALIBRATED_FILTERS
@@ -159,6 +168,7 @@ class BaseModelConfig:
     data_level: str = "ramp"
     dark_residual_groups: int = 0
     dark_reference: str = ""
+    dark_prior_dn: float = 0.0
 
     def to_json(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -278,15 +288,19 @@ class BaseModel(eqx.Module):
             n_substeps=config.n_substeps,
             max_shift_pix=config.max_shift_pix,
         )
-        offsets = None
+        offsets = chol = None
         if config.dark_residual_groups > 0:
             offsets = jnp.zeros((config.dark_residual_groups, *config.shape))
+            if config.dark_prior_dn > 0:
+                g = config.dark_residual_groups
+                chol = jnp.zeros((g, g, *config.shape))
         read = ReadModel(
             dark_e_per_group=jnp.zeros(config.shape),
             ipc_kernel=jnp.asarray(default_ipc_kernel()),
             nonlinearity=jnp.zeros(config.shape),
             gain_e_per_dn=config.gain_e_per_dn,
             group_offsets_dn=offsets,
+            group_offsets_chol_dn=chol,
         )
         return cls(
             zernikes_nm={
@@ -350,31 +364,71 @@ class BaseModel(eqx.Module):
         )
 
     def with_dark_residual(
-        self, offsets_dn: Float[Array, "G ny nx"] | None, reference: str = ""
+        self,
+        offsets_dn: Float[Array, "G ny nx"] | None,
+        reference: str = "",
+        posterior_cholesky: Float[Array, "G G ny nx"] | None = None,
+        prior_dn: float | None = None,
     ) -> BaseModel:
         """The same instrument with per-group read offsets (``None``: none), measured
-        behind the dark reference file ``reference`` (see :class:`BaseModelConfig`)."""
+        behind the dark reference file ``reference``, with the Cholesky factor of their
+        posterior covariance and the prior width (DN) of the solve (``None``: keep this
+        model's; see :class:`BaseModelConfig`)."""
         groups = 0 if offsets_dn is None else int(offsets_dn.shape[0])
         if groups and self.config.data_level != "level2":
             raise ValueError("per-group read offsets describe level-2 images only")
+        if posterior_cholesky is not None and posterior_cholesky.shape[:2] != (groups, groups):
+            raise ValueError(f"posterior factor {posterior_cholesky.shape} for {groups} reads")
+        dtype = self.ramp.flat.dtype
         model = eqx.tree_at(
-            lambda m: m.read.group_offsets_dn,
+            lambda m: (m.read.group_offsets_dn, m.read.group_offsets_chol_dn),
             self,
-            None if offsets_dn is None else jnp.asarray(offsets_dn, self.ramp.flat.dtype),
+            (
+                None if offsets_dn is None else jnp.asarray(offsets_dn, dtype),
+                None if posterior_cholesky is None else jnp.asarray(posterior_cholesky, dtype),
+            ),
             is_leaf=lambda x: x is None,
         )
         config = dataclasses.replace(
-            self.config, dark_residual_groups=groups, dark_reference=reference if groups else ""
+            self.config,
+            dark_residual_groups=groups,
+            dark_reference=reference if groups else "",
+            dark_prior_dn=self.config.dark_prior_dn if prior_dn is None else float(prior_dn),
         )
         return dataclasses.replace(model, config=config)
 
     def dark_residual_for(self, reference: str | None) -> BaseModel:
         """The model for an image processed with the dark reference ``reference`` (its
         ``R_DARK``): this one where its read offsets were measured behind that file, else
-        the same without them (they describe another file's noise)."""
+        the same without them (they describe another file's noise; its prior width stays,
+        for :meth:`dark_offset_variance`)."""
         if self.config.dark_residual_groups == 0 or reference == self.config.dark_reference:
             return self
         return self.with_dark_residual(None)
+
+    def dark_offset_variance(
+        self,
+        reference: str,
+        rate_dn_s: Float[Array, "ny nx"],
+        ngroups: int,
+        group_time_s: float,
+        nframes: int = 1,
+    ) -> np.ndarray:
+        """(ny, nx) variance, (DN/s)^2, that the read offsets this model does not know
+        add to a level-2 image of ``rate_dn_s`` behind the dark reference ``reference``
+        (:func:`~amigo.detector.dark_residual.level2_offset_variance`): the posterior's
+        behind the file the offsets were measured behind, the prior's behind another,
+        none where the pipeline subtracted no dark (``reference`` empty) or the model
+        records no prior (files before format 6)."""
+        prior = self.config.dark_prior_dn
+        if not reference or prior <= 0 or self.config.data_level != "level2":
+            return np.zeros(np.shape(rate_dn_s))
+        model = self.dark_residual_for(reference)
+        chol = model.read.group_offsets_chol_dn
+        return level2_offset_variance(
+            rate_dn_s, ngroups, group_time_s, self.read.gain_e_per_dn, prior,
+            None if chol is None else np.asarray(chol), nframes,
+        )  # fmt: skip
 
     def with_network(self, network: ChargeMigrationNetwork | None) -> BaseModel:
         """The same instrument with another network (``None``: linear)."""

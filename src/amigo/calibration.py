@@ -1317,7 +1317,9 @@ def solve_dark_residual(
     common ``R_DARK`` are used (the others are listed as skipped). Offsets are solved for
     the reads of the longest ramp among them; the model's own offsets, where they were
     measured behind the same file with as many reads, are the starting point (the
-    residuals are taken with them), else they are dropped first.
+    residuals are taken with them), else they are dropped first. The model keeps the
+    posterior's Cholesky factor and ``prior_dn`` with them: the uncertainty of the
+    offsets, which fits add to the images' variance.
     """
     usable = [(d, p) for d, p in zip(datasets, params, strict=True) if d.level2]
     references = sorted({d.dark_reference for d, _ in usable if d.dark_reference})
@@ -1343,6 +1345,9 @@ def solve_dark_residual(
         residual = np.asarray(d.slopes_dn[0], np.float64) - estimate
         system.add(jacobian, residual * (white > 0), 1.0 / variance, d.ngroups)
     offsets = system.solve(prior_dn, current)
+    # What the calibrators left unknown of each pixel's offsets: the variance an image at
+    # NGROUPS they did not cover inherits (BaseModel.dark_offset_variance).
+    chol = system.posterior_cholesky(prior_dn)
     report_step(
         f"train: dark residual: {groups} group reads solved from {len(chosen)} exposures "
         f"behind {reference} (rms {np.sqrt(np.mean(offsets**2)):.2f} DN)"
@@ -1357,7 +1362,7 @@ def solve_dark_residual(
         "skipped": [d.name for d, _ in usable if d.dark_reference != reference],
         "rms_dn": round(float(np.sqrt(np.mean(offsets**2))), 4),
     }
-    return base.with_dark_residual(offsets, reference), record
+    return base.with_dark_residual(offsets, reference, chol, prior_dn), record
 
 
 #: Newton steps of an exposure's own parameters under a fixed instrument (fit_exposure).

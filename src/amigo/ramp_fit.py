@@ -163,6 +163,13 @@ class Level2Input:
         """(1, ny, nx) standard deviation of the image (DN/s)."""
         return self.data.error[None]
 
+    def with_variance(self, variance_dn_s2: np.ndarray) -> Level2Input:
+        """The same image with ``variance_dn_s2`` (ny, nx), (DN/s)^2, added to its
+        pixels' variance: noise its ERR does not state (the dark reference's, see
+        :meth:`amigo.basemodel.BaseModel.dark_offset_variance`)."""
+        error = np.sqrt(self.data.error**2 + np.where(self.data.mask, variance_dn_s2, 0.0))
+        return dataclasses.replace(self, data=dataclasses.replace(self.data, error=error))
+
 
 @eqx.filter_jit
 def _slopes_and_image(
@@ -203,7 +210,9 @@ class RampDetector:
     inputs
         The exposures by :attr:`FitExposure.name`: :class:`RampInput` (calslope files,
         the correction on the slopes) or :class:`Level2Input` (level-2 images, the
-        correction through the pipeline's slope estimator on the image).
+        correction through the pipeline's slope estimator on the image; their variance
+        gains what the base model does not know of the dark reference's offsets,
+        ``added_sigma_dn_s`` holds its median per image).
     tolerance, max_rounds, refit_iterations
         Convergence of the correction and Gauss-Newton iterations per refit (see
         :func:`fit_through_detector`).
@@ -218,7 +227,20 @@ class RampDetector:
         refit_iterations: int = DEFAULT_REFIT_ITERATIONS,
     ) -> None:
         self.base = base
-        self.inputs = inputs
+        # Level-2 images carry the dark reference's noise, which their ERR leaves out: the
+        # part of it the base model does not know joins each pixel's variance.
+        self.added_sigma_dn_s: dict[str, float] = {}
+        self.inputs = dict(inputs)
+        for name, ramp in inputs.items():
+            if isinstance(ramp, Level2Input):
+                variance = base.dark_offset_variance(
+                    ramp.dark_reference, ramp.data.data, ramp.ngroups, ramp.group_time_s,
+                    ramp.nframes,
+                )  # fmt: skip
+                if np.any(variance > 0):
+                    self.inputs[name] = ramp.with_variance(variance)
+                    used = ramp.data.mask
+                    self.added_sigma_dn_s[name] = float(np.median(np.sqrt(variance[used])))
         self.tolerance = tolerance
         self.max_rounds = max_rounds
         self.refit_iterations = refit_iterations

@@ -381,6 +381,13 @@ def _check_orientations(items) -> None:
             )
 
 
+def _added_noise(detector, name: str) -> dict:
+    """``{"read_offset_sigma_dn_s": median}`` where the fit added the dark reference's
+    unknown offsets to an image's noise (level-2 images with a base model), else ``{}``."""
+    added = {} if detector is None else detector.added_sigma_dn_s
+    return {"read_offset_sigma_dn_s": round(added[name], 4)} if name in added else {}
+
+
 def _run_filter(
     instrument, filter_name, items, config, out: Path, grid=None, detector=None
 ) -> dict:
@@ -504,6 +511,7 @@ def _run_filter(
                 "newton_decrement": float(product.result.newton_decrement),
                 **geometry["filter"],
                 **geometry["exposures"][e],
+                **_added_noise(detector, s.name),
             }
             for e, s in enumerate(product.stats)
         ],

@@ -43,7 +43,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from amigo.detector.pipeline_slope import pipeline_group_slope
 
@@ -144,3 +144,65 @@ class OffsetSystem:
         matrix = self.precision + np.eye(g) / prior_dn**2
         step = np.linalg.solve(matrix, (self.projection - f0 / prior_dn**2)[..., None])[..., 0]
         return np.moveaxis(f0 + step, -1, 0)
+
+    def posterior_cholesky(self, prior_dn: float) -> np.ndarray:
+        """(G, G, ny, nx) lower-triangular ``L`` with ``L L^T`` the posterior covariance
+        (DN^2) of each pixel's offsets, ``(P + I / s^2)^-1``: what the solve left
+        unknown (see :func:`offset_variance`)."""
+        g = self.n_offsets
+        covariance = np.linalg.inv(self.precision + np.eye(g) / prior_dn**2)
+        covariance = 0.5 * (covariance + np.swapaxes(covariance, -1, -2))
+        return np.moveaxis(np.linalg.cholesky(covariance), (-2, -1), (0, 1))
+
+
+def offset_variance(
+    jacobian: Float[ArrayLike, "N ny nx"],
+    prior_dn: float,
+    posterior_cholesky: Float[ArrayLike, "G G ny nx"] | None = None,
+) -> np.ndarray:
+    """(ny, nx) variance of the pipeline's slope (DN per group, squared) from the offsets
+    the model does not know: ``J^T C J`` for the read offsets of an image with ``N``
+    group reads, ``jacobian`` their effect on the slope (:func:`offset_jacobian` with
+    ``n_offsets = N``).
+
+    ``C`` is the posterior covariance ``L L^T`` (``posterior_cholesky``) on the first
+    ``G`` reads and the prior ``prior_dn^2 I`` on any later ones; without a posterior
+    (the image is behind another dark reference file than the one the offsets were
+    measured behind, or none were) every read has the prior: ``prior_dn^2 sum_g J_g^2``.
+    The variance is additive to the image's ERR^2 (the pipeline's ERR leaves the
+    reference's noise out), diagonal (the offsets are independent between pixels) and
+    the same in every exposure of one dark reference and NGROUPS.
+    """
+    j = np.asarray(jacobian, np.float64)
+    if posterior_cholesky is None:
+        return prior_dn**2 * np.sum(j * j, axis=0)
+    chol = np.asarray(posterior_cholesky, np.float64)
+    known = min(chol.shape[0], j.shape[0])
+    # (L^T J)_k = sum_g L_gk J_g over the reads the posterior covers.
+    projected = np.einsum("gkyx,gyx->kyx", chol[:known, :known], j[:known])
+    return np.sum(projected**2, axis=0) + prior_dn**2 * np.sum(j[known:] ** 2, axis=0)
+
+
+def level2_offset_variance(
+    rate_dn_s: Float[ArrayLike, "ny nx"],
+    ngroups: int,
+    group_time: float,
+    gain: float,
+    prior_dn: float,
+    posterior_cholesky: Float[ArrayLike, "G G ny nx"] | None = None,
+    nframes: int = 1,
+) -> np.ndarray:
+    """(ny, nx) variance, (DN/s)^2, that the unknown read offsets add to a level-2
+    image of ``rate_dn_s`` (its SCI) taken with ``ngroups`` reads of ``group_time`` s.
+
+    The pipeline picked each pixel's weights from that pixel's own ramp, whose mean is
+    the image's rate: the estimator's response to each read's offset is taken on that
+    ramp (negative rates count as none), then :func:`offset_variance`.
+    """
+    if ngroups < 2:
+        return np.zeros(np.shape(rate_dn_s))
+    per_group = np.clip(np.nan_to_num(np.asarray(rate_dn_s, np.float64)), 0.0, None) * group_time
+    differences = np.broadcast_to(per_group, (ngroups - 1, *per_group.shape))
+    jacobian = offset_jacobian(jnp.asarray(differences), ngroups, group_time, gain, nframes)
+    variance = offset_variance(np.asarray(jacobian), prior_dn, posterior_cholesky)
+    return variance / group_time**2

@@ -83,6 +83,10 @@ class ReadModel(eqx.Module):
         ``None``, or (G, ny, nx) offsets (DN) added to group reads 0 .. G-1 of every
         integration (later reads get none): the same in every exposure processed with one
         dark reference file (see :mod:`amigo.detector.dark_residual`).
+    group_offsets_chol_dn
+        ``None``, or (G, G, ny, nx) lower Cholesky factor (DN) of the offsets' posterior
+        covariance per pixel: not part of the image, the uncertainty it leaves
+        (:func:`amigo.detector.dark_residual.offset_variance`).
     """
 
     dark_e_per_group: Float[Array, "ny nx"] | Float[Array, ""]
@@ -91,6 +95,7 @@ class ReadModel(eqx.Module):
     gain_e_per_dn: float = eqx.field(static=True, default=instrument.GAIN_E_PER_DN)
     one_over_f: Float[Array, "ng nx k"] | None = None
     group_offsets_dn: Float[Array, "G ny nx"] | None = None
+    group_offsets_chol_dn: Float[Array, "G G ny nx"] | None = None
 
     @classmethod
     def create(cls, shape: tuple[int, int] = (80, 80)) -> ReadModel:
