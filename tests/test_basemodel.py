@@ -267,6 +267,9 @@ def test_shipped_level2_model_is_trained_on_real_calibrators_and_says_which():
                                     for n in names)  # fmt: skip
     assert record["dark_residual"]["reference"] == model.config.dark_reference
     assert model.config.dark_reference == "jwst_niriss_dark_0178.fits"
+    # ... with what it left unknown, which fits count as noise (format 6).
+    assert model.config.dark_prior_dn == record["dark_residual"]["prior_dn"] == 1.6
+    assert model.read.group_offsets_chol_dn.shape == (12, 12, 80, 80)
     assert record["initial_model"]["command"].startswith("amigo train --cal ")
     assert record["initial_model"]["command"].count("_cal.fits") == 12 + 3  # cal + val
     assert all(e["level"] == "level2" for e in record["data"]["calibration"])

@@ -254,3 +254,40 @@ def test_solve_dark_residual_on_simulated_calibrators(small_level2, tmp_path):
         BaseModel.create(BaseModelConfig(filters=("F480M",)), linear=True).with_dark_residual(
             jnp.zeros((3, 80, 80)), "x"
         )
+
+
+def test_a_fit_adds_the_unknown_offsets_to_level2_images_only(small_level2):
+    """``RampDetector`` (what ``amigo fit`` puts in front of a level-2 fit) adds the
+    model's ``dark_offset_variance`` to the ERR of level-2 images behind a subtracted dark,
+    at used pixels, and leaves other images as they are."""
+    from amigo.likelihood import ImageData
+    from amigo.ramp_fit import Level2Input, RampDetector
+
+    n = 4
+    chol = np.broadcast_to(0.5 * np.eye(n)[:, :, None, None], (n, n, 80, 80))
+    model = small_level2.with_dark_residual(
+        jnp.zeros((n, 80, 80)), "dark_A.fits", jnp.asarray(chol), prior_dn=1.6
+    )
+    mask = np.ones((80, 80), bool)
+    mask[:5] = False
+    image = ImageData(np.full((80, 80), 3.0), np.full((80, 80), 2.0), mask)
+    inputs = {
+        "behind": Level2Input(image, 5, 1, TGROUP, "dark_A.fits"),
+        "other": Level2Input(image, 5, 1, TGROUP, "dark_B.fits"),
+        "none": Level2Input(image, 5, 1, TGROUP, ""),
+    }
+    detector = RampDetector(model, inputs)
+    for name in ("behind", "other"):
+        added = model.dark_offset_variance(inputs[name].dark_reference, image.data, 5, TGROUP)
+        error = detector.inputs[name].data.error
+        np.testing.assert_allclose(error[mask], np.sqrt(4.0 + added[mask]))
+        np.testing.assert_array_equal(error[~mask], 2.0)
+        assert detector.added_sigma_dn_s[name] == pytest.approx(np.median(np.sqrt(added[mask])))
+    # A faint image: least-squares weights w = (-2, -1, 0, 1, 2) / 10 on the 5 reads.
+    # Behind its own file the posterior (0.5 DN on reads 0-3) and the prior (1.6 DN) on
+    # read 4; behind another the prior on all.
+    w = np.arange(-2, 3) / 10
+    behind = np.sqrt(0.5**2 * np.sum(w[:4] ** 2) + 1.6**2 * w[4] ** 2) / TGROUP
+    assert detector.added_sigma_dn_s["behind"] == pytest.approx(behind, rel=1e-4)
+    assert detector.added_sigma_dn_s["other"] == pytest.approx(1.6 * np.sqrt(0.1) / TGROUP)
+    assert detector.inputs["none"] is inputs["none"] and "none" not in detector.added_sigma_dn_s
