@@ -291,3 +291,23 @@ def test_a_fit_adds_the_unknown_offsets_to_level2_images_only(small_level2):
     assert detector.added_sigma_dn_s["behind"] == pytest.approx(behind, rel=1e-4)
     assert detector.added_sigma_dn_s["other"] == pytest.approx(1.6 * np.sqrt(0.1) / TGROUP)
     assert detector.inputs["none"] is inputs["none"] and "none" not in detector.added_sigma_dn_s
+
+
+def test_the_dark_reference_is_the_one_the_pipeline_subtracted(tmp_path):
+    """``R_DARK`` names the file only where the dark step ran (``S_DARK`` COMPLETE, or no
+    record of the step); an image whose dark step was skipped carries no reference's
+    noise, and gets neither offsets nor their variance."""
+    from amigo.io.jwst import read_exposure
+    from jwst_files import write_level2
+
+    cases = {
+        "done": ({"R_DARK": "crds://jwst_niriss_dark_0178.fits", "S_DARK": "COMPLETE"},
+                 "jwst_niriss_dark_0178.fits"),
+        "unrecorded": ({"R_DARK": "crds://jwst_niriss_dark_0178.fits"},
+                       "jwst_niriss_dark_0178.fits"),
+        "skipped": ({"R_DARK": "crds://jwst_niriss_dark_0178.fits", "S_DARK": "SKIPPED"}, ""),
+        "none": ({}, ""),
+    }  # fmt: skip
+    for name, (overrides, expected) in cases.items():
+        path = write_level2(tmp_path / f"{name}_cal.fits", np.ones((80, 80)), overrides=overrides)
+        assert read_exposure(path).meta.dark_reference == expected, name

@@ -127,7 +127,11 @@ class ExposureMeta:
     @property
     def dark_reference(self) -> str:
         """The dark reference file the pipeline subtracted (``R_DARK`` without its
-        ``crds://`` prefix; empty when the header names none, e.g. raw ramps)."""
+        ``crds://`` prefix; empty when the header names none, e.g. raw ramps, or says the
+        dark step did not run: ``S_DARK`` other than COMPLETE)."""
+        step = str(self.primary_header.get("S_DARK", "COMPLETE")).strip().upper()
+        if step != "COMPLETE":
+            return ""
         return str(self.primary_header.get("R_DARK", "")).strip().removeprefix("crds://")
 
     @property
