@@ -311,3 +311,48 @@ def test_the_dark_reference_is_the_one_the_pipeline_subtracted(tmp_path):
     for name, (overrides, expected) in cases.items():
         path = write_level2(tmp_path / f"{name}_cal.fits", np.ones((80, 80)), overrides=overrides)
         assert read_exposure(path).meta.dark_reference == expected, name
+
+
+def test_a_fit_keeps_the_offsets_only_where_the_image_shows_them(small_level2):
+    """``RampDetector.check_dark_patterns``: the amplitude of the model's offset pattern
+    measured in each level-2 image's halo is 1 where the image has it and 0 where it does
+    not (a simulation whose header names the dark file); the second is then fitted
+    without the offsets and without their variance."""
+    from types import SimpleNamespace
+
+    from amigo.fitting import FitExposure
+    from amigo.likelihood import ImageData
+    from amigo.ramp_fit import Level2Input, RampDetector
+
+    rng = np.random.default_rng(11)
+    n = 6
+    chol = np.broadcast_to(0.3 * np.eye(n)[:, :, None, None], (n, n, 80, 80))
+    model = small_level2.with_dark_residual(
+        jnp.asarray(rng.normal(0, 1.6, (n, 80, 80)), jnp.float32), "dark_A.fits",
+        jnp.asarray(chol), prior_dn=1.6,
+    )  # fmt: skip
+    yy, xx = np.indices((80, 80))
+    star = 1e4 * np.exp(-((yy - 40.0) ** 2 + (xx - 45.0) ** 2) / 18.0) + 20.0
+    error = np.sqrt(star / 50.0 + 1.5**2)
+    pattern = model.dark_offset_pattern("dark_A.fits", star, n, TGROUP)
+    assert 5.0 < np.std(pattern) < 40.0  # DN/s: a 6-group pattern of 1.6 DN reads
+    mask = np.ones((80, 80), bool)
+    images = {
+        "has_it": star + pattern + error * rng.normal(size=star.shape),
+        "lacks_it": star + error * rng.normal(size=star.shape),
+    }
+    inputs = {k: Level2Input(ImageData(v, error, mask), n, 1, TGROUP, "dark_A.fits")
+              for k, v in images.items()}  # fmt: skip
+    detector = RampDetector(model, inputs)
+    assert set(detector.added_sigma_dn_s) == {"has_it", "lacks_it"}
+    # The fit's model carries the offsets: its image is star + pattern for both.
+    exposures = [FitExposure(k, "calibrator", "T", detector.inputs[k].data) for k in images]
+    fit = SimpleNamespace(exposures=exposures, models=lambda params: [star + pattern] * 2)
+    assert detector.check_dark_patterns(fit, None) == ["lacks_it"]
+    (a1, s1), (a0, s0) = (detector.pattern_amplitudes[k] for k in ("has_it", "lacks_it"))
+    print(f"amplitude {a1:.3f} +- {s1:.3f} with the pattern, {a0:.3f} +- {s0:.3f} without")
+    assert abs(a1 - 1.0) < 4 * s1 and abs(a0) < 4 * s0 and s1 < 0.05
+    assert detector.inputs["lacks_it"].dark_reference == ""
+    assert detector.inputs["lacks_it"].data.error is error  # its ERR as read
+    assert "lacks_it" not in detector.added_sigma_dn_s and "has_it" in detector.added_sigma_dn_s
+    assert detector.inputs["has_it"].dark_reference == "dark_A.fits"

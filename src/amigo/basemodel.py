@@ -57,7 +57,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from amigo import instrument
-from amigo.detector.dark_residual import level2_offset_variance
+from amigo.detector.dark_residual import level2_offset_response, level2_offset_variance
 from amigo.detector.linear import LinearDetector
 from amigo.detector.ramp import (
     DEFAULT_CHARGE_SCALE_E,
@@ -429,6 +429,28 @@ class BaseModel(eqx.Module):
             rate_dn_s, ngroups, group_time_s, self.read.gain_e_per_dn, prior,
             None if chol is None else np.asarray(chol), nframes,
         )  # fmt: skip
+
+    def dark_offset_pattern(
+        self,
+        reference: str,
+        rate_dn_s: Float[Array, "ny nx"],
+        ngroups: int,
+        group_time_s: float,
+        nframes: int = 1,
+    ) -> np.ndarray | None:
+        """(ny, nx) DN/s: what this model's read offsets add to a level-2 image of
+        ``rate_dn_s`` behind ``reference`` (the pipeline's slope of the offsets alone, at
+        the image's weights); ``None`` where they do not apply."""
+        model = self.dark_residual_for(reference)
+        offsets = model.read.group_offsets_dn
+        if not reference or offsets is None or ngroups < 2:
+            return None
+        response = level2_offset_response(
+            rate_dn_s, ngroups, group_time_s, self.read.gain_e_per_dn, nframes
+        )
+        n = min(ngroups, offsets.shape[0])
+        per_group = np.einsum("gyx,gyx->yx", response[:n], np.asarray(offsets, np.float64)[:n])
+        return per_group / group_time_s
 
     def with_network(self, network: ChargeMigrationNetwork | None) -> BaseModel:
         """The same instrument with another network (``None``: linear)."""

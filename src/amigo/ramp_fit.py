@@ -47,6 +47,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from amigo.basemodel import BaseModel
+from amigo.detector.dark_residual import HALO_FRACTION, pattern_amplitude
 from amigo.fitting import FilterFit, FitConfig, FitExposure, FitParams, FitResult
 from amigo.instrument import GAIN_E_PER_DN
 from amigo.io.calslope import CalSlope
@@ -61,6 +62,9 @@ from amigo.newton import (
 )
 from amigo.progress import step
 
+#: A level-2 image keeps the model's read offsets when their pattern's measured amplitude
+#: in it is above this (1 where the image is behind the dark reference they describe).
+PATTERN_THRESHOLD = 0.5
 #: Stop when the whitened rms change of the correction between rounds is below this.
 DEFAULT_TOLERANCE = 0.05
 #: Rounds of (correction, refit) at most.
@@ -231,8 +235,19 @@ class RampDetector:
         # part of it the base model does not know joins each pixel's variance.
         self.added_sigma_dn_s: dict[str, float] = {}
         self.inputs = dict(inputs)
+        self.originals = dict(inputs)
+        # What the model's offsets add to each level-2 image (DN/s), for the check that
+        # the image has them (check_dark_patterns), and its measured amplitude.
+        self.patterns: dict[str, np.ndarray] = {}
+        self.pattern_amplitudes: dict[str, tuple[float, float]] = {}
         for name, ramp in inputs.items():
             if isinstance(ramp, Level2Input):
+                pattern = base.dark_offset_pattern(
+                    ramp.dark_reference, ramp.data.data, ramp.ngroups, ramp.group_time_s,
+                    ramp.nframes,
+                )  # fmt: skip
+                if pattern is not None:
+                    self.patterns[name] = pattern
                 variance = base.dark_offset_variance(
                     ramp.dark_reference, ramp.data.data, ramp.ngroups, ramp.group_time_s,
                     ramp.nframes,
@@ -249,6 +264,33 @@ class RampDetector:
     def mode(self) -> str:
         """``"full"`` with the charge-migration network, ``"linear"`` without."""
         return "linear" if self.base.linear else "full"
+
+    def check_dark_patterns(self, fit: FilterFit, params: FitParams) -> list[str]:
+        """Measure, in each level-2 image the model's read offsets apply to, the amplitude
+        of their pattern in the halo at ``params`` (:func:`pattern_amplitude`; 1: there as
+        the model says, 0: absent); images where it is below :data:`PATTERN_THRESHOLD`
+        are fitted from now on as images without a subtracted dark (neither the offsets
+        nor their variance: e.g. a simulation whose header names the dark file). Returns
+        the names of those images; the amplitudes go to ``pattern_amplitudes``."""
+        models = np.asarray(fit.models(params), np.float64)
+        dropped = []
+        for e, exposure in enumerate(fit.exposures):
+            name = exposure.name
+            pattern = self.patterns.get(name)
+            if pattern is None or name in self.pattern_amplitudes:
+                continue
+            image = exposure.image
+            # The fit's residual holds the data less the model with its offsets: adding
+            # the pattern back gives what the data say of it.
+            residual = image.data - models[e] + pattern
+            halo = image.mask & (models[e] < HALO_FRACTION * models[e][image.mask].max())
+            amplitude = pattern_amplitude(residual, pattern, image.error**2, halo)
+            self.pattern_amplitudes[name] = amplitude
+            if not amplitude[0] > PATTERN_THRESHOLD:
+                self.inputs[name] = dataclasses.replace(self.originals[name], dark_reference="")
+                self.added_sigma_dn_s.pop(name, None)
+                dropped.append(name)
+        return dropped
 
     def corrections(self, fit: FilterFit, params: FitParams) -> list[np.ndarray]:
         """The correction ``D`` of every exposure at ``params``: (m, 80, 80) ``S - t_g M``
@@ -345,6 +387,12 @@ def fit_through_detector(
     step(f"{label}: {detector.mode} detector: correction at the starting point computed")
     fit = fit.with_exposures(detector.corrected(exposures, corrections))
     result = fit.fit(config, label=label)
+    for name in detector.check_dark_patterns(fit, result.params):
+        amplitude, error = detector.pattern_amplitudes[name]
+        step(
+            f"{label}: {name}: the dark residual's pattern is not in the image (amplitude "
+            f"{amplitude:.2f} +- {error:.2f}): fitted without it"
+        )
     changes: list[float] = []
     refit = dataclasses.replace(
         config.newton,

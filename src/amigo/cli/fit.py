@@ -382,10 +382,21 @@ def _check_orientations(items) -> None:
 
 
 def _added_noise(detector, name: str) -> dict:
-    """``{"read_offset_sigma_dn_s": median}`` where the fit added the dark reference's
-    unknown offsets to an image's noise (level-2 images with a base model), else ``{}``."""
-    added = {} if detector is None else detector.added_sigma_dn_s
-    return {"read_offset_sigma_dn_s": round(added[name], 4)} if name in added else {}
+    """What the fit did with the dark residual of a level-2 image (base models that hold
+    one): ``dark_pattern_amplitude`` (and ``_err``), the amplitude of the model's read
+    offsets measured in the image (1: as the model says; below 0.5 the image is fitted
+    without them), and ``read_offset_sigma_dn_s``, the median noise added for the
+    offsets the model does not know; ``{}`` where nothing applies."""
+    if detector is None:
+        return {}
+    record = {}
+    if name in detector.pattern_amplitudes:
+        amplitude, error = detector.pattern_amplitudes[name]
+        record["dark_pattern_amplitude"] = round(amplitude, 4)
+        record["dark_pattern_amplitude_err"] = round(error, 4)
+    if name in detector.added_sigma_dn_s:
+        record["read_offset_sigma_dn_s"] = round(detector.added_sigma_dn_s[name], 4)
+    return record
 
 
 def _run_filter(
