@@ -21,7 +21,7 @@ from amigo.basemodel import BaseModel, BaseModelConfig, load_base_model, save_ba
 from amigo.calibration import solve_dark_residual
 from amigo.detector.dark_residual import (
     OffsetSystem,
-    level2_offset_variance,
+    level2_offset_response,
     offset_jacobian,
     offset_variance,
 )
@@ -172,7 +172,7 @@ def test_offset_variance_states_what_the_solve_left_unknown():
     np.testing.assert_allclose(offset_variance(j, prior), 2 * prior**2, rtol=1e-5)
     # A level-2 image: the same in (DN/s)^2, from the image's own rate.
     rate = np.full(shape, 0.5 / TGROUP)
-    image = level2_offset_variance(rate, 4, TGROUP, GAIN, prior, chol)
+    image = offset_variance(level2_offset_response(rate, 4, TGROUP, GAIN), prior, chol) / TGROUP**2
     j = np.asarray(offset_jacobian(jnp.full((3, *shape), 0.5), 4, TGROUP, GAIN))
     np.testing.assert_allclose(image, offset_variance(j, prior, chol) / TGROUP**2, rtol=1e-5)
 
@@ -237,19 +237,19 @@ def test_solve_dark_residual_on_simulated_calibrators(small_level2, tmp_path):
     assert solved.config.dark_prior_dn == 1.6
     assert solved.read.group_offsets_chol_dn.shape == (n, n, 80, 80)
     rate = np.full((80, 80), 5.0)
-    known = solved.dark_offset_variance("dark_A.fits", rate, n, TGROUP)
-    unknown = solved.dark_offset_variance("dark_B.fits", rate, n, TGROUP)
+    known = solved.dark_offset_terms("dark_A.fits", rate, n, TGROUP)[1]
+    unknown = solved.dark_offset_terms("dark_B.fits", rate, n, TGROUP)[1]
     prior = 1.6**2 * 12 / (n * (n**2 - 1)) / TGROUP**2  # OLS slope of white reads
     np.testing.assert_allclose(unknown, prior, rtol=1e-4)
     assert np.median(known) < 0.5 * prior
-    assert not solved.dark_offset_variance("", rate, n, TGROUP).any()
+    assert not solved.dark_offset_terms("", rate, n, TGROUP)[1].any()
     # ... and through the model file (format 6).
     path = save_base_model(solved, tmp_path / "dark.npz")
     again = load_base_model(path)
     np.testing.assert_array_equal(
         again.read.group_offsets_chol_dn, solved.read.group_offsets_chol_dn
     )
-    np.testing.assert_allclose(again.dark_offset_variance("dark_A.fits", rate, n, TGROUP), known)
+    np.testing.assert_allclose(again.dark_offset_terms("dark_A.fits", rate, n, TGROUP)[1], known)
     with pytest.raises(ValueError, match="level-2"):
         BaseModel.create(BaseModelConfig(filters=("F480M",)), linear=True).with_dark_residual(
             jnp.zeros((3, 80, 80)), "x"
@@ -258,7 +258,7 @@ def test_solve_dark_residual_on_simulated_calibrators(small_level2, tmp_path):
 
 def test_a_fit_adds_the_unknown_offsets_to_level2_images_only(small_level2):
     """``RampDetector`` (what ``amigo fit`` puts in front of a level-2 fit) adds the
-    model's ``dark_offset_variance`` to the ERR of level-2 images behind a subtracted dark,
+    model's ``dark_offset_terms`` variance to the ERR of level-2 images behind a subtracted dark,
     at used pixels, and leaves other images as they are."""
     from amigo.likelihood import ImageData
     from amigo.ramp_fit import Level2Input, RampDetector
@@ -278,7 +278,7 @@ def test_a_fit_adds_the_unknown_offsets_to_level2_images_only(small_level2):
     }
     detector = RampDetector(model, inputs)
     for name in ("behind", "other"):
-        added = model.dark_offset_variance(inputs[name].dark_reference, image.data, 5, TGROUP)
+        added = model.dark_offset_terms(inputs[name].dark_reference, image.data, 5, TGROUP)[1]
         error = detector.inputs[name].data.error
         np.testing.assert_allclose(error[mask], np.sqrt(4.0 + added[mask]))
         np.testing.assert_array_equal(error[~mask], 2.0)
@@ -334,7 +334,7 @@ def test_a_fit_keeps_the_offsets_only_where_the_image_shows_them(small_level2):
     yy, xx = np.indices((80, 80))
     star = 1e4 * np.exp(-((yy - 40.0) ** 2 + (xx - 45.0) ** 2) / 18.0) + 20.0
     error = np.sqrt(star / 50.0 + 1.5**2)
-    pattern = model.dark_offset_pattern("dark_A.fits", star, n, TGROUP)
+    pattern = model.dark_offset_terms("dark_A.fits", star, n, TGROUP)[0]
     assert 5.0 < np.std(pattern) < 40.0  # DN/s: a 6-group pattern of 1.6 DN reads
     mask = np.ones((80, 80), bool)
     images = {

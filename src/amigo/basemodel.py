@@ -57,7 +57,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from amigo import instrument
-from amigo.detector.dark_residual import level2_offset_response, level2_offset_variance
+from amigo.detector.dark_residual import level2_offset_response, offset_variance
 from amigo.detector.linear import LinearDetector
 from amigo.detector.ramp import (
     DEFAULT_CHARGE_SCALE_E,
@@ -150,7 +150,7 @@ class BaseModelConfig:
         Level-2 models: the prior width (DN) of each read's offset that the solve used;
         with the posterior it left (``read.group_offsets_chol_dn``) it gives the variance
         the offsets the model does not know add to an image
-        (:meth:`BaseModel.dark_offset_variance`). 0 (files before format 6): none added.
+        (:meth:`BaseModel.dark_offset_terms`). 0 (files before format 6): none added.
     """
 
     filters: tuple[str, ...] = instrument.CALIBRATED_FILTERS
@@ -401,56 +401,53 @@ class BaseModel(eqx.Module):
         """The model for an image processed with the dark reference ``reference`` (its
         ``R_DARK``): this one where its read offsets were measured behind that file, else
         the same without them (they describe another file's noise; its prior width stays,
-        for :meth:`dark_offset_variance`)."""
+        for :meth:`dark_offset_terms`)."""
         if self.config.dark_residual_groups == 0 or reference == self.config.dark_reference:
             return self
         return self.with_dark_residual(None)
 
-    def dark_offset_variance(
+    def dark_offset_terms(
         self,
         reference: str,
         rate_dn_s: Float[Array, "ny nx"],
         ngroups: int,
         group_time_s: float,
         nframes: int = 1,
-    ) -> np.ndarray:
-        """(ny, nx) variance, (DN/s)^2, that the read offsets this model does not know
-        add to a level-2 image of ``rate_dn_s`` behind the dark reference ``reference``
-        (:func:`~amigo.detector.dark_residual.level2_offset_variance`): the posterior's
-        behind the file the offsets were measured behind, the prior's behind another,
-        none where the pipeline subtracted no dark (``reference`` empty) or the model
-        records no prior (files before format 6)."""
-        prior = self.config.dark_prior_dn
-        if not reference or prior <= 0 or self.config.data_level != "level2":
-            return np.zeros(np.shape(rate_dn_s))
-        model = self.dark_residual_for(reference)
-        chol = model.read.group_offsets_chol_dn
-        return level2_offset_variance(
-            rate_dn_s, ngroups, group_time_s, self.read.gain_e_per_dn, prior,
-            None if chol is None else np.asarray(chol), nframes,
-        )  # fmt: skip
+    ) -> tuple[np.ndarray | None, np.ndarray]:
+        """``(pattern, variance)`` of this model's read offsets in a level-2 image of
+        ``rate_dn_s`` taken with ``ngroups`` reads behind the dark reference
+        ``reference``, both (ny, nx), from the pipeline's response to each read at the
+        image's own rate (:func:`~amigo.detector.dark_residual.level2_offset_response`).
 
-    def dark_offset_pattern(
-        self,
-        reference: str,
-        rate_dn_s: Float[Array, "ny nx"],
-        ngroups: int,
-        group_time_s: float,
-        nframes: int = 1,
-    ) -> np.ndarray | None:
-        """(ny, nx) DN/s: what this model's read offsets add to a level-2 image of
-        ``rate_dn_s`` behind ``reference`` (the pipeline's slope of the offsets alone, at
-        the image's weights); ``None`` where they do not apply."""
-        model = self.dark_residual_for(reference)
-        offsets = model.read.group_offsets_dn
-        if not reference or offsets is None or ngroups < 2:
-            return None
+        ``pattern`` (DN/s): what the offsets the model holds add to the image; ``None``
+        where they do not apply (another reference, none held). ``variance`` ((DN/s)^2):
+        what the offsets the model does not know add
+        (:func:`~amigo.detector.dark_residual.offset_variance`): the posterior's behind
+        the file the offsets were measured behind, the prior's behind another; zero where
+        the pipeline subtracted no dark (``reference`` empty) or the model records no
+        prior (files before format 6).
+        """
+        zeros = np.zeros(np.shape(rate_dn_s))
+        if not reference or ngroups < 2 or self.config.data_level != "level2":
+            return None, zeros
+        read = self.dark_residual_for(reference).read
+        prior = self.config.dark_prior_dn
+        if read.group_offsets_dn is None and prior <= 0:
+            return None, zeros
         response = level2_offset_response(
             rate_dn_s, ngroups, group_time_s, self.read.gain_e_per_dn, nframes
         )
-        n = min(ngroups, offsets.shape[0])
-        per_group = np.einsum("gyx,gyx->yx", response[:n], np.asarray(offsets, np.float64)[:n])
-        return per_group / group_time_s
+        pattern = None
+        if read.group_offsets_dn is not None:
+            offsets = np.asarray(read.group_offsets_dn, np.float64)
+            n = min(ngroups, offsets.shape[0])
+            pattern = np.einsum("gyx,gyx->yx", response[:n], offsets[:n]) / group_time_s
+        variance = zeros
+        if prior > 0:
+            chol = read.group_offsets_chol_dn
+            chol = None if chol is None else np.asarray(chol)
+            variance = offset_variance(response, prior, chol) / group_time_s**2
+        return pattern, variance
 
     def with_network(self, network: ChargeMigrationNetwork | None) -> BaseModel:
         """The same instrument with another network (``None``: linear)."""

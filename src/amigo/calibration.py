@@ -1332,7 +1332,7 @@ def solve_dark_residual(
     same = config.dark_reference == reference and config.dark_residual_groups == groups
     model = base if same else base.with_dark_residual(None)
     current = np.asarray(base.read.group_offsets_dn, np.float64) if same else None
-    system = OffsetSystem.empty(groups, base.config.shape)
+    system = OffsetSystem.empty(groups, config.shape)
     gain = model.read.gain_e_per_dn
     for d, p in chosen:
         differences = _ramp_differences(model, p, d, cache)
@@ -1346,11 +1346,12 @@ def solve_dark_residual(
         system.add(jacobian, residual * (white > 0), 1.0 / variance, d.ngroups)
     offsets = system.solve(prior_dn, current)
     # What the calibrators left unknown of each pixel's offsets: the variance an image at
-    # NGROUPS they did not cover inherits (BaseModel.dark_offset_variance).
+    # NGROUPS they did not cover inherits (BaseModel.dark_offset_terms).
     chol = system.posterior_cholesky(prior_dn)
+    rms = float(np.sqrt(np.mean(offsets**2)))
     report_step(
         f"train: dark residual: {groups} group reads solved from {len(chosen)} exposures "
-        f"behind {reference} (rms {np.sqrt(np.mean(offsets**2)):.2f} DN)"
+        f"behind {reference} (rms {rms:.2f} DN)"
     )
     record = {
         "solved": True,
@@ -1360,7 +1361,7 @@ def solve_dark_residual(
         "groups": groups,
         "exposures": [d.name for d, _ in chosen],
         "skipped": [d.name for d, _ in usable if d.dark_reference != reference],
-        "rms_dn": round(float(np.sqrt(np.mean(offsets**2))), 4),
+        "rms_dn": round(rms, 4),
     }
     return base.with_dark_residual(offsets, reference, chol, prior_dn), record
 

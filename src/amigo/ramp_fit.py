@@ -170,7 +170,7 @@ class Level2Input:
     def with_variance(self, variance_dn_s2: np.ndarray) -> Level2Input:
         """The same image with ``variance_dn_s2`` (ny, nx), (DN/s)^2, added to its
         pixels' variance: noise its ERR does not state (the dark reference's, see
-        :meth:`amigo.basemodel.BaseModel.dark_offset_variance`)."""
+        :meth:`amigo.basemodel.BaseModel.dark_offset_terms`)."""
         error = np.sqrt(self.data.error**2 + np.where(self.data.mask, variance_dn_s2, 0.0))
         return dataclasses.replace(self, data=dataclasses.replace(self.data, error=error))
 
@@ -242,16 +242,12 @@ class RampDetector:
         self.pattern_amplitudes: dict[str, tuple[float, float]] = {}
         for name, ramp in inputs.items():
             if isinstance(ramp, Level2Input):
-                pattern = base.dark_offset_pattern(
+                pattern, variance = base.dark_offset_terms(
                     ramp.dark_reference, ramp.data.data, ramp.ngroups, ramp.group_time_s,
                     ramp.nframes,
                 )  # fmt: skip
                 if pattern is not None:
                     self.patterns[name] = pattern
-                variance = base.dark_offset_variance(
-                    ramp.dark_reference, ramp.data.data, ramp.ngroups, ramp.group_time_s,
-                    ramp.nframes,
-                )  # fmt: skip
                 if np.any(variance > 0):
                     self.inputs[name] = ramp.with_variance(variance)
                     used = ramp.data.mask

@@ -381,7 +381,7 @@ def _check_orientations(items) -> None:
             )
 
 
-def _added_noise(detector, name: str) -> dict:
+def _dark_residual_record(detector, name: str) -> dict:
     """What the fit did with the dark residual of a level-2 image (base models that hold
     one): ``dark_pattern_amplitude`` (and ``_err``), the amplitude of the model's read
     offsets measured in the image (1: as the model says; below 0.5 the image is fitted
@@ -522,7 +522,7 @@ def _run_filter(
                 "newton_decrement": float(product.result.newton_decrement),
                 **geometry["filter"],
                 **geometry["exposures"][e],
-                **_added_noise(detector, s.name),
+                **_dark_residual_record(detector, s.name),
             }
             for e, s in enumerate(product.stats)
         ],

@@ -183,29 +183,6 @@ def offset_variance(
     return np.sum(projected**2, axis=0) + prior_dn**2 * np.sum(j[known:] ** 2, axis=0)
 
 
-def level2_offset_variance(
-    rate_dn_s: Float[ArrayLike, "ny nx"],
-    ngroups: int,
-    group_time: float,
-    gain: float,
-    prior_dn: float,
-    posterior_cholesky: Float[ArrayLike, "G G ny nx"] | None = None,
-    nframes: int = 1,
-) -> np.ndarray:
-    """(ny, nx) variance, (DN/s)^2, that the unknown read offsets add to a level-2
-    image of ``rate_dn_s`` (its SCI) taken with ``ngroups`` reads of ``group_time`` s.
-
-    The pipeline picked each pixel's weights from that pixel's own ramp, whose mean is
-    the image's rate: the estimator's response to each read's offset is taken on that
-    ramp (negative rates count as none), then :func:`offset_variance`.
-    """
-    if ngroups < 2:
-        return np.zeros(np.shape(rate_dn_s))
-    jacobian = level2_offset_response(rate_dn_s, ngroups, group_time, gain, nframes)
-    variance = offset_variance(jacobian, prior_dn, posterior_cholesky)
-    return variance / group_time**2
-
-
 def level2_offset_response(
     rate_dn_s: Float[ArrayLike, "ny nx"],
     ngroups: int,
