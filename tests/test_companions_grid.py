@@ -12,8 +12,11 @@ from amigo.companions import observables as obs
 from amigo.companions.fit import block_residuals
 from amigo.companions.grid import Grid, contrast_grid, sigma_from_chi2
 from amigo.companions.limits import (
+    COMBINED,
     absil_limit,
     azimuthal_profile,
+    combine_filters,
+    contrast_limits,
     photon_limit_dmag,
     ruffio_upper_limit,
 )
@@ -70,6 +73,51 @@ def test_grid_contrast_is_the_chi2_minimum(tmp_path, kind):
             + _chi2(dataset, position, solution.x - h, background)
         ) / h**2
         assert m.sigma[iy, ix] == pytest.approx((curvature / 2) ** -0.5, rel=2e-2)
+
+
+def test_combined_map_is_the_grey_companions_chi2_minimum(tmp_path):
+    """The combined map of two filters equals a brute-force minimisation of both filters'
+    chi2 over one flux ratio shared by the filters; its curve counts both filters'
+    photons and gives separations in lambda / D."""
+    rng = np.random.default_rng(12)
+    blocks = [
+        obs.load(write_sim_calvis(tmp_path / f"s_{f}_calvis.fits", f, [(250.0, 150.0, c)], rng))
+        for f, c in (("F380M", 0.012), ("F480M", 0.008))
+    ]
+    dataset = obs.Dataset.from_blocks(blocks)
+    grid = Grid.square(500.0, 100.0)
+    result = contrast_grid(dataset, grid)
+    combined = combine_filters(result.maps)
+
+    def chi2(position, c):
+        r = block_residuals(dataset, jnp.asarray([position], float), jnp.full((1, 2), c))
+        return float(sum(jnp.sum(x**2) for x in r))
+
+    chi2_0 = chi2((0.0, 0.0), 0.0)
+    for iy, ix in [(7, 8), (3, 1), (5, 9)]:
+        position = (grid.x_mas[ix], grid.y_mas[iy])
+        solution = optimize.minimize_scalar(
+            lambda c, p=position: chi2(p, c),
+            bounds=(-0.3, 0.3),
+            method="bounded",
+            options={"xatol": 1e-10},
+        )
+        assert combined.contrast[iy, ix] == pytest.approx(solution.x, abs=2e-5)
+        # Each filter's chi2 taken as quadratic in c about its own minimum: 0.2 % here.
+        assert combined.dchi2[iy, ix] == pytest.approx(chi2_0 - solution.fun, rel=5e-3, abs=1e-3)
+    assert combined.n_obs == sum(m.n_obs for m in result.maps)
+    curves = contrast_limits(
+        result,
+        photon_counts={"F380M": 1e8, "F480M": 3e8},
+        wavelengths_m={"F380M": 3.8e-6, "F480M": 4.8e-6},
+    )
+    assert [c.filter_name for c in curves] == ["F380M", "F480M", COMBINED]
+    assert curves[2].photon_limit_dmag == pytest.approx(photon_limit_dmag(4e8))
+    lambda_d_mas = 4.3e-6 / 6.603464 * 180 / np.pi * 3600e3  # 134.3 mas
+    np.testing.assert_allclose(curves[2].sep_lambda_d, curves[2].sep_mas / lambda_d_mas)
+    # The grey combination is deeper than either filter where both see the companion's
+    # absence equally (the companion-free outer annulus of the grid).
+    assert curves[2].ruffio_dmag[-1] > max(c.ruffio_dmag[-1] for c in curves[:2])
 
 
 def test_sigma_from_chi2():

@@ -21,21 +21,36 @@ contrast estimate ``c`` (signed) and its error ``s``.
 
 Azimuthal curves are the mean and standard deviation of the limit (in magnitudes) over
 annuli, as in the paper's figure.
+
+**Combined** (more than one filter): the limit on a companion with the same flux ratio in
+every filter (grey against the star; :func:`combine_filters`), the filters' estimates
+averaged with inverse-variance weights. Its photon rule counts the photons of all filters.
+
+Separations are also given in units of ``lambda / D``: ``lambda`` the mean wavelength of
+the filter's observables (of all filters for the combined curve), ``D`` the circumscribed
+pupil diameter :data:`amigo.instrument.PUPIL_DIAMETER_M` (6.603 m; 1.6 % more ``lambda/D``
+per mas than with the 6.5 m often quoted).
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from scipy import special, stats
 
-from amigo.companions.grid import GridResult
+from amigo.companions.grid import ContrastMap, GridResult
+from amigo.instrument import PUPIL_DIAMETER_M
 
 #: Confidence of a "3-sigma" upper limit, Phi(3) (one-sided).
 THREE_SIGMA = float(stats.norm.cdf(3.0))
 #: Flux ratio used in place of limits that are not positive (no information).
 CONTRAST_CEILING = 1.0
+#: Name of the curve of all filters together.
+COMBINED = "combined"
+#: Milliarcseconds per radian.
+MAS_PER_RAD = 180.0 / np.pi * 3600e3
 
 
 def ruffio_upper_limit(contrast, sigma, confidence: float = THREE_SIGMA) -> np.ndarray:
@@ -95,9 +110,38 @@ def azimuthal_profile(
     return 0.5 * (edges[1:] + edges[:-1]), mean, np.sqrt(np.clip(var, 0, None)), count
 
 
+def combine_filters(maps: Sequence[ContrastMap]) -> ContrastMap:
+    """One contrast map for a companion of the same flux ratio in every filter.
+
+    Per position the filters' signed estimates ``c_f +- s_f`` are independent, so the grey
+    companion's estimate is their inverse-variance mean ``c = sum(c_f / s_f^2) / sum(1 /
+    s_f^2)`` with ``s = sum(1 / s_f^2)^(-1/2)`` and ``dchi2 = c^2 / s^2``. The Absil test
+    counts every filter's observables (``n_obs`` and ``chi2_background`` summed); the inner
+    working angle is the largest of the filters'.
+    """
+    weights = [np.where(np.isfinite(m.sigma) & (m.sigma > 0), m.sigma**-2.0, 0.0) for m in maps]
+    total = np.sum(weights, axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        contrast = np.sum(
+            [w * np.nan_to_num(m.contrast) for w, m in zip(weights, maps, strict=True)], axis=0
+        ) / np.where(total > 0, total, np.nan)
+        sigma = np.where(total > 0, total**-0.5, np.nan)
+    return ContrastMap(
+        filter_name=COMBINED,
+        contrast=contrast,
+        sigma=sigma,
+        dchi2=np.nan_to_num((contrast / sigma) ** 2),
+        chi2_background=float(sum(m.chi2_background for m in maps)),
+        n_obs=int(sum(m.n_obs for m in maps)),
+        iwa_mas=float(max(m.iwa_mas for m in maps)),
+    )
+
+
 @dataclass(frozen=True)
 class ContrastCurve:
-    """Contrast limits of one filter: maps (n_y, n_x) and azimuthal curves, in magnitudes."""
+    """Contrast limits of one filter (or of all, ``filter_name == "combined"``): maps
+    (n_y, n_x) and azimuthal curves, in magnitudes; ``wavelength_m`` the mean wavelength
+    of its observables (for :attr:`sep_lambda_d`; NaN where unknown)."""
 
     filter_name: str
     sep_mas: np.ndarray
@@ -109,19 +153,41 @@ class ContrastCurve:
     absil_map_dmag: np.ndarray
     n_sigma: float
     photon_limit_dmag: float | None = None
+    wavelength_m: float = float("nan")
+
+    @property
+    def sep_lambda_d(self) -> np.ndarray:
+        """Separations in units of ``lambda / D`` (D: :data:`PUPIL_DIAMETER_M`)."""
+        return self.sep_mas / (self.wavelength_m / PUPIL_DIAMETER_M * MAS_PER_RAD)
 
 
 def contrast_limits(
     result: GridResult,
     n_sigma: float = 3.0,
     bin_width_mas: float | None = None,
-    photon_counts: dict[str, float] | None = None,
+    photon_counts: Mapping[str, float] | None = None,
+    wavelengths_m: Mapping[str, float] | None = None,
 ) -> list[ContrastCurve]:
-    """Ruffio and Absil limits per filter from a grid search on companion-subtracted data."""
+    """Ruffio and Absil limits per filter from a grid search on companion-subtracted data,
+    then (with more than one filter) those of all filters combined (:func:`combine_filters`).
+
+    ``photon_counts`` and ``wavelengths_m`` are per filter; the combined curve sums the
+    photons (when every filter has a count) and takes the mean of the wavelengths.
+    """
     grid = result.grid
     width = bin_width_mas or grid.step_mas
+    photons = dict(photon_counts or {})
+    waves = dict(wavelengths_m or {})
+    maps = list(result.maps)
+    if len(maps) > 1:
+        maps.append(combine_filters(result.maps))
+        names = [m.filter_name for m in result.maps]
+        if all(photons.get(f) for f in names):
+            photons[COMBINED] = float(sum(photons[f] for f in names))
+        if all(f in waves for f in names):
+            waves[COMBINED] = float(np.mean([waves[f] for f in names]))
     curves = []
-    for m in result.maps:
+    for m in maps:
         valid = grid.valid(m.iwa_mas) & np.isfinite(m.sigma)
         edges = np.arange(m.iwa_mas, grid.rmax_mas + 0.5 * width, width)
         if edges.size < 2:
@@ -132,7 +198,7 @@ def contrast_limits(
         centres, r_mean, r_std, count = azimuthal_profile(grid.radius_mas, ruffio, valid, edges)
         _, a_mean, a_std, _ = azimuthal_profile(grid.radius_mas, absil, valid, edges)
         keep = count > 0
-        n_photons = (photon_counts or {}).get(m.filter_name)
+        n_photons = photons.get(m.filter_name)
         curves.append(
             ContrastCurve(
                 filter_name=m.filter_name,
@@ -147,6 +213,7 @@ def contrast_limits(
                 photon_limit_dmag=(
                     photon_limit_dmag(n_photons) if n_photons and np.isfinite(n_photons) else None
                 ),
+                wavelength_m=float(waves.get(m.filter_name, np.nan)),
             )
         )
     return curves

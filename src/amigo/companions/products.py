@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from amigo._version import __version__
+from amigo.companions.limits import COMBINED
 from amigo.companions.search import DetectionResult, Estimate
 from amigo.io.atomic import write_text
 
@@ -88,6 +89,7 @@ def companions_document(result: DetectionResult, inputs: list[str]) -> dict[str,
     limits = {
         curve.filter_name: {
             "sep_mas": [_r(x, 2) for x in curve.sep_mas],
+            "sep_lambda_d": [_r(x, 3) for x in curve.sep_lambda_d],
             "dmag_3sigma": [_r(x, 3) for x in curve.ruffio_dmag],
             "dmag_3sigma_std": [_r(x, 3) for x in curve.ruffio_dmag_std],
             "absil_dmag_3sigma": [_r(x, 3) for x in curve.absil_dmag],
@@ -107,7 +109,14 @@ def companions_document(result: DetectionResult, inputs: list[str]) -> dict[str,
             f: {k: _r(v) for k, v in d.items()} for f, d in result.sigma_scale_by_kind.items()
         },
         "contrast_limits": limits,
-        "photon_limit_dmag": {f: _r(v, 3) for f, v in result.photon_limit_dmag.items()},
+        "photon_limit_dmag": {
+            **{f: _r(v, 3) for f, v in result.photon_limit_dmag.items()},
+            **{
+                c.filter_name: _r(c.photon_limit_dmag, 3)
+                for c in result.limits
+                if c.filter_name == COMBINED and c.photon_limit_dmag is not None
+            },
+        },
         "photon_count": {
             f: {
                 "n_photons": float(n),
@@ -170,11 +179,13 @@ CSV_COLUMNS = (
     "absil_dmag",
     "absil_dmag_std",
     "photon_limit_dmag",
+    "sep_lambda_d",
 )
 
 
 def write_contrast_csv(path: str | os.PathLike[str], result: DetectionResult) -> Path:
-    """Write ``contrast_limits.csv``: one row per filter and separation bin."""
+    """Write ``contrast_limits.csv``: one row per filter (then ``combined``, all filters
+    for a grey companion, when there are several) and separation bin."""
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
     writer.writerow(CSV_COLUMNS)
@@ -191,6 +202,7 @@ def write_contrast_csv(path: str | os.PathLike[str], result: DetectionResult) ->
                     f"{curve.absil_dmag[i]:.3f}",
                     f"{curve.absil_dmag_std[i]:.3f}",
                     photon,
+                    f"{curve.sep_lambda_d[i]:.3f}",
                 ]
             )
     write_text(path, buffer.getvalue())

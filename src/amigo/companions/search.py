@@ -188,6 +188,14 @@ def _group_counts(dataset: Dataset) -> np.ndarray:
     return counts
 
 
+def _mean_wavelengths(dataset: Dataset) -> dict[str, float]:
+    """Mean wavelength (m) of each filter's observables, for separations in lambda/D."""
+    return {
+        f: float(np.mean([b.mean_wavelength_m for b in dataset.blocks if b.filter_name == f]))
+        for f in dataset.filters
+    }
+
+
 def _photon_counts(dataset: Dataset) -> dict[str, float]:
     out = {}
     for f in dataset.filters:
@@ -650,7 +658,12 @@ def _detect(dataset: Dataset, settings: SearchSettings) -> DetectionResult:
         diameter,
     )
     photons = _photon_counts(dataset)
-    limits = contrast_limits(residual, settings.limit_sigma, photon_counts=photons)
+    limits = contrast_limits(
+        residual,
+        settings.limit_sigma,
+        photon_counts=photons,
+        wavelengths_m=_mean_wavelengths(dataset),
+    )
     return DetectionResult(
         dataset=dataset,
         settings=settings,
