@@ -13,6 +13,8 @@ import json
 import pytest
 
 from amigo.cli import main
+from amigo.companions.limits import photon_limit_dmag
+from amigo.io.calvis import read_calvis
 
 
 @pytest.mark.slow
@@ -43,7 +45,25 @@ def test_demo_finds_the_simulated_companion(tmp_path, monkeypatch, capsys):
             assert exposure[key] is not None and f"{key}_err" in exposure, key
         assert exposure["rotation_deg"] < 0
         assert abs(exposure["rotation_deg"] + 0.444) < 0.1
-    companions = json.loads((out / "companions.json").read_text())["companions"]
+    # Photons used, counted by hand from the simulation's truth: the science star's
+    # photon rate in the subarray over the time the slopes span, (NGROUPS - 1) group
+    # times per integration (not EFFEXPTM's NGROUPS). The fitted flux includes the PSF's
+    # wings beyond the subarray, a few per cent more.
+    truth = next(
+        json.loads(p.read_text())
+        for p in (out / "raw").glob("*_truth.json")
+        if json.loads(p.read_text())["exposure"]["role"] == "science"
+    )
+    exposure = truth["exposure"]
+    slope_s = exposure["nints"] * (exposure["ngroups"] - 1) * exposure["group_time_s"]
+    by_hand = truth["illumination"]["photons_per_s_in_subarray"] * slope_s
+    n_photons = read_calvis(out / "AB-DOR_F480M_calvis.fits").n_photons
+    assert 1.0 <= n_photons / by_hand < 1.1, (n_photons, by_hand)
+    doc = json.loads((out / "companions.json").read_text())
+    assert doc["photon_limit_dmag"]["F480M"] == pytest.approx(
+        photon_limit_dmag(n_photons), abs=1e-3
+    )
+    companions = doc["companions"]
     assert len(companions) >= 1
     c = companions[0]
     print(c)

@@ -81,6 +81,25 @@ def test_read_real_cal(com1093_dir):
     assert not exposure.usable[do_not_use].any()
 
 
+def test_slope_time_counts_the_photons_between_first_and_last_read(com1093_dir):
+    """The real AB Dor headers: EFFINTTM is NGROUPS * TGROUP, the photons a slope uses
+    arrive in (NGROUPS - 1) * TGROUP; at two groups EFFEXPTM counts twice the slope's."""
+    for stem, ngroups, nints in (("03104", 2, 160), ("03105", 13, 29)):
+        path = com1093_dir / f"jw01093012001_{stem}_00001_nis_cal.fits"
+        meta = jwst.read_exposure(path).meta
+        header = meta.primary_header
+        assert (meta.ngroups, meta.nints) == (ngroups, nints)
+        assert meta.slope_time_s == pytest.approx(nints * (ngroups - 1) * 0.07544, rel=1e-6)
+        effexptm = header["NINTS"] * header["EFFINTTM"]
+        assert effexptm / meta.slope_time_s == pytest.approx(ngroups / (ngroups - 1), rel=1e-3)
+
+
+def test_slope_time_of_one_group_is_the_read(tmp_path):
+    path = write_level2(tmp_path / "a_cal.fits", np.ones((80, 80)), overrides={"NGROUPS": 1})
+    meta = jwst.read_exposure(path).meta
+    assert meta.slope_time_s == pytest.approx(meta.nints * meta.group_time_s)
+
+
 def test_read_calints_and_flagged_nan(tmp_path):
     sci = np.full((2, 80, 80), 5.0)
     dq = np.zeros((2, 80, 80), np.uint32)

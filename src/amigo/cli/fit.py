@@ -438,14 +438,13 @@ def _run_filter(
         cal_names = [e.name for e in exposures if e.role == "calibrator"]
         orientation = sci_items[0][1].orientation
         sky_to_uv = sky_to_optical_matrix(orientation, fitted.detector)
+        # Photons the fit used: the fitted count rate times the time the slopes span
+        # (ExposureMeta.slope_time_s), never EFFEXPTM, which includes the time before
+        # the first read.
         photons = 0.0
         for e, exposure in enumerate(fit.exposures):
             if exposure.target == target:
-                meta = metas[exposure.name]
-                seconds = float(
-                    meta.primary_header.get("EFFEXPTM")
-                    or meta.nints * meta.ngroups * meta.group_time_s
-                )
+                seconds = metas[exposure.name].slope_time_s
                 photons += float(np.exp(params.exposures.log_flux[e])) * seconds * nis.GAIN_E_PER_DN
         discos = target_product.discos
         calvis_path = out / calvis_filename(target, filter_name)

@@ -125,6 +125,20 @@ class ExposureMeta:
         return self.kind in RAMP_KINDS
 
     @property
+    def slope_time_s(self) -> float:
+        """Seconds of photon collection a slope fit uses, all integrations together.
+
+        ``NINTS * (NGROUPS - 1) * TGROUP``: a slope (the pipeline's or amigo's group
+        differences) measures the charge between the first and the last group read, so the
+        photons that arrived before the first read are not in it. ``EFFEXPTM`` counts
+        ``NGROUPS * TGROUP`` per integration and over-counts by ``NGROUPS / (NGROUPS - 1)``
+        (twice at two groups). With one group the read itself is the measurement
+        (``NINTS * TGROUP``).
+        """
+        used = self.ngroups - 1 if self.ngroups > 1 else 1
+        return float(self.nints * used * self.group_time_s)
+
+    @property
     def dark_reference(self) -> str:
         """The dark reference file the pipeline subtracted (``R_DARK`` without its
         ``crds://`` prefix; empty when the header names none, e.g. raw ramps, or says the
