@@ -9,8 +9,9 @@ script can call. Steps:
    cross terms, float64 (:func:`amigo.fitting.latent_information`);
 4. per target: latent values and covariance; calibrators combined (inverse-covariance
    weighted) into one reference;
-5. the kernel from the latent response to the nuisances at the calibrators' state, and the
-   DISCOs of every science target (:mod:`amigo.observables`);
+5. the kernel from the latent response to the nuisances at the calibrators' state (and to
+   the visibilities of the knots the fringes do not reach, :func:`amigo.observables.
+   envelope_knots`), and the DISCOs of every science target (:mod:`amigo.observables`);
 6. calibrated log-visibilities at the 21 mask baselines (for OIFITS).
 """
 
@@ -203,12 +204,21 @@ def extract_filter(
     roles = fit.target_roles()
     n_amp = basis.n_amp
     nuisance = obs.nuisance_regression(information.cal_hessian, information.cross)
+    to_knots = basis.latent_from_knots()
+    # The knots the fringes do not reach are instrumental too (obs.envelope_knots): on
+    # real data their calibrated phases carried most of a null pair's false signal.
+    # Scaled to the largest nuisance column so that the rank threshold keeps them.
+    envelope = obs.knot_nuisance(
+        to_knots,
+        obs.envelope_knots(basis.knots_m(), nis.baselines_m(), nis.HOLE_FLAT_TO_FLAT_M),
+    )
+    scale = float(np.max(np.linalg.norm(nuisance, axis=0), initial=1.0))
+    nuisance = np.concatenate([nuisance, envelope * scale], axis=1)
     kernel = obs.build_kernel(nuisance, n_amp)
     cal_idx = [i for i, t in enumerate(fit.targets) if roles[t] == "calibrator"]
     cal_value, cal_cov = obs.combine(
         [latents[i] for i in cal_idx], [covariances[i] for i in cal_idx]
     )
-    to_knots = basis.latent_from_knots()
     to_baselines = baseline_map(setup)
     products = []
     for i, target in enumerate(fit.targets):

@@ -141,6 +141,44 @@ class Kernel:
         return int(self.amp.shape[0])
 
 
+def envelope_knots(knots_m: np.ndarray, baselines_m: np.ndarray, reach_m: float) -> np.ndarray:
+    """Knots the mask's fringes do not reach: (n_used,) booleans.
+
+    A knot at ``b`` is an *envelope knot* when it is farther than ``reach_m`` from every
+    baseline ``B`` and its mirror ``-B``. With ``reach_m`` the holes' flat-to-flat width,
+    the half-width of a baseline's OTF splodge across its flats, such a knot lies where
+    the OTF is only the holes' common autocorrelation (the zero-baseline splodge): the
+    image sees its visibility only through the shape of the single-hole envelope, which
+    the pixels' own response (flat, intra-pixel response, charge migration, jitter) also
+    shapes. For the 51 x 51 grid 0.259 m apart and NIRISS's 0.8 m holes (shortest
+    baseline 1.32 m) these are the 8 knots within 0.58 m of the origin.
+
+    Parameters
+    ----------
+    knots_m
+        (n_used, 2) knot baselines (m), the basis's free half-plane knots.
+    baselines_m
+        (n_b, 2) mask baselines (m), same frame.
+    reach_m
+        Distance (m) from a baseline within which its fringes reach.
+    """
+    b = np.asarray(baselines_m, dtype=float)
+    b = np.concatenate([b, -b])
+    k = np.asarray(knots_m, dtype=float)
+    distance = np.linalg.norm(k[:, None, :] - b[None], axis=-1).min(axis=1)
+    return (np.linalg.norm(k, axis=1) < reach_m) & (distance > reach_m)
+
+
+def knot_nuisance(latent_from_knots: np.ndarray, knots: np.ndarray) -> np.ndarray:
+    """(m_a + m_p, 2 n) latent response to the log-amplitude and the phase of each of the
+    ``n`` selected knots (``knots``: (n_used,) booleans), columns of unit norm or less:
+    nuisance directions for :func:`build_kernel` that make the observables blind to
+    those knots' visibilities."""
+    index = np.flatnonzero(knots)
+    n_used = latent_from_knots.shape[1] // 2
+    return np.asarray(latent_from_knots, float)[:, np.concatenate([index, n_used + index])]
+
+
 def build_kernel(nuisance_jacobian: np.ndarray, n_amp: int, rcond: float = DEFAULT_RCOND) -> Kernel:
     """Kernel projectors from the (m_a + m_p, n) latent nuisance Jacobian ``G``.
 
