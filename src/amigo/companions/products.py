@@ -86,8 +86,9 @@ def companions_document(result: DetectionResult, inputs: list[str]) -> dict[str,
         }
         for r in result.rejected
     ]
-    limits = {
-        curve.filter_name: {
+
+    def curve_record(curve) -> dict[str, Any]:
+        return {
             "sep_mas": [_r(x, 2) for x in curve.sep_mas],
             "sep_lambda_d": [_r(x, 3) for x in curve.sep_lambda_d],
             "dmag_3sigma": [_r(x, 3) for x in curve.ruffio_dmag],
@@ -96,8 +97,11 @@ def companions_document(result: DetectionResult, inputs: list[str]) -> dict[str,
             "absil_dmag_3sigma_std": [_r(x, 3) for x in curve.absil_dmag_std],
             "method": "ruffio2018",
         }
-        for curve in result.limits
-    }
+
+    # Keyed by filter only (what readers of the contract expect); all filters together
+    # (several filters) under their own top-level key.
+    limits = {c.filter_name: curve_record(c) for c in result.limits if c.filter_name != COMBINED}
+    combined = [c for c in result.limits if c.filter_name == COMBINED]
     document: dict[str, Any] = {
         "amigo_version": __version__,
         "inputs": [os.path.basename(p) for p in inputs],
@@ -109,14 +113,16 @@ def companions_document(result: DetectionResult, inputs: list[str]) -> dict[str,
             f: {k: _r(v) for k, v in d.items()} for f, d in result.sigma_scale_by_kind.items()
         },
         "contrast_limits": limits,
-        "photon_limit_dmag": {
-            **{f: _r(v, 3) for f, v in result.photon_limit_dmag.items()},
-            **{
-                c.filter_name: _r(c.photon_limit_dmag, 3)
-                for c in result.limits
-                if c.filter_name == COMBINED and c.photon_limit_dmag is not None
-            },
-        },
+        "photon_limit_dmag": {f: _r(v, 3) for f, v in result.photon_limit_dmag.items()},
+        "combined": {
+            "contrast_limits": curve_record(c),
+            "photon_limit_dmag": None
+            if c.photon_limit_dmag is None
+            else _r(c.photon_limit_dmag, 3),
+            "assumes": "the same flux ratio in every filter",
+        }
+        if (c := next(iter(combined), None)) is not None
+        else None,
         "photon_count": {
             f: {
                 "n_photons": float(n),
