@@ -206,7 +206,7 @@ def extract_filter(
     nuisance = obs.nuisance_regression(information.cal_hessian, information.cross)
     to_knots = basis.latent_from_knots()
     # The knots the fringes do not reach are instrumental too (obs.envelope_knots): on
-    # real data their calibrated phases carried most of a null pair's false signal.
+    # a real null pair their calibrated phases made a false 5-sigma candidate (docs/fit.md).
     # Scaled to the largest nuisance column so that the rank threshold keeps them.
     envelope = obs.knot_nuisance(
         to_knots,

@@ -101,7 +101,15 @@ def companions_document(result: DetectionResult, inputs: list[str]) -> dict[str,
     # Keyed by filter only (what readers of the contract expect); all filters together
     # (several filters) under their own top-level key.
     limits = {c.filter_name: curve_record(c) for c in result.limits if c.filter_name != COMBINED}
-    combined = [c for c in result.limits if c.filter_name == COMBINED]
+    combined = None
+    for c in result.limits:
+        if c.filter_name == COMBINED:
+            rule = c.photon_limit_dmag
+            combined = {
+                "contrast_limits": curve_record(c),
+                "photon_limit_dmag": None if rule is None else _r(rule, 3),
+                "assumes": "the same flux ratio in every filter",
+            }
     document: dict[str, Any] = {
         "amigo_version": __version__,
         "inputs": [os.path.basename(p) for p in inputs],
@@ -114,15 +122,7 @@ def companions_document(result: DetectionResult, inputs: list[str]) -> dict[str,
         },
         "contrast_limits": limits,
         "photon_limit_dmag": {f: _r(v, 3) for f, v in result.photon_limit_dmag.items()},
-        "combined": {
-            "contrast_limits": curve_record(c),
-            "photon_limit_dmag": None
-            if c.photon_limit_dmag is None
-            else _r(c.photon_limit_dmag, 3),
-            "assumes": "the same flux ratio in every filter",
-        }
-        if (c := next(iter(combined), None)) is not None
-        else None,
+        "combined": combined,
         "photon_count": {
             f: {
                 "n_photons": float(n),
