@@ -41,6 +41,7 @@ import numpy as np
 from scipy import special, stats
 
 from amigo.companions.grid import ContrastMap, GridResult
+from amigo.companions.models import MAS_TO_RAD
 from amigo.instrument import PUPIL_DIAMETER_M
 
 #: Confidence of a "3-sigma" upper limit, Phi(3) (one-sided).
@@ -49,8 +50,12 @@ THREE_SIGMA = float(stats.norm.cdf(3.0))
 CONTRAST_CEILING = 1.0
 #: Name of the curve of all filters together.
 COMBINED = "combined"
-#: Milliarcseconds per radian.
-MAS_PER_RAD = 180.0 / np.pi * 3600e3
+
+
+def lambda_over_d_mas(wavelength_m: float) -> float:
+    """``lambda / D`` in milliarcseconds, ``D`` the circumscribed pupil
+    :data:`PUPIL_DIAMETER_M`."""
+    return wavelength_m / PUPIL_DIAMETER_M / MAS_TO_RAD
 
 
 def ruffio_upper_limit(contrast, sigma, confidence: float = THREE_SIGMA) -> np.ndarray:
@@ -158,7 +163,7 @@ class ContrastCurve:
     @property
     def sep_lambda_d(self) -> np.ndarray:
         """Separations in units of ``lambda / D`` (D: :data:`PUPIL_DIAMETER_M`)."""
-        return self.sep_mas / (self.wavelength_m / PUPIL_DIAMETER_M * MAS_PER_RAD)
+        return self.sep_mas / lambda_over_d_mas(self.wavelength_m)
 
 
 def contrast_limits(

@@ -24,7 +24,7 @@ import jax
 import matplotlib.pyplot as plt
 import numpy as np
 
-from amigo.companions.limits import COMBINED, MAS_PER_RAD
+from amigo.companions.limits import COMBINED, lambda_over_d_mas
 from amigo.companions.models import scene_visibility
 from amigo.companions.observables import KIND_NAMES
 from amigo.companions.search import DetectionResult
@@ -252,11 +252,12 @@ def plot_contrast_limits(result: DetectionResult, path: str | os.PathLike[str]) 
     # lambda/D of the mean wavelength of all the curves (the combined one's).
     waves = [c.wavelength_m for c in result.limits if np.isfinite(c.wavelength_m)]
     if waves:
-        mas_per_unit = float(np.mean(waves)) / PUPIL_DIAMETER_M * MAS_PER_RAD
+        wave = float(np.mean(waves))
+        mas_per_unit = lambda_over_d_mas(wave)
         top = ax.secondary_xaxis(
             "top", functions=(lambda x: x / mas_per_unit, lambda x: x * mas_per_unit)
         )
-        top.set_xlabel(f"separation (λ/D at {np.mean(waves) * 1e6:.2f} µm, D = 6.6 m)")
+        top.set_xlabel(f"separation (λ/D at {wave * 1e6:.2f} µm, D = {PUPIL_DIAMETER_M:.2f} m)")
     ax.set_ylabel("contrast limit (delta mag)")
     ax.set_title("Contrast limits on the companion-subtracted data", fontsize=10)
     ax.legend(fontsize=7, ncol=2)
