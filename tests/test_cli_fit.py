@@ -60,10 +60,23 @@ def test_uncal_and_one_file_in_both_roles_are_refused(tmp_path, capsys):
     assert "is given both as --sci and --cal" in capsys.readouterr().err
 
 
+def test_superbias_needs_calslope_inputs(tmp_path, capsys):
+    """The first group exists only in raw-ramp products: --superbias with level-2 images
+    is one line and exit 2, before anything is fitted or written."""
+    cal = write_level2(tmp_path / "c_cal.fits", np.ones((80, 80)))
+    sci = write_level2(tmp_path / "s_cal.fits", np.ones((80, 80)))
+    out = tmp_path / "o"
+    args = ["fit", "--sci", str(sci), "--cal", str(cal), "--out", str(out)]
+    assert _run([*args, "--superbias", str(cal)]) == 2
+    err = capsys.readouterr().err
+    assert "--superbias needs calslope inputs" in err and "c_cal.fits" in err
+    assert "Traceback" not in err and not out.exists()
+
+
 def test_help_lists_the_options():
     result = CliRunner().invoke(cli, ["fit", "--help"])
     assert result.exit_code == 0
-    for option in ("--sci", "--cal", "--out", "--model", "--detector"):
+    for option in ("--sci", "--cal", "--out", "--model", "--detector", "--superbias"):
         assert option in result.output
 
 

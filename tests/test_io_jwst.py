@@ -92,6 +92,8 @@ def test_slope_time_counts_the_photons_between_first_and_last_read(com1093_dir):
         assert meta.slope_time_s == pytest.approx(nints * (ngroups - 1) * 0.07544, rel=1e-6)
         effexptm = header["NINTS"] * header["EFFINTTM"]
         assert effexptm / meta.slope_time_s == pytest.approx(ngroups / (ngroups - 1), rel=1e-3)
+        # with the first group in the likelihood every group's photons count: EFFEXPTM's
+        assert meta.photon_time_s(first_group=True) == pytest.approx(effexptm, rel=1e-3)
 
 
 def test_slope_time_of_one_group_is_the_read(tmp_path):

@@ -75,8 +75,9 @@ def _theta(setup, instrument, position_arcsec, log_flux):
     )
 
 
-def _truth(base, instrument, setup, position_arcsec, electrons=ELECTRONS):
-    """(slopes DN per group, image DN/s, log_flux) of a point source."""
+def _truth(base, instrument, setup, position_arcsec, electrons=ELECTRONS, first_group=False):
+    """(slopes DN per group, image DN/s, log_flux) of a point source; with
+    ``first_group`` the first read (DN since the reset) in front of the slopes."""
     scale = base.read.gain_e_per_dn * NGROUPS * GROUP_TIME_S
     log_flux = float(np.log(electrons / scale))
     anchor = jnp.zeros(2, jnp.float32)
@@ -90,6 +91,7 @@ def _truth(base, instrument, setup, position_arcsec, electrons=ELECTRONS):
         _theta(setup, instrument, position_arcsec, log_flux),
         jnp.asarray(scale, jnp.float32),
         NGROUPS,
+        first_group,
     )
     return np.asarray(slopes, float), np.asarray(image, float), log_flux
 
@@ -112,12 +114,12 @@ def _ipc(image: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     return out
 
 
-def test_correction_vanishes_for_a_linear_detector_and_is_the_ipc_otherwise(setting):
-    base, instrument, setup = setting
+def _plain(base):
+    """The base model with a linear, flat detector: no IPC, dark or non-linearity."""
     linear = base.with_linear_detector()
     identity = np.zeros((5, 5))
     identity[2, 2] = 1.0
-    plain = dataclasses.replace(
+    return dataclasses.replace(
         linear,
         ramp=dataclasses.replace(
             linear.ramp, flat=jnp.ones((80, 80)), intra_pixel=IntraPixelResponse()
@@ -129,6 +131,11 @@ def test_correction_vanishes_for_a_linear_detector_and_is_the_ipc_otherwise(sett
             dark_e_per_group=jnp.asarray(0.0),
         ),
     )
+
+
+def test_correction_vanishes_for_a_linear_detector_and_is_the_ipc_otherwise(setting):
+    base, instrument, setup = setting
+    plain = _plain(base)
     # The fit's image without IPC (the instrument's linear detector has the base model's).
     no_ipc = _without_ipc(instrument)
     slopes, image, _ = _truth(plain, no_ipc, setup, (0.02, -0.01))
@@ -148,6 +155,27 @@ def test_correction_vanishes_for_a_linear_detector_and_is_the_ipc_otherwise(sett
     )
     # ... and the IPC is not negligible: the correction is what is left
     assert np.abs(expected - image * GROUP_TIME_S).max() > 50 * 1e-4 * expected.max()
+
+
+def test_first_read_is_one_group_of_signal_through_the_detector_model(setting):
+    """With the first group in the likelihood the detector model's values are its first
+    read (the charge since the reset, no bias) and then its slopes: for a linear flat
+    detector each is ``t_g`` times the linear image, so the correction vanishes for the
+    first value as for the slopes; with the network the first read and the first slope
+    differ by the charge migration, not by a group of signal."""
+    base, instrument, setup = setting
+    no_ipc = _without_ipc(instrument)
+    values, image, _ = _truth(_plain(base), no_ipc, setup, (0.02, -0.01), first_group=True)
+    assert values.shape == (NGROUPS, 80, 80)
+    expected = image * GROUP_TIME_S
+    np.testing.assert_allclose(
+        values, np.broadcast_to(expected, values.shape), atol=1e-4 * expected.max()
+    )
+    values, image, _ = _truth(base, instrument, setup, (0.02, -0.01), first_group=True)
+    slopes, _, _ = _truth(base, instrument, setup, (0.02, -0.01))
+    np.testing.assert_allclose(values[1:], slopes, atol=1e-5 * slopes.max())
+    peak = np.unravel_index(np.argmax(image), image.shape)
+    assert abs(values[0][peak] / slopes[0][peak] - 1) < 0.05
 
 
 def test_level2_correction_is_the_pipeline_slope_of_the_model_ramp(setting):

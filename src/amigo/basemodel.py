@@ -529,6 +529,16 @@ class BaseModel(eqx.Module):
         charge = self.ramp(illuminance_e, ngroups)
         return jnp.diff(self.read(charge), axis=0)
 
+    @eqx.filter_jit
+    def group_values(
+        self, illuminance_e: Float[Array, "m m"], ngroups: int
+    ) -> Float[Array, "g y x"]:
+        """(ngroups, ny, nx) DN: the first group's read (the signal since the reset, no
+        bias) and then the slopes of :meth:`slopes`: what a calslope file's values are
+        with its first group in the likelihood (:mod:`amigo.detector.reset`)."""
+        reads = self.read(self.ramp(illuminance_e, ngroups))
+        return jnp.concatenate([reads[:1], jnp.diff(reads, axis=0)])
+
 
 def _basis(grid: PupilGrid, centres: np.ndarray, radius: float, n: int) -> Array:
     """The Zernike basis, compiled (evaluated op by op it takes seconds); dLux's Noll

@@ -109,7 +109,7 @@ class ImageData:
 
     @classmethod
     def from_calslope(
-        cls, product: CalSlope, group_time_s: float, structure: str = "auto"
+        cls, product: CalSlope, group_time_s: float, structure: str = "auto", leading: int = 0
     ) -> ImageData:
         """Reduce a calslope product to the image of a linear detector, exactly.
 
@@ -125,7 +125,11 @@ class ImageData:
         ``structure`` is that of :meth:`SlopeNoise.from_covariance`; ``"auto"`` uses the
         full covariance when every slope was averaged over at least ``10 m`` integrations
         (``m`` slopes per pixel; a sample covariance from fewer is too noisy to invert),
-        and the pooled estimate otherwise (see there).
+        and the pooled estimate otherwise (see there). ``leading`` values of each pixel
+        keep their own variance in the pooled estimate: 1 for a product whose first
+        "slope" is the first group less the superbias
+        (:func:`amigo.detector.reset.with_first_group`), whose variance holds the reset
+        noise the slopes do not have.
         """
         path = product.path or "<calslope>"
         slopes = np.asarray(product.slope_dn, dtype=np.float64)
@@ -134,7 +138,9 @@ class ImageData:
             structure = auto_structure(product)
         bad = product.unusable
         bad[: instrument.N_REFERENCE_ROWS] = True
-        noise = SlopeNoise.from_covariance(product.slope_cov_dn2, bad=bad, structure=structure)
+        noise = SlopeNoise.from_covariance(
+            product.slope_cov_dn2, bad=bad, structure=structure, leading=leading
+        )
         if noise.pixels.size < MIN_PIXELS:
             raise InputError(
                 path, f"only {noise.pixels.size} usable pixels (at least {MIN_PIXELS} needed)"
@@ -251,6 +257,7 @@ class SlopeNoise:
         bad: np.ndarray | None = None,
         diagonal: bool = False,
         structure: str = "full",
+        leading: int = 0,
     ) -> SlopeNoise:
         """Build from ``SLOPE_COV`` (m, m, ny, nx) and an optional bad-pixel map (ny, nx).
 
@@ -264,7 +271,10 @@ class SlopeNoise:
           from n integrations of m slopes is singular for n <= m and its inverse is biased
           high by (n - 1) / (n - m - 2) (Wishart). Here each pixel keeps one variance (the
           mean of its diagonal) and every pixel shares one adjacent-slope covariance (read
-          noise makes it ``-sigma_read^2 / n``; the median over pixels), zero beyond.
+          noise makes it ``-sigma_read^2 / n``; the median over pixels), zero beyond. The
+          first ``leading`` values keep their own variances, out of the mean (the first
+          group's, which holds the reset noise; its covariance with the first slope is
+          the same ``-sigma_read^2 / n``).
         """
         if diagonal:
             structure = "diagonal"
@@ -278,12 +288,17 @@ class SlopeNoise:
         if structure == "diagonal":
             per_pixel = per_pixel * np.eye(m)[None]
         elif structure == "pooled":
-            variance = np.diagonal(per_pixel, axis1=1, axis2=2).mean(axis=1)  # (npix,)
-            adjacent = np.diagonal(per_pixel, offset=1, axis1=1, axis2=2).mean(axis=1)
+            variance = np.diagonal(per_pixel, axis1=1, axis2=2).copy()  # (npix, m)
+            if m > leading:
+                variance[:, leading:] = variance[:, leading:].mean(axis=1, keepdims=True)
+            pairs = np.diagonal(per_pixel, offset=1, axis1=1, axis2=2)  # (npix, m - 1)
+            if m - leading > 1:  # the slopes' own pairs, so the slope block is unchanged
+                pairs = pairs[:, leading:]
+            adjacent = pairs.mean(axis=1)
             usable = np.isfinite(adjacent) if bad is None else np.isfinite(adjacent) & ~bad.ravel()
             shared = float(np.median(adjacent[usable])) if m > 1 and usable.any() else 0.0
             band = np.eye(m, k=1) + np.eye(m, k=-1)
-            per_pixel = variance[:, None, None] * np.eye(m)[None] + shared * band[None]
+            per_pixel = variance[:, :, None] * np.eye(m)[None] + shared * band[None]
         keep = np.all(np.isfinite(per_pixel), axis=(1, 2))
         if bad is not None:
             keep &= ~np.asarray(bad, dtype=bool).reshape(-1)

@@ -48,6 +48,7 @@ from jaxtyping import Array, Float
 
 from amigo.basemodel import BaseModel
 from amigo.detector.dark_residual import HALO_FRACTION, pattern_amplitude
+from amigo.detector.reset import Superbias, with_first_group
 from amigo.fitting import FilterFit, FitConfig, FitExposure, FitParams, FitResult
 from amigo.instrument import GAIN_E_PER_DN
 from amigo.io.calslope import CalSlope
@@ -81,17 +82,31 @@ class RampInput:
     Attributes
     ----------
     product
-        The file's content.
+        The file's content; with a superbias, its slopes are the values of
+        :func:`amigo.detector.reset.with_first_group` (the first group less the superbias,
+        then the group differences: ``NGROUPS`` values per pixel).
     group_time_s
         Time between group reads (s), from the headers.
+    first_group
+        Whether the first group is in the likelihood.
     """
 
     product: CalSlope
     group_time_s: float
+    first_group: bool = False
+
+    @classmethod
+    def create(
+        cls, product: CalSlope, group_time_s: float, superbias: Superbias | None = None
+    ) -> RampInput:
+        """The exposure with its first group when ``superbias`` is given."""
+        if superbias is None:
+            return cls(product, group_time_s)
+        return cls(with_first_group(product, superbias), group_time_s, first_group=True)
 
     @property
     def ngroups(self) -> int:
-        return int(self.product.slope_dn.shape[0]) + 1
+        return int(self.product.ramp_dn.shape[0])
 
     @property
     def dark_reference(self) -> str:
@@ -100,19 +115,22 @@ class RampInput:
 
     def image(self, correction_dn: np.ndarray | None) -> ImageData:
         """The exposure reduced to an image after subtracting ``correction_dn``
-        (m, ny, nx) DN per group from its slopes (``None``: none)."""
+        (m, ny, nx) DN per group from its values (``None``: none)."""
         product = self.product
         if correction_dn is not None:
             product = dataclasses.replace(product, slope_dn=product.slope_dn - correction_dn)
-        return ImageData.from_calslope(product, self.group_time_s)
+        return ImageData.from_calslope(
+            product, self.group_time_s, leading=1 if self.first_group else 0
+        )
 
-    def correction(self, slopes_dn: np.ndarray, image_dn_s: np.ndarray) -> np.ndarray:
-        """``D = S - t_g M`` (m, ny, nx), DN per group: the detector's slopes ``S`` less
-        the linear image ``M`` (DN/s) accumulated over a group."""
-        return slopes_dn - image_dn_s[None] * self.group_time_s
+    def correction(self, values_dn: np.ndarray, image_dn_s: np.ndarray) -> np.ndarray:
+        """``D = S - t_g M`` (m, ny, nx), DN per group: the detector's values ``S`` (its
+        first group, when in the likelihood, then its slopes) less the linear image ``M``
+        (DN/s) accumulated over a group."""
+        return values_dn - image_dn_s[None] * self.group_time_s
 
     def sigma(self) -> np.ndarray:
-        """(m, ny, nx) standard deviation of each slope (DN per group)."""
+        """(m, ny, nx) standard deviation of each value (DN per group)."""
         return np.sqrt(np.einsum("iiyx->iyx", self.product.slope_cov_dn2))
 
 
@@ -185,9 +203,11 @@ def _slopes_and_image(
     theta: Float[Array, " n"],
     electrons_per_dn_s: Array,
     ngroups: int,
+    first_group: bool = False,
 ) -> tuple[Float[Array, "m 80 80"], Float[Array, "80 80"]]:
-    """The base model's slopes (DN per group) and the fit's linear image (DN/s) of one
-    exposure with local vector ``theta = [x, y, log_flux, slope, jitter, latents]``."""
+    """The base model's slopes (DN per group; with ``first_group``, the first group's
+    value in front of them) and the fit's linear image (DN/s) of one exposure with local
+    vector ``theta = [x, y, log_flux, slope, jitter, latents]``."""
     optical = local_illuminance(theta, instrument, setup, psfs, anchor)
     detector = local_detector(theta, instrument)
     unit = detector.illuminance(optical)  # sums to the in-field fraction
@@ -198,8 +218,9 @@ def _slopes_and_image(
     # The ramp model runs in the base model's precision (its network is float32), whatever
     # the precision of the optics (float64 when x64 is on).
     electrons = (unit * (flux * electrons_per_dn_s)).astype(base.ramp.flat.dtype)
-    slopes = base.slopes(electrons, ngroups)
-    return slopes, image
+    if first_group:
+        return base.group_values(electrons, ngroups), image
+    return base.slopes(electrons, ngroups), image
 
 
 class RampDetector:
@@ -304,8 +325,9 @@ class RampDetector:
             theta = local_vector(params, e, int(fit.source_index[e]))
             base = self.base.dark_residual_for(ramp.dark_reference)
             slopes, image = _slopes_and_image(
-                base, instrument, setup, psfs, anchor, theta, scale, ramp.ngroups
-            )
+                base, instrument, setup, psfs, anchor, theta, scale, ramp.ngroups,
+                ramp.first_group,
+            )  # fmt: skip
             out.append(
                 ramp.correction(np.asarray(slopes, np.float64), np.asarray(image, np.float64))
             )

@@ -17,7 +17,31 @@ from typing import Any
 
 import click
 
+from amigo.cli.options import ManyValues
 from amigo.errors import InputError
+
+
+def _superbias(paths: tuple[Path, ...], level: str):
+    """The :class:`~amigo.detector.reset.Superbias` of ``--superbias`` (``None`` without)."""
+    if not paths:
+        return None
+    if level != "calslope":
+        raise InputError(
+            paths[0], "--superbias needs calslope inputs (level-2 images have no first group)"
+        )
+    import numpy as np
+
+    from amigo.detector.reset import estimate_superbias
+    from amigo.io.calslope import read_calslope
+    from amigo.progress import step
+
+    superbias = estimate_superbias([read_calslope(p) for p in paths])
+    known = superbias.known
+    rms = float(np.sqrt(np.median(superbias.variance_dn2[known]))) if known.any() else float("nan")
+    step(
+        f"superbias from {len(paths)} file(s): {int(known.sum())} pixels, median error {rms:.2f} DN"
+    )
+    return superbias
 
 
 def _check_inputs(sci: tuple[Path, ...], cal: tuple[Path, ...], detector: str | None) -> str:
@@ -116,8 +140,9 @@ def _fit_model(model: Path | None, detector: str | None, level: str) -> FitModel
     )
 
 
-def _read_fit_exposure(path: Path, role: str, level: str):
-    """(FitExposure, ExposureMeta, RampInput or None) of one input file."""
+def _read_fit_exposure(path: Path, role: str, level: str, superbias=None):
+    """(FitExposure, ExposureMeta, RampInput or Level2Input) of one input file; a
+    calslope file keeps its first group in the likelihood when ``superbias`` is given."""
     from amigo.fitting import FitExposure
     from amigo.likelihood import ImageData
 
@@ -131,7 +156,7 @@ def _read_fit_exposure(path: Path, role: str, level: str):
         meta = meta_from_headers(
             path, product.primary_header, product.slope_header, kind="calslope"
         )
-        ramp = RampInput(product, meta.group_time_s)
+        ramp = RampInput.create(product, meta.group_time_s, superbias)
         image = ramp.image(None)
     else:
         from amigo.io.jwst import read_exposure
@@ -170,8 +195,6 @@ def key_targets(items: list) -> list:
 def exposures_option(name: str, text: str):
     """The required ``--sci``/``--cal`` option of ``fit`` and ``run``: several files after
     one flag (``--sci A B C``, as a shell glob gives them) or the flag repeated."""
-    from amigo.cli.options import ManyValues
-
     return click.option(
         f"--{name}",
         name,
@@ -254,6 +277,16 @@ def model_options(command):
     help="Gaussian prior (nm rms per Zernike coefficient and on the defocus) holding the "
     "calibrators' wavefront near the base model's [default: none].",
 )
+@click.option(
+    "--superbias",
+    "superbias",
+    cls=ManyValues,
+    type=click.Path(path_type=Path),
+    default=(),
+    help="Calslope files of the same detector (darks preferably) to measure each "
+    "pixel's reset level from; the first group's photons then enter the fit "
+    "(calslope inputs only) [default: none, slopes only].",
+)
 def command(
     sci: tuple[Path, ...],
     cal: tuple[Path, ...],
@@ -265,6 +298,7 @@ def command(
     wavefront_prior: float | None,
     knots: int | None,
     knot_spacing: float | None,
+    superbias: tuple[Path, ...] = (),
 ) -> None:
     """Fit the instrument model to each exposure and extract calibrated observables.
 
@@ -285,15 +319,18 @@ def command(
     from amigo.fitting import FitConfig
     from amigo.progress import step
 
+    reset = _superbias(superbias, level)
     fit_model = _fit_model(model, detector, level)
     by_filter: dict[str, list] = defaultdict(list)
     ramps = {}
     read = []
+    photon_seconds = {}
     for role, paths in (("science", sci), ("calibrator", cal)):
         for path in paths:
-            fit_exposure, meta, ramp = _read_fit_exposure(path, role, level)
+            fit_exposure, meta, ramp = _read_fit_exposure(path, role, level, reset)
             read.append((fit_exposure, meta))
             ramps[fit_exposure.name] = ramp
+            photon_seconds[fit_exposure.name] = meta.photon_time_s(reset is not None)
     for fit_exposure, meta in key_targets(read):
         by_filter[meta.filter].append((fit_exposure, meta))
     for filter_name, items in by_filter.items():
@@ -326,7 +363,9 @@ def command(
             continue
         instrument = fit_model.instrument(filter_name)
         names.append(instrument.name)
-        product = _run_filter(instrument, filter_name, items, config, out, grid, detector_model)
+        product = _run_filter(
+            instrument, filter_name, items, config, out, grid, detector_model, photon_seconds
+        )
         summary_exposures.extend(product["exposures"])
         filters_summary[filter_name] = product["filter"]
         if not product["filter"]["converged"]:
@@ -400,7 +439,14 @@ def _dark_residual_record(detector, name: str) -> dict:
 
 
 def _run_filter(
-    instrument, filter_name, items, config, out: Path, grid=None, detector=None
+    instrument,
+    filter_name,
+    items,
+    config,
+    out: Path,
+    grid=None,
+    detector=None,
+    photon_seconds: dict[str, float] | None = None,
 ) -> dict:
     import numpy as np
 
@@ -438,13 +484,16 @@ def _run_filter(
         cal_names = [e.name for e in exposures if e.role == "calibrator"]
         orientation = sci_items[0][1].orientation
         sky_to_uv = sky_to_optical_matrix(orientation, fitted.detector)
-        # Photons the fit used: the fitted count rate times the time the slopes span
-        # (ExposureMeta.slope_time_s), never EFFEXPTM, which includes the time before
-        # the first read.
+        # Photons the fit used: the fitted count rate times the time its values span
+        # (ExposureMeta.photon_time_s: the slopes', or every group's with the first group
+        # in the likelihood), never EFFEXPTM, which counts the first group's photons
+        # whether the fit used them or not.
         photons = 0.0
         for e, exposure in enumerate(fit.exposures):
             if exposure.target == target:
-                seconds = metas[exposure.name].slope_time_s
+                seconds = (photon_seconds or {}).get(exposure.name)
+                if seconds is None:
+                    seconds = metas[exposure.name].slope_time_s
                 photons += float(np.exp(params.exposures.log_flux[e])) * seconds * nis.GAIN_E_PER_DN
         discos = target_product.discos
         calvis_path = out / calvis_filename(target, filter_name)

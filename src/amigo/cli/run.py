@@ -13,6 +13,7 @@ from pathlib import Path
 import click
 
 from amigo.cli.fit import exposures_option, model_options
+from amigo.cli.options import ManyValues
 from amigo.errors import InputError
 
 
@@ -28,8 +29,11 @@ def pipeline(
     knot_spacing: float | None = None,
     rmax_mas: float = 1000.0,
     no_hmc: bool = False,
+    superbias: tuple[Path, ...] = (),
 ) -> list[Path]:
-    """Run process -> fit -> detect; return the calvis files that were searched."""
+    """Run process -> fit -> detect; return the calvis files that were searched.
+    ``superbias``: raw ramps (darks) processed with the rest and given to ``amigo fit
+    --superbias``, so the first group's photons enter the fit."""
     from amigo.cli import detect, fit, process
     from amigo.io.calslope import calslope_name
     from amigo.progress import step
@@ -37,9 +41,10 @@ def pipeline(
     overlap = set(sci) & set(cal)
     if overlap:
         raise InputError(sorted(overlap)[0], "is given both as --sci and --cal")
-    step(f"run: processing {len(sci) + len(cal)} raw exposures")
-    ctx.invoke(process.command, uncal=(*sci, *cal), out_dir=out)
-    slopes = {path: out / calslope_name(path) for path in (*sci, *cal)}
+    inputs = tuple(dict.fromkeys((*sci, *cal, *superbias)))
+    step(f"run: processing {len(inputs)} raw exposures")
+    ctx.invoke(process.command, uncal=inputs, out_dir=out)
+    slopes = {path: out / calslope_name(path) for path in inputs}
     step("run: fitting")
     ctx.invoke(
         fit.command,
@@ -50,6 +55,7 @@ def pipeline(
         detector=detector,
         knots=knots,
         knot_spacing=knot_spacing,
+        superbias=tuple(slopes[p] for p in superbias),
     )
     calvis = sorted(out.glob("*_calvis.fits"))
     if not calvis:
@@ -68,6 +74,16 @@ def pipeline(
 @model_options
 @click.option("--rmax-mas", type=float, default=1000.0, show_default=True, help="Search radius.")
 @click.option("--no-hmc", is_flag=True, help="Skip the NUTS posterior in the companion search.")
+@click.option(
+    "--superbias",
+    "superbias",
+    cls=ManyValues,
+    type=click.Path(path_type=Path),
+    default=(),
+    help="Raw dark ramps (_uncal.fits) of the same detector: processed with the rest, "
+    "they give each pixel's reset level, and the first group's photons enter the fit "
+    "[default: none, slopes only].",
+)
 @click.pass_context
 def command(
     ctx: click.Context,
@@ -80,6 +96,7 @@ def command(
     knot_spacing: float | None,
     rmax_mas: float,
     no_hmc: bool,
+    superbias: tuple[Path, ...] = (),
 ) -> None:
     """Raw ramps to companions: amigo process, amigo fit and amigo detect in one go.
 
@@ -96,4 +113,5 @@ def command(
         knot_spacing=knot_spacing,
         rmax_mas=rmax_mas,
         no_hmc=no_hmc,
+        superbias=superbias,
     )

@@ -135,7 +135,14 @@ class ExposureMeta:
         (twice at two groups). With one group the read itself is the measurement
         (``NINTS * TGROUP``).
         """
-        used = self.ngroups - 1 if self.ngroups > 1 else 1
+        return self.photon_time_s(first_group=False)
+
+    def photon_time_s(self, first_group: bool = False) -> float:
+        """Seconds of photon collection a fit uses: :attr:`slope_time_s`, or with the
+        first group in the likelihood (a known superbias, :mod:`amigo.detector.reset`)
+        every group time, ``NINTS * NGROUPS * TGROUP`` (the first read comes one group
+        time after the reset)."""
+        used = self.ngroups if first_group or self.ngroups < 2 else self.ngroups - 1
         return float(self.nints * used * self.group_time_s)
 
     @property
