@@ -8,6 +8,8 @@ amigo's simulator.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from astropy.io import fits
@@ -155,7 +157,8 @@ def test_the_first_group_adds_its_photons_to_the_fisher_information():
 
 
 def test_unknown_superbias_gives_back_the_slopes_likelihood():
-    """Pixels without a superbias (UNKNOWN_VARIANCE_DN2) get the slopes-only rate."""
+    """Pixels without a superbias (UNKNOWN_VARIANCE_DN2), or without a first group, get
+    the slopes-only rate."""
     rng = np.random.default_rng(4)
     product = calslope(ramps(rng, 50, 3, np.full((16, 16), 1000.0), 10000.0, 10.0, 10.0))
     unknown = Superbias(np.zeros((16, 16)), np.full((16, 16), UNKNOWN_VARIANCE_DN2))
@@ -166,6 +169,15 @@ def test_unknown_superbias_gives_back_the_slopes_likelihood():
     used = slopes.mask
     np.testing.assert_allclose(first.data[used], slopes.data[used], rtol=1e-6)
     np.testing.assert_allclose(first.error[used], slopes.error[used], rtol=1e-6)
+    # a pixel whose first group is undefined keeps its slopes, with or without a superbias
+    known = Superbias(np.full((16, 16), 10000.0), np.full((16, 16), 1.0))
+    ramp = product.ramp_dn.copy()
+    ramp[0, 9, 5] = np.nan
+    holed = dataclasses.replace(product, ramp_dn=ramp)
+    image = ImageData.from_calslope(with_first_group(holed, known), GROUP_TIME, "full", leading=1)
+    assert image.mask[9, 5]
+    assert image.data[9, 5] == pytest.approx(slopes.data[9, 5], rel=1e-6)
+    assert image.error[9, 10] < 0.9 * slopes.error[9, 10]  # its neighbour gains
 
 
 def test_pooled_structure_keeps_the_first_groups_own_variance():

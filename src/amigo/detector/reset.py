@@ -174,6 +174,13 @@ def first_group_values(
         across = cov[0, 1:] - cov[0, :-1]  # (m, ny, nx)
         covariance[0, 1:] = across
         covariance[1:, 0] = across
+    # A pixel whose first group is undefined (no integration kept it) keeps its slopes:
+    # the first value is made uninformative rather than the pixel lost.
+    lost = ~(np.isfinite(values[0]) & np.isfinite(covariance[0]).all(axis=0))
+    values[0][lost] = 0.0
+    covariance[0, :, lost] = 0.0
+    covariance[:, 0, lost] = 0.0
+    covariance[0, 0][lost] = UNKNOWN_VARIANCE_DN2
     support = np.concatenate(
         [np.asarray(product.ramp_support, np.float64)[:1], np.asarray(product.slope_support)]
     )
