@@ -222,6 +222,33 @@ def test_level2_correction_is_the_pipeline_slope_of_the_model_ramp(setting):
     np.testing.assert_allclose(slopes_flat, slopes, rtol=1e-5, atol=1e-3)
 
 
+def test_detector_rounds_take_level2_and_first_group_inputs(setting):
+    """One ``RampDetector`` pass over a level-2 image and a calslope exposure with its
+    first group: the level-2 correction is an image (DN/s), the calslope one has NGROUPS
+    values per pixel, the first read's among them (a route that once broke for level-2
+    inputs, which have no first group)."""
+    from amigo.detector.reset import Superbias, with_first_group
+    from amigo.ramp_fit import Level2Input
+
+    base, instrument, setup = setting
+    slopes, image, _ = _truth(base, instrument, setup, (0.02, -0.01))
+    mask = np.ones((80, 80), bool)
+    level2 = Level2Input(ImageData(image, np.sqrt(np.abs(image)) + 1.0, mask), NGROUPS, 1,
+                         GROUP_TIME_S)  # fmt: skip
+    product = _calslope(slopes, np.random.default_rng(6), "b")
+    known = Superbias(np.zeros((80, 80)), np.ones((80, 80)))
+    ramp = RampInput(with_first_group(product, known), GROUP_TIME_S, first_group=True)
+    exposures = [
+        FitExposure("a", "calibrator", "STAR", level2.data),
+        FitExposure("b", "calibrator", "STAR", ramp.image(None)),
+    ]
+    fit = FilterFit(instrument, setup, exposures)
+    detector = RampDetector(base, {"a": level2, "b": ramp})
+    level2_d, ramp_d = detector.corrections(fit, fit.initial_params())
+    assert level2_d.shape == (80, 80) and np.isfinite(level2_d).all()
+    assert ramp_d.shape == (NGROUPS, 80, 80) and np.isfinite(ramp_d).all()
+
+
 def _calslope(slopes: np.ndarray, rng, name: str) -> CalSlope:
     """A calslope product: ``slopes`` plus Gaussian noise of the slopes' covariance
     (photon noise of each slope, and read noise correlating neighbouring slopes)."""

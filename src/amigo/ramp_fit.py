@@ -163,6 +163,12 @@ class Level2Input:
     group_time_s: float
     dark_reference: str = ""
 
+    @property
+    def first_group(self) -> bool:
+        """False: the pipeline's slope has no first group to add (the model's slopes go
+        through its estimator)."""
+        return False
+
     def image(self, correction_dn_s: np.ndarray | None) -> ImageData:
         """The image less ``correction_dn_s`` (ny, nx) DN/s (``None``: as read)."""
         if correction_dn_s is None:

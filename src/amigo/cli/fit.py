@@ -205,6 +205,19 @@ def exposures_option(name: str, text: str):
     )
 
 
+def superbias_option(text: str):
+    """The optional ``--superbias FILE...`` of ``fit`` and ``run`` (several files after
+    one flag, or the flag repeated); ``text`` says which files."""
+    return click.option(
+        "--superbias",
+        "superbias",
+        cls=ManyValues,
+        type=click.Path(path_type=Path),
+        default=(),
+        help=f"{text} [default: none, slopes only].",
+    )
+
+
 _MODEL_OPTIONS = [
     click.option(
         "--model",
@@ -277,15 +290,9 @@ def model_options(command):
     help="Gaussian prior (nm rms per Zernike coefficient and on the defocus) holding the "
     "calibrators' wavefront near the base model's [default: none].",
 )
-@click.option(
-    "--superbias",
-    "superbias",
-    cls=ManyValues,
-    type=click.Path(path_type=Path),
-    default=(),
-    help="Calslope files of the same detector (darks preferably) to measure each "
-    "pixel's reset level from; the first group's photons then enter the fit "
-    "(calslope inputs only) [default: none, slopes only].",
+@superbias_option(
+    "Calslope files of the same detector (darks preferably) to measure each pixel's reset "
+    "level from; the first group's photons then enter the fit (calslope inputs only)"
 )
 def command(
     sci: tuple[Path, ...],

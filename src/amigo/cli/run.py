@@ -12,8 +12,7 @@ from pathlib import Path
 
 import click
 
-from amigo.cli.fit import exposures_option, model_options
-from amigo.cli.options import ManyValues
+from amigo.cli.fit import exposures_option, model_options, superbias_option
 from amigo.errors import InputError
 
 
@@ -74,15 +73,9 @@ def pipeline(
 @model_options
 @click.option("--rmax-mas", type=float, default=1000.0, show_default=True, help="Search radius.")
 @click.option("--no-hmc", is_flag=True, help="Skip the NUTS posterior in the companion search.")
-@click.option(
-    "--superbias",
-    "superbias",
-    cls=ManyValues,
-    type=click.Path(path_type=Path),
-    default=(),
-    help="Raw dark ramps (_uncal.fits) of the same detector: processed with the rest, "
-    "they give each pixel's reset level, and the first group's photons enter the fit "
-    "[default: none, slopes only].",
+@superbias_option(
+    "Raw dark ramps (_uncal.fits) of the same detector: processed with the rest, they give "
+    "each pixel's reset level, and the first group's photons enter the fit"
 )
 @click.pass_context
 def command(

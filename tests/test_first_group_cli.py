@@ -1,0 +1,94 @@
+"""`amigo process` then `amigo fit --superbias` on raw ramps written by tests/ramp_sim.py
+(not amigo's simulator): the first group enters the fit and NPHOT counts it (slow)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from astropy.io import fits
+
+from ramp_sim import GAIN_E_PER_DN, simulate, write_uncal
+
+pytestmark = pytest.mark.slow
+
+NGROUPS, NINTS, TGROUP = 2, 60, 0.07544
+
+
+def _star(flux_dn_s: float) -> np.ndarray:
+    """(80, 80) DN/s: amigo's nominal instrument's image of a star (3 wavelengths)."""
+    import jax.numpy as jnp
+
+    from amigo.model import (
+        ExposureParams,
+        FilterSetup,
+        Instrument,
+        OpticsParams,
+        image_from_log_vis,
+    )
+
+    instrument = Instrument.nominal(n_wavelengths=3)
+    setup = FilterSetup.create("F480M", instrument)
+    jitter = float(instrument.detector.jitter_arcsec) * 1000.0
+    exposure = ExposureParams(
+        jnp.asarray([0.03, -0.02], jnp.float32), jnp.log(jnp.float32(flux_dn_s)),
+        jnp.float32(jitter),
+    )  # fmt: skip
+    optics = OpticsParams.from_instrument(instrument)
+    return np.asarray(image_from_log_vis(instrument, setup, optics, 0.0, exposure, None, None))
+
+
+def test_fit_with_superbias_uses_every_group(tmp_path, capsys):
+    from amigo.cli import main
+    from amigo.model import Instrument, save_instrument
+
+    rng = np.random.default_rng(11)
+    bias = 11000.0 + 200.0 * rng.standard_normal((80, 80))
+    flux_dn_s = 3.0e6  # entering the mask; peak ~ 20,000 DN per group
+    image = _star(flux_dn_s)
+    raw = tmp_path / "raw"
+    raw.mkdir()
+    files = {}
+    for name, observation, nints, rate in (
+        ("sci", "001", NINTS, image),
+        ("cal", "002", NINTS, image),
+        ("dark", "003", 400, np.zeros((80, 80))),
+    ):
+        ramps = simulate(rng, nints, NGROUPS, rate * TGROUP, bias, read_dn=12.0)
+        files[name] = write_uncal(
+            raw / f"jw09999{observation}001_03102_00001_nis_uncal.fits",
+            ramps.raw,
+            TARGPROP=f"STAR-{name}",
+            TARGNAME=f"STAR-{name}",
+            OBSERVTN=observation,
+        )
+    slopes = tmp_path / "calslope"
+
+    def run(args):
+        try:
+            main([str(a) for a in args])
+        except SystemExit as exit_:
+            return exit_.code
+        return 0
+
+    assert run(["process", *files.values(), "--out", slopes]) == 0
+    calslope = {k: slopes / v.name.replace("_uncal", "_calslope") for k, v in files.items()}
+    model = tmp_path / "nominal.eqx"
+    save_instrument(Instrument.nominal(n_wavelengths=3), model)
+    out = tmp_path / "fit"
+    args = ["fit", "--sci", calslope["sci"], "--cal", calslope["cal"], "--out", out,
+            "--model", model, "--knots", 27, "--knot-spacing", 0.5,
+            "--superbias", calslope["dark"]]  # fmt: skip
+    assert run(args) == 0
+    assert "superbias from 1 file(s)" in capsys.readouterr().err
+    summary = json.loads((out / "fit_summary.json").read_text())
+    for exposure in summary["exposures"]:
+        # two values per pixel (the first group and the slope), fitted to the noise
+        assert exposure["npix"] * NGROUPS - exposure["dof"] < 0.1 * exposure["npix"]
+        assert exposure["zscore_std"] == pytest.approx(1.0, abs=0.1)
+    # NPHOT: every group's photons, NINTS * NGROUPS * TGROUP of the star's count rate
+    calvis = next(out.glob("*_calvis.fits"))
+    photons = fits.getval(calvis, "NPHOT")
+    expected = flux_dn_s * GAIN_E_PER_DN * NINTS * NGROUPS * TGROUP
+    assert photons == pytest.approx(expected, rel=0.05)
