@@ -67,10 +67,15 @@ def test_superbias_needs_calslope_inputs(tmp_path, capsys):
     sci = write_level2(tmp_path / "s_cal.fits", np.ones((80, 80)))
     out = tmp_path / "o"
     args = ["fit", "--sci", str(sci), "--cal", str(cal), "--out", str(out)]
+    other = write_level2(tmp_path / "d_cal.fits", np.ones((80, 80)))
+    assert _run([*args, "--superbias", str(other)]) == 2
+    err = capsys.readouterr().err
+    assert "--superbias needs calslope inputs" in err and "d_cal.fits" in err
+    assert "Traceback" not in err and not out.exists()
+    # a fitted exposure cannot give its own reset level (its slopes would count twice)
     assert _run([*args, "--superbias", str(cal)]) == 2
     err = capsys.readouterr().err
-    assert "--superbias needs calslope inputs" in err and "c_cal.fits" in err
-    assert "Traceback" not in err and not out.exists()
+    assert "both as --superbias and as --sci/--cal" in err and "c_cal.fits" in err
 
 
 def test_help_lists_the_options():

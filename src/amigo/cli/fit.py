@@ -318,6 +318,10 @@ def command(
     overlap = set(sci) & set(cal)
     if overlap:
         raise InputError(sorted(overlap)[0], "is given both as --sci and --cal")
+    # A reset level measured on a fitted exposure itself would count its slopes twice.
+    overlap = set(superbias) & (set(sci) | set(cal))
+    if overlap:
+        raise InputError(sorted(overlap)[0], "is given both as --superbias and as --sci/--cal")
     level = _check_inputs(sci, cal, detector)
     grid = _grid(knots, knot_spacing)
 
