@@ -1,7 +1,9 @@
 """The first group's photons, measured end to end on ramps amigo's simulator did not write.
 
     python benchmarks/first_group.py [--out DIR] [--ngroups 2] [--nints 400] [--seed 0]
-                                     [--filter F480M] [--companion SEP_MAS,PA_DEG,DMAG]...
+                                     [--filter F480M[,F430M,...]] [--flux E_PER_S]
+                                     [--read-noise DN] [--reset-noise DN]
+                                     [--companion SEP_MAS,PA_DEG,DMAG[/DMAG/...]]...
 
 A few lines of NumPy here write raw ramps (uncal files) of a point source: Poisson
 photo-electrons accumulated read by read, a fixed bias map with a per-integration,
@@ -19,7 +21,10 @@ the fit says it used: NGROUPS - 1 group times without the first group, NGROUPS w
 it), and the rule for all the photons. The photon rule predicts a gain of
 ``1.25 log10(NGROUPS / (NGROUPS - 1))`` mag (0.38 at two groups). ``--companion``
 injects companions into the science star (sky separation, position angle east of north,
-delta-mag), for a recovery check: the found companions are listed against the truth.
+delta-mag, one per filter with several filters), for a recovery check: the found
+companions are listed against the truth. With several filters every filter gets its own
+science and calibrator ramps (the same star brightness) and the limits are the grey
+companion's (``combined``).
 Nothing is asserted; a run at the defaults takes about 10 minutes on 2 CPU cores.
 """
 
@@ -87,7 +92,7 @@ def _image(filter_name: str, position_arcsec, companions, flux_e_s: float) -> np
                               v3_idl_y_angle_deg=ROLL["V3I_YANG"])  # fmt: skip
     sky_to_optical = sky_to_optical_matrix(orientation, instrument.detector)
     sources = [(np.asarray(position_arcsec), 1.0)]
-    for sep_mas, pa_deg, dmag in companions:
+    for sep_mas, pa_deg, dmag in companions:  # dmag: this filter's
         pa = np.deg2rad(pa_deg)
         east_north = sep_mas / 1000.0 * np.array([np.sin(pa), np.cos(pa)])
         sources.append((np.asarray(position_arcsec) + sky_to_optical @ east_north,
@@ -154,15 +159,20 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("first_group_bench"))
     parser.add_argument("--ngroups", type=int, default=2)
     parser.add_argument("--nints", type=int, default=400)
-    parser.add_argument("--filter", default="F480M")
+    parser.add_argument("--filter", default="F480M", help="one filter, or several: F380M,F480M")
     parser.add_argument("--flux", type=float, default=2.0e6, help="star, photo-electrons/s")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--read-noise", type=float, default=READ_DN, help="DN per read")
     parser.add_argument("--reset-noise", type=float, default=RESET_DN, help="DN")
     parser.add_argument("--companion", action="append", default=[],
-                        help="SEP_MAS,PA_DEG,DMAG (repeatable)")  # fmt: skip
+                        help="SEP_MAS,PA_DEG,DMAG (repeatable; DMAG per filter: 8.3/8.0/7.5)")  # fmt: skip
     args = parser.parse_args()
-    companions = [tuple(map(float, c.split(","))) for c in args.companion]
+    filters = [f.strip().upper() for f in args.filter.split(",")]
+    # SEP,PA,DMAG with one delta-mag, or one per filter separated by "/"
+    companions = []
+    for text in args.companion:
+        sep, pa, dm = text.split(",")
+        companions.append((float(sep), float(pa), [float(d) for d in dm.split("/")]))
     out = args.out
     raw, slopes = out / "raw", out / "calslope"
     raw.mkdir(parents=True, exist_ok=True)
@@ -171,19 +181,26 @@ def main() -> None:
     bias = BIAS_DN + BIAS_RMS_DN * rng.standard_normal((80, 80))
     start = time.perf_counter()
     files = {}
-    plan = [
-        ("sci", "SCI-STAR", "001", args.nints, _image(args.filter, (0.02, -0.01), companions, args.flux)),
-        ("cal", "CAL-STAR", "002", 4 * args.nints, _image(args.filter, (-0.015, 0.01), [], args.flux)),
-        ("dark1", "DARK", "003", 1000, np.zeros((80, 80))),
-        ("dark2", "DARK", "004", 1000, np.zeros((80, 80))),
-    ]  # fmt: skip
-    for name, target, observation, nints, image in plan:
+    plan = []
+    for k, filter_name in enumerate(filters):
+        dmags = [(sep, pa, dm[k] if len(dm) > 1 else dm[0]) for sep, pa, dm in companions]
+        exposure = f"0310{2 + k}"
+        sci = _image(filter_name, (0.02, -0.01), dmags, args.flux)
+        cal = _image(filter_name, (-0.015, 0.01), [], args.flux)
+        plan += [
+            (f"sci {filter_name}", "SCI-STAR", "001", exposure, filter_name, args.nints, sci),
+            (f"cal {filter_name}", "CAL-STAR", "002", exposure, filter_name, 4 * args.nints, cal),
+        ]
+    dark = np.zeros((80, 80))
+    plan += [("dark1", "DARK", "003", "03102", filters[0], 1000, dark),
+             ("dark2", "DARK", "004", "03102", filters[0], 1000, dark)]  # fmt: skip
+    for name, target, observation, exposure, filter_name, nints, image in plan:
         counts = _ramps(
             rng, nints, args.ngroups, image * t_g, bias, args.read_noise, args.reset_noise
         )
         files[name] = _write_uncal(
-            raw / f"jw09999{observation}001_03102_00001_nis_uncal.fits", counts,
-            FILTER=args.filter, TARGPROP=target, TARGNAME=target, OBSERVTN=observation,
+            raw / f"jw09999{observation}001_{exposure}_00001_nis_uncal.fits", counts,
+            FILTER=filter_name, TARGPROP=target, TARGNAME=target, OBSERVTN=observation,
             EXPOSURE="00001",
         )  # fmt: skip
     simulated = time.perf_counter() - start
@@ -201,17 +218,24 @@ def main() -> None:
         ("first group", ["--superbias", calslope["dark1"], calslope["dark2"]]),
     ):
         tag = label.replace(" ", "_")
-        fit_s = _amigo("fit", "--sci", calslope["sci"], "--cal", calslope["cal"], "--model", model,
+        sci = [calslope[f"sci {f}"] for f in filters]
+        cal = [calslope[f"cal {f}"] for f in filters]
+        fit_s = _amigo("fit", "--sci", *sci, "--cal", *cal, "--model", model,
                        "--out", out / f"fit_{tag}", *extra)  # fmt: skip
         calvis = sorted((out / f"fit_{tag}").glob("*_calvis.fits"))
         detect_s = _amigo("detect", *calvis, "--out", out / f"detect_{tag}", "--no-hmc")
         found = json.loads((out / f"detect_{tag}" / "companions.json").read_text())
         summary = json.loads((out / f"fit_{tag}" / "fit_summary.json").read_text())
+        # One filter: its curve; several: the grey companion's (`combined`).
+        key = filters[0] if len(filters) == 1 else "combined"
+        photon = found["combined"]["photon_limit_dmag"] if len(filters) > 1 else None
+        scales = [float(found["sigma_scale"][f]) for f in filters]
         rows[label] = {
-            "limits": _limits(out / f"detect_{tag}", args.filter),
-            "photon": found["photon_limit_dmag"][args.filter],
-            "n_photons": found["photon_count"][args.filter]["n_photons"],
-            "sigma_scale": float(found["sigma_scale"][args.filter]),
+            "limits": _limits(out / f"detect_{tag}", key),
+            "photon": photon if photon is not None else found["photon_limit_dmag"][key],
+            "n_photons": sum(found["photon_count"][f]["n_photons"] for f in filters),
+            # the geometric mean over filters (the equal-scale comparison below)
+            "sigma_scale": float(np.exp(np.mean(np.log(scales)))),
             "found": [
                 {k: c[k] for k in ("sep_mas", "sep_err_mas", "pa_deg", "pa_err_deg", "dmag")}
                 for c in found["companions"]
@@ -269,8 +293,8 @@ def _report(args, rows, companions, simulated, processed) -> None:
     for label, row in rows.items():
         for c in row["found"]:
             print(f"{label}: found {c}")
-    for c in companions:
-        print(f"truth: sep {c[0]} mas, PA {c[1]} deg, dmag {c[2]}")
+    for sep, pa, dm in companions:
+        print(f"truth: sep {sep} mas, PA {pa} deg, dmag {'/'.join(map(str, dm))}")
 
 
 if __name__ == "__main__":
