@@ -335,13 +335,11 @@ def command(
     by_filter: dict[str, list] = defaultdict(list)
     ramps = {}
     read = []
-    photon_seconds = {}
     for role, paths in (("science", sci), ("calibrator", cal)):
         for path in paths:
             fit_exposure, meta, ramp = _read_fit_exposure(path, role, level, reset)
             read.append((fit_exposure, meta))
             ramps[fit_exposure.name] = ramp
-            photon_seconds[fit_exposure.name] = meta.photon_time_s(reset is not None)
     for fit_exposure, meta in key_targets(read):
         by_filter[meta.filter].append((fit_exposure, meta))
     for filter_name, items in by_filter.items():
@@ -375,7 +373,7 @@ def command(
         instrument = fit_model.instrument(filter_name)
         names.append(instrument.name)
         product = _run_filter(
-            instrument, filter_name, items, config, out, grid, detector_model, photon_seconds
+            instrument, filter_name, items, config, out, grid, detector_model, reset is not None
         )
         summary_exposures.extend(product["exposures"])
         filters_summary[filter_name] = product["filter"]
@@ -457,7 +455,7 @@ def _run_filter(
     out: Path,
     grid=None,
     detector=None,
-    photon_seconds: dict[str, float] | None = None,
+    first_group: bool = False,
 ) -> dict:
     import numpy as np
 
@@ -502,9 +500,7 @@ def _run_filter(
         photons = 0.0
         for e, exposure in enumerate(fit.exposures):
             if exposure.target == target:
-                seconds = (photon_seconds or {}).get(exposure.name)
-                if seconds is None:
-                    seconds = metas[exposure.name].slope_time_s
+                seconds = metas[exposure.name].photon_time_s(first_group)
                 photons += float(np.exp(params.exposures.log_flux[e])) * seconds * nis.GAIN_E_PER_DN
         discos = target_product.discos
         calvis_path = out / calvis_filename(target, filter_name)
