@@ -76,6 +76,18 @@ class Superbias:
     variance_dn2: np.ndarray
     n_files: int = 1
 
+    @classmethod
+    def where_known(
+        cls, level_dn: np.ndarray, variance_dn2: np.ndarray, known: np.ndarray, n_files: int
+    ) -> Superbias:
+        """The estimate where ``known`` (ny, nx), "unknown" (0, and
+        :data:`UNKNOWN_VARIANCE_DN2`) elsewhere."""
+        return cls(
+            level_dn=np.where(known, level_dn, 0.0),
+            variance_dn2=np.where(known, variance_dn2, UNKNOWN_VARIANCE_DN2),
+            n_files=n_files,
+        )
+
     @property
     def known(self) -> np.ndarray:
         """(ny, nx) True where the superbias was measured."""
@@ -104,18 +116,13 @@ def superbias_of(product: CalSlope) -> Superbias:
             path, "a superbias needs at least 2 groups (1 cannot tell bias from light)"
         )
     a = np.zeros(n)
-    a[0] = 1.0
-    a[0] += 1.0 / (n - 1)
+    a[0] = 1.0 + 1.0 / (n - 1)
     a[-1] -= 1.0 / (n - 1)
     level = np.einsum("k,kyx->yx", a, ramp)
     variance = np.einsum("j,jkyx,k->yx", a, cov, a)
     known = ~np.asarray(product.badpix, bool) & np.isfinite(level) & np.isfinite(variance)
     known &= variance > 0
-    return Superbias(
-        level_dn=np.where(known, level, 0.0),
-        variance_dn2=np.where(known, variance, UNKNOWN_VARIANCE_DN2),
-        n_files=1,
-    )
+    return Superbias.where_known(level, variance, known, n_files=1)
 
 
 def estimate_superbias(products: list[CalSlope]) -> Superbias:
@@ -137,11 +144,7 @@ def estimate_superbias(products: list[CalSlope]) -> Superbias:
     with np.errstate(invalid="ignore", divide="ignore"):
         level = np.einsum("fyx,fyx->yx", weights, np.array([p.level_dn for p in parts])) / total
         variance = 1.0 / total
-    return Superbias(
-        level_dn=np.where(known, level, 0.0),
-        variance_dn2=np.where(known, variance, UNKNOWN_VARIANCE_DN2),
-        n_files=len(parts),
-    )
+    return Superbias.where_known(level, variance, known, n_files=len(parts))
 
 
 def first_group_values(
