@@ -144,8 +144,8 @@ class Kernel:
 def envelope_knots(knots_m: np.ndarray, baselines_m: np.ndarray, reach_m: float) -> np.ndarray:
     """Knots the mask's fringes do not reach: (n_used,) booleans.
 
-    A knot at ``b`` is an *envelope knot* when it is farther than ``reach_m`` from every
-    baseline ``B`` and its mirror ``-B``. With ``reach_m`` the holes' flat-to-flat width,
+    A knot at ``b`` is an *envelope knot* when it lies within ``reach_m`` of the origin
+    and farther than ``reach_m`` from every baseline ``B`` and its mirror ``-B``. With ``reach_m`` the holes' flat-to-flat width,
     the half-width of a baseline's OTF splodge across its flats, such a knot lies where
     the OTF is only the holes' common autocorrelation (the zero-baseline splodge): the
     image sees its visibility only through the shape of the single-hole envelope, which
