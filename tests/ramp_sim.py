@@ -50,7 +50,8 @@ def simulate(
     analog = bias + np.cumsum(electrons, axis=1) / GAIN_E_PER_DN
     analog = analog + rng.normal(0.0, read_dn, shape)
     hit = rng.random((nints, *flux_dn.shape)) < cosmic_rate
-    hit_group = np.where(hit, rng.integers(1, ngroups, hit.shape), -1)
+    # (a hit after the last group, possible with one group, changes nothing)
+    hit_group = np.where(hit, rng.integers(1, max(ngroups, 2), hit.shape), -1)
     hit_dn = np.where(hit, rng.uniform(*cosmic_dn, hit.shape), 0.0)
     groups = np.arange(ngroups)[None, :, None, None]
     analog = analog + np.where(

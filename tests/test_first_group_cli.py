@@ -1,5 +1,6 @@
 """`amigo process` then `amigo fit --superbias` on raw ramps written by tests/ramp_sim.py
-(not amigo's simulator): the first group enters the fit and NPHOT counts it (slow)."""
+(not amigo's simulator): the first group enters the fit and NPHOT counts it, at two groups
+and at one (where the first read is the only measurement) (slow)."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from ramp_sim import GAIN_E_PER_DN, simulate, write_uncal
 
 pytestmark = pytest.mark.slow
 
-NGROUPS, NINTS, TGROUP = 2, 60, 0.07544
+NINTS, TGROUP = 60, 0.07544
 
 
 def _star(flux_dn_s: float) -> np.ndarray:
@@ -39,7 +40,8 @@ def _star(flux_dn_s: float) -> np.ndarray:
     return np.asarray(image_from_log_vis(instrument, setup, optics, 0.0, exposure, None, None))
 
 
-def test_fit_with_superbias_uses_every_group(tmp_path, capsys):
+@pytest.mark.parametrize("ngroups", [2, 1])
+def test_fit_with_superbias_uses_every_group(tmp_path, capsys, ngroups):
     from amigo.cli import main
     from amigo.model import Instrument, save_instrument
 
@@ -50,12 +52,12 @@ def test_fit_with_superbias_uses_every_group(tmp_path, capsys):
     raw = tmp_path / "raw"
     raw.mkdir()
     files = {}
-    for name, observation, nints, rate in (
-        ("sci", "001", NINTS, image),
-        ("cal", "002", NINTS, image),
-        ("dark", "003", 400, np.zeros((80, 80))),
+    for name, observation, nints, groups, rate in (
+        ("sci", "001", NINTS, ngroups, image),
+        ("cal", "002", NINTS, ngroups, image),
+        ("dark", "003", 400, 2, np.zeros((80, 80))),  # a superbias needs two groups
     ):
-        ramps = simulate(rng, nints, NGROUPS, rate * TGROUP, bias, read_dn=12.0)
+        ramps = simulate(rng, nints, groups, rate * TGROUP, bias, read_dn=12.0)
         files[name] = write_uncal(
             raw / f"jw09999{observation}001_03102_00001_nis_uncal.fits",
             ramps.raw,
@@ -78,17 +80,21 @@ def test_fit_with_superbias_uses_every_group(tmp_path, capsys):
     save_instrument(Instrument.nominal(n_wavelengths=3), model)
     out = tmp_path / "fit"
     args = ["fit", "--sci", calslope["sci"], "--cal", calslope["cal"], "--out", out,
-            "--model", model, "--knots", 27, "--knot-spacing", 0.5,
-            "--superbias", calslope["dark"]]  # fmt: skip
-    assert run(args) == 0
+            "--model", model, "--knots", 27, "--knot-spacing", 0.5]  # fmt: skip
+    if ngroups == 1:  # no slope: without a superbias there is nothing to fit
+        assert run(args) == 2
+        message = capsys.readouterr().err
+        assert calslope["sci"].name in message and "--superbias" in message
+        assert not out.exists()
+    assert run([*args, "--superbias", calslope["dark"]]) == 0
     assert "superbias from 1 file(s)" in capsys.readouterr().err
     summary = json.loads((out / "fit_summary.json").read_text())
     for exposure in summary["exposures"]:
-        # two values per pixel (the first group and the slope), fitted to the noise
-        assert exposure["npix"] * NGROUPS - exposure["dof"] < 0.1 * exposure["npix"]
+        # NGROUPS values per pixel (the first group, then the slopes), fitted to the noise
+        assert exposure["npix"] * ngroups - exposure["dof"] < 0.1 * exposure["npix"]
         assert exposure["zscore_std"] == pytest.approx(1.0, abs=0.1)
     # NPHOT: every group's photons, NINTS * NGROUPS * TGROUP of the star's count rate
     calvis = next(out.glob("*_calvis.fits"))
     photons = fits.getval(calvis, "NPHOT")
-    expected = flux_dn_s * GAIN_E_PER_DN * NINTS * NGROUPS * TGROUP
+    expected = flux_dn_s * GAIN_E_PER_DN * NINTS * ngroups * TGROUP
     assert photons == pytest.approx(expected, rel=0.05)

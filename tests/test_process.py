@@ -7,6 +7,7 @@ import statistics
 
 import numpy as np
 import pytest
+from astropy.io import fits
 
 from amigo import instrument
 from amigo.process import (
@@ -392,3 +393,39 @@ def test_streaming_equals_in_memory_reference():
     assert reason[5, 3] & BAD_DQ
     # More than half the pixel-integrations with a cosmic ray at 10 %: some were clipped.
     assert product.n_rejected_slope + product.n_rejected_ramp > 0
+
+
+def test_one_group_keeps_its_read_and_no_slope(tmp_path):
+    """NGROUPS = 1: no group difference exists; the read's mean and its covariance are the
+    exposure's measurement (fitted less a superbias, amigo.detector.reset) and survive the
+    calslope file as zero-length SLOPE arrays."""
+    from amigo.io.calslope import read_calslope, write_calslope
+    from ramp_sim import PRIMARY_KEYWORDS, SCI_KEYWORDS
+
+    rng = np.random.default_rng(21)
+    nints, side, flux, read, bias = 50, 80, 300.0, 12.0, 10000.0
+    ramps = simulate(rng, nints, 1, np.full((side, side), flux), bias, read_dn=read, adc=False)
+    product = process_ramps(ArraySource(ramps.raw), ProcessSettings(adc_correction=False))
+    assert product.slope_dn.shape == (0, side, side)
+    assert product.slope_cov_dn2.shape == (0, 0, side, side)
+    assert product.ramp_dn.shape == (1, side, side)
+    light = ~instrument.reference_row_mask(side, side)
+    assert not product.badpix[light].any()  # support and noise judged on the read
+    # Pixels of equal flux are realisations: the reported variance of the mean read is
+    # the scatter of the means, and both are (photons + read noise) / N.
+    means = product.ramp_dn[0][light]
+    reported = product.ramp_cov_dn2[0, 0][light]
+    analytic = (flux / instrument.GAIN_E_PER_DN + read**2) / nints
+    assert np.mean(means) == pytest.approx(bias + flux, abs=3 * np.sqrt(analytic / means.size))
+    assert np.var(means, ddof=1) / analytic == pytest.approx(1.0, abs=0.1)
+    assert np.median(reported) / analytic == pytest.approx(1.0, abs=0.1)
+
+    primary, sci = fits.Header(), fits.Header()
+    for key, value in {**PRIMARY_KEYWORDS, "NINTS": nints, "NGROUPS": 1}.items():
+        primary[key] = value
+    for key, value in SCI_KEYWORDS.items():
+        sci[key] = value
+    path = write_calslope(tmp_path / "g_calslope.fits", product, primary, sci, uncal_name="g")
+    back = read_calslope(path)
+    assert back.slope_dn.shape == (0, side, side) and back.slope_cov_dn2.shape == (0, 0, side, side)
+    np.testing.assert_allclose(back.ramp_dn, product.ramp_dn, rtol=1e-6)

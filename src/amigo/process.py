@@ -484,8 +484,9 @@ class MomentSums:
     def add(self, values: np.ndarray, keep: np.ndarray) -> None:
         """Add integrations: ``values`` and ``keep`` are (n, k, ...)."""
         n, k = values.shape[:2]
-        x = np.where(keep, values - self.shift, 0.0).reshape(n, k, -1)
-        w = keep.reshape(n, k, -1).astype(np.float64)
+        npix = self.n.shape[-1]  # explicit: k may be 0 (one group has no slope)
+        x = np.where(keep, values - self.shift, 0.0).reshape(n, k, npix)
+        w = keep.reshape(n, k, npix).astype(np.float64)
         self.s1 += np.einsum("igp,ihp->ghp", x, w)
         self.s2 += np.einsum("igp,ihp->ghp", x, x)
         self.n += np.einsum("igp,ihp->ghp", w, w)
@@ -497,7 +498,7 @@ class MomentSums:
         n_pair = self.n
         n_var = n_pair[diag, diag]
         with np.errstate(invalid="ignore", divide="ignore"):
-            mean = self.s1[diag, diag] / n_var + self.shift.reshape(k, -1)
+            mean = self.s1[diag, diag] / n_var + self.shift.reshape(k, self.n.shape[-1])
             # Co-moment over K_gh with pairwise means: s2 - s1[g|h] s1[h|g] / N_gh.
             comoment = self.s2 - self.s1 * np.swapaxes(self.s1, 0, 1) / n_pair
             cov = comoment / (n_pair - 1.0)
@@ -1104,8 +1105,8 @@ def process_ramps(
     settings = settings or ProcessSettings()
     nints, ngroups = source.nints, source.ngroups
     ny, nx = source.frame_shape
-    if ngroups < 2:
-        raise ValueError(f"slopes need at least 2 groups, got {ngroups}")
+    if ngroups < 1:
+        raise ValueError("no groups")
     if nints < 1:
         raise ValueError("no integrations")
     npix = ny * nx
@@ -1169,15 +1170,18 @@ def process_ramps(
         ramp_cov, slope_cov = ramp_cov + delta_ramp, slope_cov + delta_slope
     slope_sup = slopes.support
 
+    # Support and noise are judged on the values a fit uses: the slopes, or with one group
+    # (no slope) its read, which a fit uses less a known superbias (amigo.detector.reset).
+    used_sup, used_cov = (slope_sup, slope_cov) if ngroups > 1 else (ramps.support, ramp_cov)
     reason = np.zeros((ny, nx), dtype=np.uint8)
     reason[instrument.reference_row_mask(ny, nx)] |= BAD_REFERENCE
-    reason[slope_sup.min(axis=0) < settings.required_support(nints)] |= BAD_LOW_SUPPORT
+    reason[used_sup.min(axis=0) < settings.required_support(nints)] |= BAD_LOW_SUPPORT
     if pixel_dq is not None:
         reason[(np.asarray(pixel_dq).astype(np.uint32) & DQ_DO_NOT_USE) != 0] |= BAD_DQ
     reason[n_saturated > settings.max_saturated_fraction * nints] |= BAD_SATURATED
-    slope_var = np.diagonal(slope_cov, axis1=0, axis2=1)  # (ny, nx, G-1)
+    used_var = np.diagonal(used_cov, axis1=0, axis2=1)  # (ny, nx, G-1), or (ny, nx, 1)
     with np.errstate(invalid="ignore"):
-        no_noise = ~np.all(slope_var > 0, axis=-1)
+        no_noise = ~np.all(used_var > 0, axis=-1)
     reason[no_noise] |= BAD_NO_NOISE
 
     return SlopeProduct(
@@ -1218,7 +1222,7 @@ class FileSource:
         from amigo.io import jwst
 
         path = Path(path)
-        meta = jwst.read_header(path, need_slopes=True)
+        meta = jwst.read_header(path)
         if meta.kind != "uncal":
             raise InputError(path, f"is a {meta.kind} product, not raw ramps (uncal)")
         shape = tuple(meta.sci_shape)

@@ -153,6 +153,12 @@ def _read_fit_exposure(path: Path, role: str, level: str, superbias=None):
         from amigo.ramp_fit import RampInput
 
         product = read_calslope(path)
+        if product.slope_dn.shape[0] == 0 and superbias is None:
+            raise InputError(
+                path,
+                "has one group per integration: its only measurement is the first read, "
+                "which needs --superbias (the detector's reset level, from darks)",
+            )
         meta = meta_from_headers(
             path, product.primary_header, product.slope_header, kind="calslope"
         )

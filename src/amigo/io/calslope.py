@@ -228,8 +228,8 @@ def read_calslope(path: str | os.PathLike[str]) -> CalSlope:
         primary, slope_header = hdul[0].header.copy(), hdul["SLOPE"].header.copy()
 
     ramp = arrays["RAMP"]
-    if ramp.ndim != 3 or ramp.shape[0] < 2:
-        raise InputError(path, f"RAMP has shape {ramp.shape}, expected (ngroups >= 2, ny, nx)")
+    if ramp.ndim != 3 or ramp.shape[0] < 1:
+        raise InputError(path, f"RAMP has shape {ramp.shape}, expected (ngroups >= 1, ny, nx)")
     ng, ny, nx = ramp.shape
     expected = {
         "SLOPE": (ng - 1, ny, nx),

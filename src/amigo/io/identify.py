@@ -68,9 +68,10 @@ def _ramp_peak(path: Path) -> float:
 def _summarise_exposure(path: Path) -> FileSummary:
     with warnings.catch_warnings(record=True):
         warnings.simplefilter("always")
-        meta = jwst.read_header(path, need_slopes=True)
+        meta = jwst.read_header(path)
     if meta.kind == "uncal":
-        peak = _format_peak(_ramp_peak(path), "DN")
+        # One group has no rise to measure (its read holds the bias): no peak then.
+        peak = _format_peak(_ramp_peak(path), "DN") if meta.ngroups > 1 else "-"
     else:
         exposure = jwst.read_exposure(path)
         values = np.where(exposure.usable, exposure.data, -np.inf)

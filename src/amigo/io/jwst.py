@@ -497,7 +497,7 @@ def iter_ramps(
     Parameters
     ----------
     path
-        An uncal file (validated with ``need_slopes=True``).
+        An uncal file (one group per integration is allowed: its reads are the ramps).
     chunk
         Number of integrations per yielded array.
     with_dq
@@ -515,7 +515,7 @@ def iter_ramps(
         raise ValueError(f"chunk must be >= 1, got {chunk}")
     hdul = open_fits(path)
     try:
-        meta = _validate(path, hdul, need_slopes=True)
+        meta = _validate(path, hdul, need_slopes=False)
         if meta.kind != "uncal":
             raise InputError(path, f"is a {meta.kind} product, not raw ramps (uncal)")
         sci = hdul["SCI"]
