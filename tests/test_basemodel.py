@@ -275,3 +275,33 @@ def test_shipped_level2_model_is_trained_on_real_calibrators_and_says_which():
     assert all(e["level"] == "level2" for e in record["data"]["calibration"])
     assert record["command"].startswith("amigo train --cal ")
     assert len(record["source_commit"]) == 40
+
+
+def test_a_superbias_travels_in_the_model_file_and_not_behind_the_pipeline(tmp_path):
+    from amigo.detector.reset import UNKNOWN_VARIANCE_DN2, Superbias
+
+    rng = np.random.default_rng(3)
+    known = rng.random((80, 80)) > 0.1
+    superbias = Superbias.where_known(
+        12000.0 + 300.0 * rng.standard_normal((80, 80)),
+        rng.uniform(0.1, 2.0, (80, 80)),
+        known,
+        n_files=4,
+    )
+    plain = BaseModel.create(BaseModelConfig(filters=("F480M",)), linear=True)
+    assert plain.superbias is None
+    save_base_model(plain.with_superbias(superbias), tmp_path / "m.npz")
+    back = load_base_model(tmp_path / "m.npz").superbias
+    assert back is not None and back.n_files == 4
+    # float32 storage: 1e-3 DN at 12,000 DN; the "unknown" sentinel comes back exact.
+    np.testing.assert_allclose(back.level_dn, superbias.level_dn, atol=2e-3)
+    np.testing.assert_allclose(back.variance_dn2[known], superbias.variance_dn2[known], rtol=1e-6)
+    np.testing.assert_array_equal(back.known, known)
+    assert np.all(back.variance_dn2[~known] == UNKNOWN_VARIANCE_DN2)
+    # The pipeline subtracted the bias: a level-2 view holds none and cannot take one.
+    behind = load_base_model(tmp_path / "m.npz").for_level2()
+    assert behind.superbias is None and behind.config.superbias_files == 0
+    with pytest.raises(ValueError, match="level-2"):
+        behind.with_superbias(superbias)
+    # Files without one (all before format 7) load with none.
+    assert load_base_model().superbias is None

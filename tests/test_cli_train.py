@@ -183,3 +183,7 @@ def test_bad_inputs_exit_2_with_one_line(tmp_path, files):
                      "--init", str(not_fits))  # fmt: skip
     assert init.returncode == 2 and "x_calslope.fits" in init.stderr
     assert "Traceback" not in init.stderr
+    darks = run_amigo("train", "--cal", str(files["cal"]), "--out", str(tmp_path / "m.npz"),
+                      "--darks", str(not_fits))  # fmt: skip
+    assert darks.returncode == 2 and "x_calslope.fits" in darks.stderr
+    assert not (tmp_path / "m.npz").exists()

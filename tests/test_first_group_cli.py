@@ -40,8 +40,11 @@ def _star(flux_dn_s: float) -> np.ndarray:
     return np.asarray(image_from_log_vis(instrument, setup, optics, 0.0, exposure, None, None))
 
 
-@pytest.mark.parametrize("ngroups", [2, 1])
-def test_fit_with_superbias_uses_every_group(tmp_path, capsys, ngroups):
+@pytest.mark.parametrize(("ngroups", "source"), [(2, "model"), (1, "files")])
+def test_fit_with_superbias_uses_every_group(tmp_path, capsys, ngroups, source):
+    """``source``: the superbias comes from ``--superbias`` files, or from a base model
+    that ``amigo train --darks`` stored it in."""
+    from amigo.basemodel import BaseModel, BaseModelConfig, save_base_model
     from amigo.cli import main
     from amigo.model import Instrument, save_instrument
 
@@ -80,14 +83,27 @@ def test_fit_with_superbias_uses_every_group(tmp_path, capsys, ngroups):
     save_instrument(Instrument.nominal(n_wavelengths=3), model)
     out = tmp_path / "fit"
     args = ["fit", "--sci", calslope["sci"], "--cal", calslope["cal"], "--out", out,
-            "--model", model, "--knots", 27, "--knot-spacing", 0.5]  # fmt: skip
-    if ngroups == 1:  # no slope: without a superbias there is nothing to fit
-        assert run(args) == 2
-        message = capsys.readouterr().err
-        assert calslope["sci"].name in message and "--superbias" in message
-        assert not out.exists()
-    assert run([*args, "--superbias", calslope["dark"]]) == 0
-    assert "superbias from 1 file(s)" in capsys.readouterr().err
+            "--knots", 27, "--knot-spacing", 0.5]  # fmt: skip
+    if source == "files":
+        args += ["--model", model]
+        if ngroups == 1:  # no slope: without a superbias there is nothing to fit
+            assert run(args) == 2
+            message = capsys.readouterr().err
+            assert calslope["sci"].name in message and "--superbias" in message
+            assert not out.exists()
+        assert run([*args, "--superbias", calslope["dark"]]) == 0
+        assert "superbias from 1 file(s)" in capsys.readouterr().err
+    else:  # train --darks stores it; fit finds it in the model
+        base, trained = tmp_path / "base.npz", tmp_path / "trained.npz"
+        config = BaseModelConfig(filters=("F480M",), n_wavelengths=3)
+        save_base_model(BaseModel.create(config, linear=True), base)
+        train = ["train", "--init", base, "--steps", 0, "--cal", calslope["cal"],
+                 "--darks", calslope["dark"], "--out", trained]  # fmt: skip
+        assert run(train) == 0
+        assert run([*args, "--model", trained, "--superbias", calslope["dark"],
+                    "--no-first-group"]) == 2  # fmt: skip
+        assert run([*args, "--model", trained]) == 0
+        assert "superbias from the base model (1 dark file(s)" in capsys.readouterr().err
     summary = json.loads((out / "fit_summary.json").read_text())
     for exposure in summary["exposures"]:
         # NGROUPS values per pixel (the first group, then the slopes), fitted to the noise

@@ -24,6 +24,9 @@ Parameters and what trains them (see :mod:`amigo.calibration`)::
                                     subtraction left in each group read, DN   training
     read.group_offsets_chol_dn (G, G, 80, 80) their posterior's Cholesky factor   solved after
                                     (DN): the uncertainty they leave             training
+    read.superbias_dn      (80, 80) models of raw ramps: each pixel's reset     measured on
+                                    level, DN (``amigo train --darks``)           darks
+    read.superbias_var_dn2 (80, 80) its variance, DN^2                          "
 
 File format (``.npz``, readable with ``numpy.load(path, allow_pickle=False)``)
 ------------------------------------------------------------------------------
@@ -67,6 +70,7 @@ from amigo.detector.ramp import (
     RampModel,
 )
 from amigo.detector.read import ReadModel, default_ipc_kernel
+from amigo.detector.reset import Superbias
 from amigo.errors import InputError
 from amigo.io.atomic import atomic_path
 from amigo.optics.aperture import PupilGrid, soft_hexagon, zernike_basis
@@ -77,8 +81,9 @@ FORMAT = "amigo-base-model"
 #: 2: the dark current is a per-pixel map (version 1 held one value for all pixels);
 #: 3: the SIAF's detector geometry (see GEOMETRY_KEYS); 4: the hole sizes are parameters;
 #: 5: level-2 models may hold per-group read offsets (``dark_residual_groups`` > 0);
-#: 6: and their posterior uncertainty (``dark_prior_dn`` > 0, ``read.group_offsets_chol_dn``).
-FORMAT_VERSION = 6
+#: 6: and their posterior uncertainty (``dark_prior_dn`` > 0, ``read.group_offsets_chol_dn``);
+#: 7: models of raw ramps may hold a superbias (``superbias_files`` > 0).
+FORMAT_VERSION = 7
 #: Leaves of the linear detector's geometry (format 3 added skew and scale, and the SIAF's
 #: sense of rotation).
 GEOMETRY_KEYS = (
@@ -151,6 +156,10 @@ class BaseModelConfig:
         with the posterior it left (``read.group_offsets_chol_dn``) it gives the variance
         the offsets the model does not know add to an image
         (:meth:`BaseModel.dark_offset_terms`). 0 (files before format 6): none added.
+    superbias_files
+        Models of raw ramps: the number of dark calslope files the superbias
+        (``read.superbias_dn``, ``read.superbias_var_dn2``) was measured on; 0 (and files
+        before format 7): the model holds none.
     """
 
     filters: tuple[str, ...] = instrument.CALIBRATED_FILTERS
@@ -169,6 +178,7 @@ class BaseModelConfig:
     dark_residual_groups: int = 0
     dark_reference: str = ""
     dark_prior_dn: float = 0.0
+    superbias_files: int = 0
 
     def to_json(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -294,6 +304,9 @@ class BaseModel(eqx.Module):
             if config.dark_prior_dn > 0:
                 g = config.dark_residual_groups
                 chol = jnp.zeros((g, g, *config.shape))
+        level = variance = None
+        if config.superbias_files > 0:
+            level, variance = jnp.zeros(config.shape), jnp.zeros(config.shape)
         read = ReadModel(
             dark_e_per_group=jnp.zeros(config.shape),
             ipc_kernel=jnp.asarray(default_ipc_kernel()),
@@ -301,6 +314,8 @@ class BaseModel(eqx.Module):
             gain_e_per_dn=config.gain_e_per_dn,
             group_offsets_dn=offsets,
             group_offsets_chol_dn=chol,
+            superbias_dn=level,
+            superbias_var_dn2=variance,
         )
         return cls(
             zernikes_nm={
@@ -344,7 +359,8 @@ class BaseModel(eqx.Module):
         subtracted the dark, divided by its flat and corrected the classical
         non-linearity, so those are switched off (unit flat, no dark, no quadratic
         term); the charge migration (brighter-fatter), the intra-pixel response and IPC,
-        which the pipeline leaves in, stay.
+        which the pipeline leaves in, stay. The superbias goes (the pipeline subtracted
+        the bias too).
 
         A model trained on level-2 images (``config.data_level == "level2"``) is returned
         as it is: its flat is the residual response behind the pipeline's flat."""
@@ -352,7 +368,7 @@ class BaseModel(eqx.Module):
             return self
         behind = eqx.tree_at(
             lambda m: (m.ramp.flat, m.read.dark_e_per_group, m.read.nonlinearity),
-            self,
+            self.with_superbias(None),
             (
                 jnp.ones_like(self.ramp.flat),
                 jnp.zeros_like(self.read.dark_e_per_group),
@@ -360,7 +376,7 @@ class BaseModel(eqx.Module):
             ),
         )
         return dataclasses.replace(
-            behind, config=dataclasses.replace(self.config, data_level="level2")
+            behind, config=dataclasses.replace(behind.config, data_level="level2")
         )
 
     def with_dark_residual(
@@ -396,6 +412,43 @@ class BaseModel(eqx.Module):
             dark_prior_dn=self.config.dark_prior_dn if prior_dn is None else float(prior_dn),
         )
         return dataclasses.replace(model, config=config)
+
+    def with_superbias(self, superbias: Superbias | None) -> BaseModel:
+        """The model holding ``superbias`` (``None``: none); refused for a level-2 model
+        (the pipeline has subtracted the bias: its images have no first read)."""
+        if superbias is not None and self.config.data_level == "level2":
+            raise ValueError("a level-2 model cannot hold a superbias")
+        dtype = self.ramp.flat.dtype
+        level = variance = None
+        if superbias is not None:
+            level = jnp.asarray(superbias.level_dn, dtype)
+            variance = jnp.asarray(superbias.variance_dn2, dtype)
+        model = eqx.tree_at(
+            lambda m: (m.read.superbias_dn, m.read.superbias_var_dn2),
+            self,
+            (level, variance),
+            is_leaf=lambda x: x is None,
+        )
+        files = 0 if superbias is None else max(1, int(superbias.n_files))
+        return dataclasses.replace(
+            model, config=dataclasses.replace(self.config, superbias_files=files)
+        )
+
+    @property
+    def superbias(self) -> Superbias | None:
+        """The reset level the model holds (``amigo train --darks``), or ``None``."""
+        read = self.read
+        if read.superbias_dn is None or read.superbias_var_dn2 is None:
+            return None
+        stored = Superbias(
+            np.asarray(read.superbias_dn, np.float64),
+            np.asarray(read.superbias_var_dn2, np.float64),
+            n_files=self.config.superbias_files,
+        )
+        # The exact "unknown" sentinel again (float32 storage rounded it).
+        return Superbias.where_known(
+            stored.level_dn, stored.variance_dn2, stored.known, stored.n_files
+        )
 
     def dark_residual_for(self, reference: str | None) -> BaseModel:
         """The model for an image processed with the dark reference ``reference`` (its

@@ -82,6 +82,7 @@ from amigo.basemodel import (
 from amigo.detector.dark_residual import DEFAULT_PRIOR_DN, OffsetSystem, offset_jacobian
 from amigo.detector.pipeline_slope import pipeline_group_slope
 from amigo.detector.ramp import ChargeMigrationNetwork
+from amigo.detector.reset import Superbias
 from amigo.errors import InputError
 from amigo.progress import step as report_step
 from amigo.slope_model import (
@@ -1169,9 +1170,12 @@ def train(
     progress: bool = True,
     time_limit_s: float | None = None,
     initial: BaseModel | None = None,
+    superbias: Superbias | None = None,
 ) -> tuple[BaseModel, dict[str, Any]]:
     """Train a base model and write it to ``out`` (checkpoint: ``out`` + ``.ckpt.npz``);
-    from ``initial`` when fine-tuning (``settings.init`` names its file).
+    from ``initial`` when fine-tuning (``settings.init`` names its file). ``superbias``
+    (measured on dark exposures, :func:`amigo.detector.reset.estimate_superbias`) is
+    stored in the model; without it the model keeps ``initial``'s, if any.
 
     Returns the model and the metadata written with it.
     """
@@ -1190,6 +1194,10 @@ def train(
     else:
         trainer.run(checkpoint, progress, time_limit_s)
     model = trainer.result()
+    if superbias is not None:
+        model = model.with_superbias(superbias)
+    elif initial is not None and initial.superbias is not None:
+        model = model.with_superbias(initial.superbias)
     dark_residual = None
     if data.level2 and settings.dark_prior_dn > 0:
         model, dark_residual = solve_dark_residual(
@@ -1219,12 +1227,26 @@ def train(
     }
     if dark_residual is not None:
         metadata["dark_residual"] = dark_residual
+    if model.superbias is not None:
+        metadata["superbias"] = superbias_summary(model.superbias)
     save_base_model(model, out, metadata)
     from amigo.plots.optics import save
     from amigo.plots.training import loss_curve_figure
 
     save(loss_curve_figure(trainer.history, title=out.name), loss_curve_path(out))
     return model, metadata
+
+
+def superbias_summary(superbias: Superbias) -> dict[str, Any]:
+    """What the metadata records of a model's superbias: files, pixels known, and the
+    median error (DN) of the known pixels."""
+    known = superbias.known
+    error = np.sqrt(np.median(superbias.variance_dn2[known])) if known.any() else float("nan")
+    return {
+        "files": int(superbias.n_files),
+        "pixels_known": int(known.sum()),
+        "median_error_dn": round(float(error), 4),
+    }
 
 
 def checkpoint_path(out: Path) -> Path:

@@ -157,7 +157,8 @@ def _read_fit_exposure(path: Path, role: str, level: str, superbias=None):
             raise InputError(
                 path,
                 "has one group per integration: its only measurement is the first read, "
-                "which needs --superbias (the detector's reset level, from darks)",
+                "which needs the detector's reset level (--superbias DARKS, or a base "
+                "model trained with --darks)",
             )
         meta = meta_from_headers(
             path, product.primary_header, product.slope_header, kind="calslope"
@@ -213,15 +214,50 @@ def exposures_option(name: str, text: str):
 
 def superbias_option(text: str):
     """The optional ``--superbias FILE...`` of ``fit`` and ``run`` (several files after
-    one flag, or the flag repeated); ``text`` says which files."""
-    return click.option(
-        "--superbias",
-        "superbias",
-        cls=ManyValues,
-        type=click.Path(path_type=Path),
-        default=(),
-        help=f"{text} [default: none, slopes only].",
-    )
+    one flag, or the flag repeated; ``text`` says which files) and ``--no-first-group``."""
+
+    def decorate(command):
+        command = click.option(
+            "--no-first-group",
+            "no_first_group",
+            is_flag=True,
+            help="Fit the group differences only, even where the base model holds a superbias.",
+        )(command)
+        return click.option(
+            "--superbias",
+            "superbias",
+            cls=ManyValues,
+            type=click.Path(path_type=Path),
+            default=(),
+            help=f"{text} [default: the base model's superbias where it holds one "
+            "('amigo train --darks'), else none: slopes only].",
+        )(command)
+
+    return decorate
+
+
+def _reset_level(paths: tuple[Path, ...], level: str, fit_model: FitModel, off: bool):
+    """The superbias of a fit: from ``--superbias`` files, else the base model's (calslope
+    inputs), else ``None`` (also with ``--no-first-group``)."""
+    if off:
+        if paths:
+            raise click.BadParameter(
+                "cannot be combined with --no-first-group", param_hint="--superbias"
+            )
+        return None
+    if paths:
+        return _superbias(paths, level)
+    stored = None if fit_model.base is None or level != "calslope" else fit_model.base.superbias
+    if stored is not None:
+        from amigo.calibration import superbias_summary
+        from amigo.progress import step
+
+        about = superbias_summary(stored)
+        step(
+            f"superbias from the base model ({about['files']} dark file(s), "
+            f"{about['pixels_known']} pixels, median error {about['median_error_dn']:.2f} DN)"
+        )
+    return stored
 
 
 _MODEL_OPTIONS = [
@@ -312,6 +348,7 @@ def command(
     knots: int | None,
     knot_spacing: float | None,
     superbias: tuple[Path, ...] = (),
+    no_first_group: bool = False,
 ) -> None:
     """Fit the instrument model to each exposure and extract calibrated observables.
 
@@ -336,8 +373,8 @@ def command(
     from amigo.fitting import FitConfig
     from amigo.progress import step
 
-    reset = _superbias(superbias, level)
     fit_model = _fit_model(model, detector, level)
+    reset = _reset_level(superbias, level, fit_model, no_first_group)
     by_filter: dict[str, list] = defaultdict(list)
     ramps = {}
     read = []

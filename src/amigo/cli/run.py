@@ -29,10 +29,12 @@ def pipeline(
     rmax_mas: float = 1000.0,
     no_hmc: bool = False,
     superbias: tuple[Path, ...] = (),
+    no_first_group: bool = False,
 ) -> list[Path]:
     """Run process -> fit -> detect; return the calvis files that were searched.
     ``superbias``: raw ramps (darks) processed with the rest and given to ``amigo fit
-    --superbias``, so the first group's photons enter the fit."""
+    --superbias``, so the first group's photons enter the fit; ``no_first_group`` as
+    ``amigo fit --no-first-group``."""
     from amigo.cli import detect, fit, process
     from amigo.io.calslope import calslope_name
     from amigo.progress import step
@@ -55,6 +57,7 @@ def pipeline(
         knots=knots,
         knot_spacing=knot_spacing,
         superbias=tuple(slopes[p] for p in superbias),
+        no_first_group=no_first_group,
     )
     calvis = sorted(out.glob("*_calvis.fits"))
     if not calvis:
@@ -90,6 +93,7 @@ def command(
     rmax_mas: float,
     no_hmc: bool,
     superbias: tuple[Path, ...] = (),
+    no_first_group: bool = False,
 ) -> None:
     """Raw ramps to companions: amigo process, amigo fit and amigo detect in one go.
 
@@ -107,4 +111,5 @@ def command(
         rmax_mas=rmax_mas,
         no_hmc=no_hmc,
         superbias=superbias,
+        no_first_group=no_first_group,
     )

@@ -1,4 +1,4 @@
-"""``amigo train --cal ... --flats ... --val ... --out MODEL``: train a base model.
+"""``amigo train --cal ... --flats ... --val ... [--darks ...] --out MODEL``: train a base model.
 
 All instrument parameters and the charge-migration network are fitted jointly to the
 calibration exposures; the flat field and per-pixel non-linearity to the flat-field
@@ -50,6 +50,16 @@ _FILES = click.Path(dir_okay=False, path_type=Path)
     type=_FILES,
     help="Validation exposure, of the same kind as --cal (fitted, never used to "
     "calibrate); several may follow.",
+)
+@click.option(
+    "--darks",
+    "darks",
+    cls=ManyValues,
+    type=_FILES,
+    help="Dark calslope files (at least 2 groups) of the same detector: each pixel's reset "
+    "level (superbias) is measured on them and stored in the model, so that fits of "
+    "calslope files count the first group's photons; several may follow [default: none, "
+    "or the --init model's].",
 )
 @click.option("--out", "out", required=True, type=_FILES, help="Base-model file to write (.npz).")
 @click.option(
@@ -157,6 +167,7 @@ def command(
     cal: tuple[Path, ...],
     flats: tuple[Path, ...],
     val: tuple[Path, ...],
+    darks: tuple[Path, ...],
     out: Path,
     steps: int,
     batches: int,
@@ -215,6 +226,7 @@ def command(
     # Unusable inputs fail here, in seconds, before the model's modules are imported
     # (tens of seconds on a small machine).
     _check_inputs((*cal, *flats, *val), init)
+    superbias = _superbias(darks, cal[0])
     _warn_about_memory_maps()
     import jax
 
@@ -263,6 +275,7 @@ def command(
                 time_limit_s=None if time_limit is None else 60.0 * time_limit,
                 provenance=provenance,
                 initial=initial,
+                superbias=superbias,
             )
         except InputError as error:
             fail_input(error)
@@ -312,6 +325,35 @@ def _check_inputs(slope_files: tuple[Path, ...], init: Path | None) -> None:
             raise InputError(init, "not a base-model file (the .npz archive amigo train writes)")
     except InputError as error:
         fail_input(error)
+
+
+def _superbias(darks: tuple[Path, ...], first_cal: Path):
+    """The superbias measured on ``darks`` (``None`` without); exits with the one-line
+    error for a file that cannot give one, or when the training data are level-2 images
+    (the pipeline has subtracted the bias: a level-2 model has no first read to use it)."""
+    if not darks:
+        return None
+    from amigo.cli import fail_input
+    from amigo.detector.reset import estimate_superbias
+    from amigo.io.calslope import read_calslope
+    from amigo.io.jwst import is_level2
+
+    try:
+        if is_level2(first_cal):
+            raise InputError(
+                darks[0], "--darks needs calslope training data (level-2 images have no bias)"
+            )
+        superbias = estimate_superbias([read_calslope(path) for path in darks])
+        shape = read_calslope(first_cal).badpix.shape
+        if superbias.level_dn.shape != shape:
+            raise InputError(
+                darks[0],
+                f"frames of {superbias.level_dn.shape} differ from the training files' {shape}",
+            )
+        return superbias
+    except InputError as error:
+        fail_input(error)
+        return None
 
 
 def _summary(path: Path, metadata: dict) -> dict:

@@ -87,6 +87,12 @@ class ReadModel(eqx.Module):
         ``None``, or (G, G, ny, nx) lower Cholesky factor (DN) of the offsets' posterior
         covariance per pixel: not part of the image, the uncertainty it leaves
         (:func:`amigo.detector.dark_residual.offset_variance`).
+    superbias_dn, superbias_var_dn2
+        ``None``, or (ny, nx) each: the detector's mean reset level per pixel (DN) and the
+        variance of that estimate (DN^2), measured on dark exposures at training
+        (:mod:`amigo.detector.reset`). Not part of the modelled reads (which are above
+        the reset level): a fit of calslope data subtracts it from the first read so the
+        first group's photons enter the likelihood.
     """
 
     dark_e_per_group: Float[Array, "ny nx"] | Float[Array, ""]
@@ -96,6 +102,8 @@ class ReadModel(eqx.Module):
     one_over_f: Float[Array, "ng nx k"] | None = None
     group_offsets_dn: Float[Array, "G ny nx"] | None = None
     group_offsets_chol_dn: Float[Array, "G G ny nx"] | None = None
+    superbias_dn: Float[Array, "ny nx"] | None = None
+    superbias_var_dn2: Float[Array, "ny nx"] | None = None
 
     @classmethod
     def create(cls, shape: tuple[int, int] = (80, 80)) -> ReadModel:

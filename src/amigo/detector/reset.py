@@ -90,8 +90,9 @@ class Superbias:
 
     @property
     def known(self) -> np.ndarray:
-        """(ny, nx) True where the superbias was measured."""
-        return self.variance_dn2 < UNKNOWN_VARIANCE_DN2
+        """(ny, nx) True where the superbias was measured (the test is against half the
+        "unknown" variance: float32 storage, as in a model file, rounds it down)."""
+        return self.variance_dn2 < 0.5 * UNKNOWN_VARIANCE_DN2
 
 
 def superbias_of(product: CalSlope) -> Superbias:
