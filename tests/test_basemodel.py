@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import equinox as eqx
 import jax
@@ -305,3 +306,26 @@ def test_a_superbias_travels_in_the_model_file_and_not_behind_the_pipeline(tmp_p
         behind.with_superbias(superbias)
     # Files without one (all before format 7) load with none.
     assert load_base_model().superbias is None
+
+
+def test_shipped_models_match_their_checksums_and_a_tampered_copy_is_refused(tmp_path):
+    import hashlib
+    import shutil
+
+    from amigo.basemodel import CHECKSUMS_NAME, verify_checksum
+
+    folder = default_model_path().parent
+    sums = folder / CHECKSUMS_NAME
+    listed = [line.split()[1] for line in sums.read_text().splitlines() if line.strip()]
+    shipped = sorted(p.name for p in folder.glob("*.npz"))
+    assert sorted(listed) == shipped  # retrained models must update SHA256SUMS
+    for name in shipped:
+        verify_checksum(folder / name, sums)
+    copy = shutil.copy(default_model_path(), tmp_path / default_model_path().name)
+    (tmp_path / CHECKSUMS_NAME).write_text(sums.read_text())
+    data = bytearray(Path(copy).read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    Path(copy).write_bytes(bytes(data))
+    assert hashlib.sha256(bytes(data)).hexdigest() not in sums.read_text()
+    with pytest.raises(InputError, match="reinstall"):
+        verify_checksum(Path(copy), tmp_path / CHECKSUMS_NAME)

@@ -46,8 +46,13 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import hashlib
 import json
+import math
 import os
+import tokenize
+import zipfile
+import zlib
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -73,6 +78,7 @@ from amigo.detector.read import ReadModel, default_ipc_kernel
 from amigo.detector.reset import Superbias
 from amigo.errors import InputError
 from amigo.io.atomic import atomic_path
+from amigo.io.files import DAMAGE, require_file
 from amigo.optics.aperture import PupilGrid, soft_hexagon, zernike_basis
 from amigo.optics.model import NRMOptics, OpticsConfig
 from amigo.optics.spectrum import LinearSpectrum
@@ -103,6 +109,35 @@ DEFAULT_MODEL_RESOURCE = ("data", "base_model", "amigo_base_model.npz")
 LEVEL2_MODEL_RESOURCE = ("data", "base_model", "amigo_base_model_com1093_level2.npz")
 #: Settings of :class:`BaseModelConfig` that only set how finely the optics is computed.
 OPTICS_SETTINGS = ("pupil_npix", "n_wavelengths", "defocus_method")
+
+
+#: Accepted ranges of a model file's numeric settings (well beyond any trained model's).
+CONFIG_LIMITS: dict[str, tuple[float, float]] = {
+    "pupil_npix": (16, 2048),
+    "n_wavelengths": (1, 64),
+    "n_zernike": (1, 66),
+    "n_substeps": (1, 64),
+    "network_width": (1, 256),
+    "network_depth": (1, 16),
+    "dark_residual_groups": (0, 256),
+    "superbias_files": (0, 10**6),
+    "gain_e_per_dn": (0.01, 100.0),
+    "max_shift_pix": (0.0, 10.0),
+    "charge_scale_e": (1.0, 1e9),
+    "dark_prior_dn": (0.0, 1e6),
+}
+
+
+#: What reading a damaged ``.npz`` raises besides :data:`~amigo.io.files.DAMAGE`: the zip
+#: layer's errors, those of the compressed stream, and of NumPy's parser of a damaged
+#: ``.npy`` header (a Python literal).
+NPZ_DAMAGE = (
+    *DAMAGE, zipfile.BadZipFile, zlib.error, EOFError, OSError, SyntaxError, tokenize.TokenError,
+)  # fmt: skip
+
+
+def _is_real(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
 
 
 @dataclass(frozen=True)
@@ -185,11 +220,35 @@ class BaseModelConfig:
 
     @classmethod
     def from_json(cls, record: dict[str, Any]) -> BaseModelConfig:
-        known = {f.name for f in dataclasses.fields(cls)}
+        """The config of a model file's record; ``ValueError`` naming the first setting of
+        the wrong type or outside :data:`CONFIG_LIMITS` (a damaged or tampered file must
+        not make the loader allocate without bound)."""
+        if not isinstance(record, dict):
+            raise ValueError(f"config is {type(record).__name__}, not a mapping")
+        known = {f.name: f for f in dataclasses.fields(cls)}
         values = {k: v for k, v in record.items() if k in known}
         for key in ("filters", "shape"):
             if key in values:
+                if not isinstance(values[key], list | tuple):
+                    raise ValueError(f"config {key} is {values[key]!r}, not a list")
                 values[key] = tuple(values[key])
+        default = cls()
+        for key, value in values.items():
+            expected = type(getattr(default, key))
+            ok = isinstance(value, expected) and not (expected is int and isinstance(value, bool))
+            if expected is float:
+                ok = _is_real(value) and math.isfinite(value)
+            if not ok:
+                raise ValueError(f"config {key} is {value!r}, not a {expected.__name__}")
+            if key in CONFIG_LIMITS and not CONFIG_LIMITS[key][0] <= value <= CONFIG_LIMITS[key][1]:
+                raise ValueError(f"config {key} is {value!r}, outside {CONFIG_LIMITS[key]}")
+        if "shape" in values and not (
+            len(values["shape"]) == 2
+            and all(isinstance(n, int) and 8 <= n <= 2048 for n in values["shape"])
+        ):
+            raise ValueError(f"config shape is {values['shape']!r}")
+        if "filters" in values and not all(f in instrument.FILTERS for f in values["filters"]):
+            raise ValueError(f"config filters {values['filters']!r} are not NIRISS AMI filters")
         return cls(**values)
 
     def optics_config(self) -> OpticsConfig:
@@ -663,6 +722,11 @@ def fill_leaves(
             array = np.broadcast_to(array, leaf.shape)
         if array.shape != tuple(leaf.shape):
             raise InputError(path, f"{name} has shape {array.shape}, expected {leaf.shape}")
+        if np.issubdtype(np.dtype(leaf.dtype), np.floating):
+            if not np.issubdtype(array.dtype, np.floating):
+                raise InputError(path, f"{name} has dtype {array.dtype}, expected floats")
+            if not np.all(np.isfinite(array)):
+                raise InputError(path, f"{name} holds NaN or infinite values")
         values[name] = array
     arrays, static = eqx.partition(skeleton, _is_array_or_shape)
     flat, treedef = jax.tree_util.tree_flatten_with_path(arrays)
@@ -693,8 +757,7 @@ def read_metadata(path: str | os.PathLike[str]) -> dict[str, Any]:
 
 def open_npz(path: Path, what: str = "base-model"):
     """Open an ``.npz`` without pickle support; :class:`InputError` if impossible."""
-    if not path.is_file():
-        raise InputError(path, f"no such {what} file")
+    require_file(path, f"{what} file")
     try:
         return np.load(path, allow_pickle=False)
     except Exception as error:  # zip and format errors come in several types
@@ -706,11 +769,16 @@ def _metadata(path: Path, data, fmt: str = FORMAT) -> dict[str, Any]:
         raise InputError(path, f"not a {fmt} file: no {METADATA_KEY} record")
     try:
         record = json.loads(str(data[METADATA_KEY]))
-    except (ValueError, TypeError) as error:
+    except NPZ_DAMAGE as error:
         raise InputError(path, f"unreadable metadata ({error})") from None
+    if not isinstance(record, dict):
+        raise InputError(path, f"unreadable metadata (a {type(record).__name__}, not a record)")
     if record.get("format") != fmt:
         raise InputError(path, f"not a {fmt} file (format {record.get('format')!r})")
-    if int(record.get("format_version", 0)) > FORMAT_VERSION:
+    version = record.get("format_version", 0)
+    if not isinstance(version, int) or isinstance(version, bool) or version < 0:
+        raise InputError(path, f"format_version is {version!r}, not a version number")
+    if version > FORMAT_VERSION:
         raise InputError(
             path,
             f"{fmt} format version {record['format_version']} is newer than this "
@@ -732,34 +800,74 @@ def load_base_model(path: str | os.PathLike[str] | None = None) -> BaseModel:
     not match the skeleton its config describes.
     """
     path = default_model_path() if path is None else Path(path)
+    _verify_if_shipped(path)
     with open_npz(path) as data:
-        record = _metadata(path, data)
-        config = BaseModelConfig.from_json(record["config"])
-        skeleton = BaseModel.create(config, linear=True)
-        if record.get("network", True):
-            # The network's shapes only: the stored weights replace them, and drawing
-            # random ones would compile the random-number programs in every process.
-            key = jax.ShapeDtypeStruct((2,), jnp.uint32)
-            network = eqx.filter_eval_shape(
-                ChargeMigrationNetwork,
-                key,
-                width=config.network_width,
-                depth=config.network_depth,
-                charge_scale_e=config.charge_scale_e,
-            )
-            skeleton = skeleton.with_network(network)
-        # Files before format 2 hold one dark current for all pixels: spread it.
-        version = int(record.get("format_version", 1))
-        spread = (DARK_KEY,) if version < 2 else ()
-        # Files before format 3 hold the detector rotation with the sign the research
-        # code's resampler meant for coordinates (+0.561 deg: the image turned the wrong
-        # way) and no skew or scale: they take the SIAF-derived geometry instead.
-        geometry = GEOMETRY_KEYS if version < 3 else ()
-        # Files before format 4 hold no hole sizes: the nominal ones.
-        sizes = (HOLE_SIZES_KEY,) if version < 4 else ()
-        return fill_leaves(
-            path, skeleton, data, broadcast=spread, from_skeleton=(*geometry, *sizes)
+        try:
+            return _load_base_model(path, data)
+        except NPZ_DAMAGE as error:
+            problem = f"{type(error).__name__}: {error}"
+            raise InputError(path, f"damaged base-model file ({problem})") from None
+
+
+def _load_base_model(path: Path, data) -> BaseModel:
+    """The body of :func:`load_base_model` (``data``: the open archive)."""
+    record = _metadata(path, data)
+    config = BaseModelConfig.from_json(record.get("config", {}))
+    skeleton = BaseModel.create(config, linear=True)
+    if record.get("network", True):
+        # The network's shapes only: the stored weights replace them, and drawing
+        # random ones would compile the random-number programs in every process.
+        key = jax.ShapeDtypeStruct((2,), jnp.uint32)
+        network = eqx.filter_eval_shape(
+            ChargeMigrationNetwork,
+            key,
+            width=config.network_width,
+            depth=config.network_depth,
+            charge_scale_e=config.charge_scale_e,
         )
+        skeleton = skeleton.with_network(network)
+    # Files before format 2 hold one dark current for all pixels: spread it.
+    version = int(record.get("format_version", 1))
+    spread = (DARK_KEY,) if version < 2 else ()
+    # Files before format 3 hold the detector rotation with the sign the research
+    # code's resampler meant for coordinates (+0.561 deg: the image turned the wrong
+    # way) and no skew or scale: they take the SIAF-derived geometry instead.
+    geometry = GEOMETRY_KEYS if version < 3 else ()
+    # Files before format 4 hold no hole sizes: the nominal ones.
+    sizes = (HOLE_SIZES_KEY,) if version < 4 else ()
+    return fill_leaves(path, skeleton, data, broadcast=spread, from_skeleton=(*geometry, *sizes))
+
+
+#: The shipped models' SHA-256 digests (``sha256sum`` format), beside them in the package.
+CHECKSUMS_NAME = "SHA256SUMS"
+
+
+def verify_checksum(path: Path, sums: Path) -> None:
+    """Raise :class:`InputError` when ``path`` is listed in the ``sums`` file (``sha256sum``
+    output) with another digest: a shipped model damaged or altered after installation.
+    Files the list does not name are not checked."""
+    try:
+        lines = sums.read_text(encoding="ascii").splitlines()
+    except OSError:
+        return  # an installation without the list: nothing to compare against
+    recorded = dict(reversed(line.split(None, 1)) for line in lines if line.strip())
+    expected = recorded.get(path.name)
+    if expected is None:
+        return
+    digest = hashlib.sha256(path.read_bytes()).hexdigest()
+    if digest != expected.strip():
+        raise InputError(
+            path,
+            f"SHA-256 {digest[:12]}... differs from the {expected.strip()[:12]}... recorded in "
+            f"{sums.name}: the shipped model is damaged; reinstall amigo",
+        )
+
+
+def _verify_if_shipped(path: Path) -> None:
+    """:func:`verify_checksum` for the models in the package data."""
+    folder = default_model_path().parent
+    if path.resolve().parent == folder.resolve():
+        verify_checksum(path, folder / CHECKSUMS_NAME)
 
 
 def default_model_path() -> Path:

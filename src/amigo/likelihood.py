@@ -85,6 +85,10 @@ class ImageData:
             raise InputError(meta.path, "is a raw ramp (uncal): run 'amigo process' first")
         if exposure.err is None:
             raise InputError(meta.path, "has no ERR extension: pixel errors are needed")
+        if not meta.in_dn_per_s:
+            raise InputError(
+                meta.path, f"BUNIT is {meta.bunit!r}: level-2 images in DN/s are needed"
+            )
         data, err, usable = exposure.data, exposure.err, exposure.usable
         if data.ndim == 2:
             data, err, usable = data[None], err[None], usable[None]

@@ -40,6 +40,7 @@ from amigo import instrument as nis
 from amigo._version import __version__
 from amigo.detector.linear import LinearDetector
 from amigo.errors import InputError
+from amigo.io.files import require_file
 from amigo.optics import LinearSpectrum, NRMOptics, cast
 from amigo.visibility import Injector, LatentBasis, UVGrid
 
@@ -158,9 +159,7 @@ def load_instrument(path: str | Path) -> Instrument:
 
     Raises :class:`~amigo.errors.InputError` if the file does not match it.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "no such base-model file")
+    path = require_file(path, "base-model file")
     try:
         return eqx.tree_deserialise_leaves(path, Instrument.nominal())
     except Exception as error:  # equinox raises several types for a mismatched file

@@ -1271,11 +1271,19 @@ def process_file(
     """
     from amigo.io import jwst
     from amigo.io.calslope import calslope_name, write_calslope
+    from amigo.io.files import fingerprint
 
     source, meta = FileSource.open(uncal_path)
     pixel_dq = jwst.read_pixel_dq(source.path)
     product = process_ramps(source, settings, pixel_dq=pixel_dq, progress=progress)
     check_usable(source.path, product)
     out = Path(out_dir) / calslope_name(source.path)
-    write_calslope(out, product, meta.primary_header, meta.sci_header, uncal_name=source.path.name)
+    write_calslope(
+        out,
+        product,
+        meta.primary_header,
+        meta.sci_header,
+        uncal_name=source.path.name,
+        uncal_fingerprint=fingerprint(source.path),
+    )
     return out, product

@@ -137,7 +137,7 @@ class SlopeData(eqx.Module):
             raise ValueError(f"role {role!r} not in {ROLES}")
         if role == "flat":
             raise InputError(meta.path, "a flat field must be a calslope file, not level-2")
-        if meta.bunit.strip().upper() not in ("DN/S", "DN S-1", "DN.S**-1"):
+        if not meta.in_dn_per_s:
             raise InputError(meta.path, f"BUNIT {meta.bunit!r}: level-2 images in DN/s needed")
         if meta.ngroups < 2:
             raise InputError(meta.path, f"NGROUPS {meta.ngroups}: at least 2 groups needed")

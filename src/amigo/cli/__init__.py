@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import importlib
 import os
+import signal
 import sys
+import threading
 from typing import Any
 
 import click
@@ -74,23 +76,60 @@ def main(argv: list[str] | None = None) -> Any:
     # Compiled programs are kept between runs (amigo.cachedir): the second fit of the same
     # shapes skips the compilation, most of a cold run's time on a CPU.
     enable_compilation_cache()
+    # SIGTERM (a batch system's kill, a closed terminal) as Ctrl-C: the finally clauses run,
+    # so no temporary product is left behind (SIGKILL cannot be caught; amigo.io.atomic's
+    # temporary files are then hidden names no command reads). Restored on return, for
+    # callers in Python.
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _terminated) if main_thread else None
+    try:
+        return _run(argv)
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _run(argv: list[str] | None) -> Any:
+    """The command, with every failure turned into its one line and exit status."""
     try:
         # The arguments as given travel in the context: a command that records how it was
         # run (amigo train) reads them there, whether a console script or a caller in
         # Python invoked it.
         args = list(sys.argv[1:] if argv is None else argv)
-        return cli.main(args=args, prog_name="amigo", standalone_mode=True, obj={"argv": args})
+        # Not click's standalone mode: it would turn Ctrl-C into "Aborted!" and status 1.
+        result = cli.main(args=args, prog_name="amigo", standalone_mode=False, obj={"argv": args})
+        sys.exit(result if isinstance(result, int) else 0)
+    except click.ClickException as error:  # usage errors: click's message, status 2
+        error.show()
+        sys.exit(error.exit_code)
     except InputError as error:
         fail_input(error)
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, click.exceptions.Abort):
         click.echo("amigo: interrupted", err=True)
         sys.exit(130)
+    except OSError as error:
+        from amigo.io.atomic import OUTPUT_ERRNOS
+
+        if error.errno not in OUTPUT_ERRNOS or os.environ.get("AMIGO_DEBUG"):
+            _internal_error(error)
+        # An output folder that cannot be made or written (amigo.io.atomic covers files).
+        fail_input(InputError(error.filename, f"cannot be written ({os.strerror(error.errno)})"))
     except Exception as error:
-        if os.environ.get("AMIGO_DEBUG"):
-            raise
-        click.echo(
-            f"amigo: internal error: {type(error).__name__}: {error} "
-            "(set AMIGO_DEBUG=1 for a traceback, and please report it)",
-            err=True,
-        )
-        sys.exit(1)
+        _internal_error(error)
+
+
+def _terminated(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt
+
+
+def _internal_error(error: BaseException) -> None:
+    """A bug of amigo, not of the input: one line and exit status 1 (``AMIGO_DEBUG=1``:
+    the traceback instead)."""
+    if os.environ.get("AMIGO_DEBUG"):
+        raise error
+    click.echo(
+        f"amigo: internal error: {type(error).__name__}: {error} "
+        "(set AMIGO_DEBUG=1 for a traceback, and please report it)",
+        err=True,
+    )
+    sys.exit(1)

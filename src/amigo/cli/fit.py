@@ -175,7 +175,31 @@ def _read_fit_exposure(path: Path, role: str, level: str, superbias=None):
         ramp = Level2Input(
             image, meta.ngroups, meta.nframes, meta.group_time_s, meta.dark_reference
         )
+    _require_star(path, image)
     return FitExposure(path.name, role, meta.target, image), meta, ramp
+
+
+#: Smallest signal-to-noise ratio of an image's total flux that counts as a star: an AMI
+#: target gives thousands; an exposure of the dark sky, or a damaged file, about zero.
+MIN_STAR_SNR = 25.0
+
+
+def _require_star(path: Path, image) -> None:
+    """Refuse an image without a star: the total flux over the usable pixels, in units of
+    its own error, below :data:`MIN_STAR_SNR` (an all-negative image, a dark, a shutter
+    closed), which a fit would otherwise chase to z-scores of 1e5."""
+    import numpy as np
+
+    mask = image.mask
+    total = float(np.sum(image.data[mask]))
+    error = float(np.sqrt(np.sum(image.error[mask] ** 2)))
+    snr = total / error if error > 0 else 0.0
+    if not snr >= MIN_STAR_SNR:
+        raise InputError(
+            path,
+            f"no star: the image's total flux is {snr:.1f} times its error "
+            f"(at least {MIN_STAR_SNR:g} expected of an AMI target)",
+        )
 
 
 def key_targets(items: list) -> list:

@@ -52,6 +52,12 @@ from amigo.errors import InputError
     help="1/f noise: remove each column's offset per integration and group difference, "
     "measured on the faint pixels and reference rows (stripes), or leave it (none).",
 )
+@click.option(
+    "--force",
+    is_flag=True,
+    help="Process every file again [default: skip a file whose calslope product is "
+    "complete and records this input, these options and this amigo version].",
+)
 def command(
     uncal: tuple[Path, ...],
     out_dir: Path,
@@ -59,6 +65,7 @@ def command(
     no_adc: bool,
     saturation_dn: float | None,
     one_over_f: str,
+    force: bool = False,
 ) -> None:
     """Reduce raw ramps (uncal files) to mean slopes and their covariance (calslope files).
 
@@ -67,7 +74,7 @@ def command(
     writes means, covariances of the means, supports and a bad-pixel map
     (docs/process.md).
     """
-    from amigo.io.calslope import calslope_name
+    from amigo.io.calslope import calslope_name, is_up_to_date
     from amigo.process import SATURATION_DN, ProcessSettings, process_file
     from amigo.progress import track
 
@@ -91,6 +98,9 @@ def command(
             if name in claimed:
                 raise InputError(path, f"writes the same {name} as {claimed[name]}")
             claimed[name] = path
+            if not force and path.is_file() and is_up_to_date(out_dir / name, path, settings):
+                click.echo(f"{out_dir / name}: up to date, skipped (--force processes it again)")
+                continue
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
                 out, product = process_file(path, out_dir, settings, progress=progress)

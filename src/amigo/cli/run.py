@@ -30,11 +30,13 @@ def pipeline(
     no_hmc: bool = False,
     superbias: tuple[Path, ...] = (),
     no_first_group: bool = False,
+    force: bool = False,
 ) -> list[Path]:
     """Run process -> fit -> detect; return the calvis files that were searched.
     ``superbias``: raw ramps (darks) processed with the rest and given to ``amigo fit
     --superbias``, so the first group's photons enter the fit; ``no_first_group`` as
-    ``amigo fit --no-first-group``."""
+    ``amigo fit --no-first-group``; ``force``: process every ramp again (as ``amigo
+    process --force``; by default complete calslope products are kept)."""
     from amigo.cli import detect, fit, process
     from amigo.io.calslope import calslope_name
     from amigo.progress import step
@@ -44,7 +46,7 @@ def pipeline(
         raise InputError(sorted(overlap)[0], "is given both as --sci and --cal")
     inputs = tuple(dict.fromkeys((*sci, *cal, *superbias)))
     step(f"run: processing {len(inputs)} raw exposures")
-    ctx.invoke(process.command, uncal=inputs, out_dir=out)
+    ctx.invoke(process.command, uncal=inputs, out_dir=out, force=force)
     slopes = {path: out / calslope_name(path) for path in inputs}
     step("run: fitting")
     ctx.invoke(
@@ -80,6 +82,12 @@ def pipeline(
     "Raw dark ramps (_uncal.fits) of the same detector: processed with the rest, they give "
     "each pixel's reset level, and the first group's photons enter the fit"
 )
+@click.option(
+    "--force",
+    is_flag=True,
+    help="Process every raw file again [default: keep complete calslope products of the "
+    "same input and options, e.g. after an interruption].",
+)
 @click.pass_context
 def command(
     ctx: click.Context,
@@ -94,6 +102,7 @@ def command(
     no_hmc: bool,
     superbias: tuple[Path, ...] = (),
     no_first_group: bool = False,
+    force: bool = False,
 ) -> None:
     """Raw ramps to companions: amigo process, amigo fit and amigo detect in one go.
 
@@ -112,4 +121,5 @@ def command(
         no_hmc=no_hmc,
         superbias=superbias,
         no_first_group=no_first_group,
+        force=force,
     )

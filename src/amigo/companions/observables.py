@@ -39,6 +39,7 @@ from jax import Array
 
 from amigo.errors import InputError
 from amigo.io.calvis import CalVis, is_calvis, read_calvis
+from amigo.io.files import require_file
 from amigo.io.oifits import OIFits, is_oifits, read_oifits
 
 #: Observable kinds, indexed by the integers stored in :attr:`Observables.kinds`.
@@ -399,8 +400,7 @@ def load(
     path = os.fspath(path)
     if observables not in OBSERVABLE_CHOICES:
         raise ValueError(f"observables must be one of {list(OBSERVABLE_CHOICES)}")
-    if not os.path.isfile(path):
-        raise InputError(path, "no such file")
+    require_file(path, "calvis or OIFITS file")
     if is_calvis(path):
         block = from_calvis(read_calvis(path), source=path)
     elif is_oifits(path):

@@ -4,7 +4,8 @@ Layout (the public contract of docs/interfaces; ``ng`` groups, ``(ny, nx)`` = (8
 
     PRIMARY    the uncal primary header + AMIGOVER, ADC_CORR (T/F), NSIGCLIP, and the
                processing record (SATLEVEL, MINSUP, CLIPSAMP, NREJRAMP, NREJSLOP, NBADPIX,
-               UNCALFIL, ONEOVERF: the 1/f treatment, absent from older files = none)
+               UNCALFIL, UNCALSUM: its fingerprint, ONEOVERF: the 1/f treatment, absent
+               from older files = none)
     SLOPE      float32 (ng-1, ny, nx)        mean group differences, DN per group; its
                header is the uncal SCI header (WCS and orientation keywords included)
     SLOPE_COV  float32 (ng-1, ng-1, ny, nx)  covariance of SLOPE, DN^2
@@ -31,8 +32,9 @@ from astropy.io import fits
 from amigo._version import __version__
 from amigo.errors import InputError
 from amigo.io.atomic import atomic_path
+from amigo.io.files import damaged, fingerprint
 from amigo.io.jwst import open_fits
-from amigo.process import BAD_REASONS, SlopeProduct
+from amigo.process import BAD_REASONS, ProcessSettings, SlopeProduct
 
 #: Extensions every calslope file has, in order.
 EXTENSIONS: tuple[str, ...] = (
@@ -140,6 +142,7 @@ def write_calslope(
     sci_header: fits.Header,
     *,
     uncal_name: str | None = None,
+    uncal_fingerprint: str | None = None,
 ) -> Path:
     """Write ``product`` to ``path`` atomically; return the path.
 
@@ -153,6 +156,9 @@ def write_calslope(
         The uncal file's PRIMARY and SCI headers (copied, never modified).
     uncal_name
         Name of the input file, recorded as UNCALFIL.
+    uncal_fingerprint
+        :func:`amigo.io.files.fingerprint` of the input, recorded as UNCALSUM (a re-run
+        skips a file whose product records its input and settings, :func:`is_up_to_date`).
     """
     path = Path(path)
     settings = product.settings
@@ -174,6 +180,8 @@ def write_calslope(
     primary["ONEOVERF"] = (settings.one_over_f, "1/f noise: stripes removed, or none")
     if uncal_name is not None:
         primary["UNCALFIL"] = (uncal_name, "raw-ramp file processed")
+    if uncal_fingerprint is not None:
+        primary["UNCALSUM"] = (uncal_fingerprint, "fingerprint of that file (size, ends)")
 
     slope_header = _data_header(sci_header)
     slope_header["BUNIT"] = ("DN", "per group")
@@ -211,10 +219,32 @@ def write_calslope(
     return path
 
 
+def is_up_to_date(product_path: Path, uncal_path: Path, settings: ProcessSettings) -> bool:
+    """Whether ``product_path`` is a complete, valid calslope file of ``uncal_path`` (same
+    name and :func:`~amigo.io.files.fingerprint`) processed by this amigo version with
+    ``settings``: ``amigo process`` then skips it (restart after an interruption)."""
+    if not product_path.is_file():
+        return False
+    try:
+        header = read_calslope(product_path).primary_header
+    except InputError:
+        return False  # damaged or incomplete: processed again
+    expected = {
+        "UNCALFIL": uncal_path.name,
+        "UNCALSUM": fingerprint(uncal_path),
+        "AMIGOVER": __version__,
+        "ADC_CORR": bool(settings.adc_correction),
+        "NSIGCLIP": float(settings.nsigma),
+        "SATLEVEL": float(settings.saturation_dn),
+        "ONEOVERF": settings.one_over_f,
+    }
+    return all(header.get(key) == value for key, value in expected.items())
+
+
 def read_calslope(path: str | os.PathLike[str]) -> CalSlope:
     """Read and validate a calslope file; raise :class:`InputError` if it is not one."""
     path = Path(path)
-    with open_fits(path) as hdul:
+    with open_fits(path) as hdul, damaged(path, "calslope file"):
         missing = [name for name in EXTENSIONS if name not in hdul]
         if missing:
             raise InputError(path, f"not a calslope file: no {', '.join(missing)} extension")
@@ -242,6 +272,12 @@ def read_calslope(path: str | os.PathLike[str]) -> CalSlope:
     for name, shape in expected.items():
         if arrays[name].shape != shape:
             raise InputError(path, f"{name} has shape {arrays[name].shape}, expected {shape}")
+    for name in ("SLOPE_SUP", "RAMP_SUP"):
+        counts = arrays[name]
+        if not np.all(np.isfinite(counts) & (counts >= 0) & (counts == np.round(counts))):
+            raise InputError(path, f"{name} holds values that are not integration counts")
+    if not np.all(np.isin(arrays["BADPIX"], (0, 1))):
+        raise InputError(path, "BADPIX holds values other than 0 and 1")
     return CalSlope(
         slope_dn=arrays["SLOPE"],
         slope_cov_dn2=arrays["SLOPE_COV"],

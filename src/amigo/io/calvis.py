@@ -43,6 +43,8 @@ from astropy.io import fits
 from amigo._version import __version__
 from amigo.errors import InputError
 from amigo.io.atomic import atomic_path
+from amigo.io.files import damaged, is_regular_file, require_file
+from amigo.io.jwst import open_fits
 from amigo.orientation import Orientation
 
 #: Value of the ``CONTENT`` keyword that identifies a calvis file.
@@ -193,21 +195,19 @@ def write_calvis(
 
 def is_calvis(path: str | os.PathLike[str]) -> bool:
     """True if ``path`` is a FITS file whose primary header says it is a calvis file."""
-    try:
-        header = fits.getheader(path, 0)
-    except (OSError, ValueError):
+    if not is_regular_file(path):
         return False
-    return str(header.get("CONTENT", "")).strip().upper() == CONTENT
+    try:
+        with open_fits(path) as hdul:
+            return str(hdul[0].header.get("CONTENT", "")).strip().upper() == CONTENT
+    except InputError:
+        return False
 
 
 def read_calvis(path: str | os.PathLike[str]) -> CalVis:
     """Read and validate a calvis file; raise :class:`InputError` if it is unusable."""
-    path = os.fspath(path)
-    try:
-        hdul = fits.open(path, memmap=False)
-    except (OSError, ValueError) as error:
-        raise InputError(path, f"cannot be read as FITS ({error})") from None
-    with hdul:
+    path = os.fspath(require_file(path, "calvis file"))
+    with open_fits(path) as hdul, damaged(path, "calvis file"):
         primary = hdul[0].header
         if str(primary.get("CONTENT", "")).strip().upper() != CONTENT:
             raise InputError(path, f"is not a calvis file (CONTENT is not {CONTENT!r})")

@@ -18,6 +18,7 @@ from astropy.io import fits
 from amigo import instrument
 from amigo.errors import InputError
 from amigo.io import jwst
+from amigo.io.files import damaged
 from amigo.orientation import Orientation
 
 
@@ -170,7 +171,7 @@ def summarise(path: str | os.PathLike[str]) -> FileSummary:
     path = Path(path)
     try:
         hdul = jwst.open_fits(path)
-        with hdul:
+        with hdul, damaged(path, "file"):
             names = _hdu_names(hdul)
             if "SLOPE" in names:
                 return _summarise_calslope(path, hdul)
@@ -178,6 +179,7 @@ def summarise(path: str | os.PathLike[str]) -> FileSummary:
                 return _summarise_calvis(path, hdul)
             if names & {"OI_VIS2", "OI_T3", "OI_VIS"}:
                 return _summarise_oifits(path, hdul)
-        return _summarise_exposure(path)
+        with damaged(path, "file"):
+            return _summarise_exposure(path)
     except InputError as error:
         return FileSummary(path=path, kind="?", verdict=f"invalid: {error.problem}", valid=False)

@@ -19,6 +19,7 @@ Kinds: ``uncal`` (SCI uint16, (nints, ngroups, ny, nx)), ``rateints`` / ``calint
 
 from __future__ import annotations
 
+import math
 import os
 import re
 import warnings
@@ -32,6 +33,7 @@ from astropy.io import fits
 
 from amigo import instrument
 from amigo.errors import InputError
+from amigo.io.files import damaged, require_file
 from amigo.orientation import Orientation
 
 #: DQ bit flags used by amigo. Source: JWST pipeline DQ definitions (jwst-formats-and-stack).
@@ -125,6 +127,12 @@ class ExposureMeta:
         return self.kind in RAMP_KINDS
 
     @property
+    def in_dn_per_s(self) -> bool:
+        """Whether BUNIT is a count rate in DN/s (level-2 images before the pipeline's
+        photometric calibration; after it, MJy/sr, the noise model in DN does not apply)."""
+        return self.bunit.strip().upper().replace(" ", "") in ("DN/S", "DNS-1", "DN.S**-1")
+
+    @property
     def slope_time_s(self) -> float:
         """Seconds of photon collection a slope fit uses, all integrations together.
 
@@ -191,28 +199,71 @@ class Exposure:
 
 # ------------------------------------------------------------------------------ helpers
 def open_fits(path: str | os.PathLike[str]) -> fits.HDUList:
-    """Open a FITS file lazily, turning every failure into one InputError.
+    """Open a FITS file, turning every failure into one InputError.
 
-    Checks that the file exists, starts like a FITS file, parses, and is as long as its
-    headers say (a truncated download). Used by every FITS reader of amigo.
+    Checks that the path is a regular file, that it starts like a FITS file, that every
+    HDU parses (astropy reads a damaged header into a placeholder HDU, or fails later on
+    a card it cannot parse), that the HDUs follow each other (a negative or absurd size
+    keyword can send astropy's reader back to an earlier HDU, for ever: at most
+    :data:`MAX_HDUS` are read), and that the file is as long as its headers say (a
+    truncated download). Used by every FITS reader of amigo.
     """
-    path = Path(path)
-    if not path.exists():
-        raise InputError(path, "no such file")
-    if path.is_dir():
-        raise InputError(path, "is a directory, not a FITS file")
-    with open(path, "rb") as handle:
-        start = handle.read(30)
+    path = require_file(path, "FITS file")
+    try:
+        with open(path, "rb") as handle:
+            start = handle.read(30)
+    except OSError as error:
+        raise InputError(path, f"cannot be read ({error.strerror or error})") from None
     if not start.startswith(b"SIMPLE  ="):
         raise InputError(path, "not a FITS file")
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            hdul = fits.open(path, memmap=False, lazy_load_hdus=False)
+            hdul = fits.open(path, memmap=False, lazy_load_hdus=True)
     except Exception as error:  # astropy raises several types for damaged files
         raise InputError(path, f"cannot be read as FITS ({error})") from None
-    _check_complete(path, hdul)
+    try:
+        _read_structure(path, hdul)
+        _check_complete(path, hdul)
+    except BaseException:
+        hdul.close()
+        raise
     return hdul
+
+
+#: Most HDUs a FITS file amigo reads may have (JWST products have about ten).
+MAX_HDUS = 64
+#: The HDU classes amigo can read; astropy uses others for headers it could not parse.
+_READABLE_HDUS = (fits.PrimaryHDU, fits.ImageHDU, fits.BinTableHDU, fits.TableHDU)
+
+
+def _read_structure(path: Path, hdul: fits.HDUList) -> None:
+    """Load the HDUs one by one (see :func:`open_fits`), parsing every header card."""
+    previous = -1
+    for index in range(MAX_HDUS + 1):
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                hdu = hdul[index]
+                location = hdul.fileinfo(index)["hdrLoc"] if hasattr(hdu, "fileinfo") else None
+        except IndexError:
+            return  # every HDU read
+        except Exception as error:
+            raise InputError(path, f"HDU {index} cannot be read ({error})") from None
+        if index == MAX_HDUS:
+            raise InputError(path, f"has more than {MAX_HDUS} HDUs: not an AMI product")
+        if not isinstance(hdu, _READABLE_HDUS):
+            raise InputError(path, f"HDU {index} is damaged: its header cannot be parsed")
+        if location is None or location <= previous:
+            raise InputError(path, f"HDU {index} overlaps the one before: damaged sizes")
+        previous = location
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                for card in hdu.header.cards:
+                    card.value  # noqa: B018 -- parsing is the check
+        except Exception as error:
+            raise InputError(path, f"HDU {index} has an unreadable header card ({error})") from None
 
 
 def _check_complete(path: Path, hdul: fits.HDUList) -> None:
@@ -224,7 +275,6 @@ def _check_complete(path: Path, hdul: fits.HDUList) -> None:
             continue
         end = info["datLoc"] + info["datSpan"]
         if end > size:
-            hdul.close()
             name = hdul[index].name or f"HDU {index}"
             raise InputError(
                 path, f"truncated file: {name} needs {end} bytes but the file has {size}"
@@ -236,6 +286,63 @@ def _get(headers: tuple[fits.Header, ...], key: str) -> Any:
         if key in header and header[key] is not None and header[key] != "":
             return header[key]
     return None
+
+
+def _is_number(value: Any) -> bool:
+    """A FITS number (bool is not one, although Python says it is an int)."""
+    return isinstance(value, int | float | np.integer | np.floating) and not isinstance(
+        value, bool | np.bool_
+    )
+
+
+def _count(path: Path, headers: tuple[fits.Header, ...], key: str, default: int | None) -> int:
+    """Keyword ``key`` as a positive integer (``default`` when absent; ``None``: required)."""
+    value = _get(headers, key)
+    if value is None:
+        if default is None:
+            raise InputError(path, f"missing required keyword {key}")
+        return default
+    if not _is_number(value) or not math.isfinite(value) or value != int(value) or value < 1:
+        raise InputError(path, f"{key} is {value!r}: expected a positive integer")
+    return int(value)
+
+
+def _positive_seconds(path: Path, headers: tuple[fits.Header, ...], key: str) -> float | None:
+    """Keyword ``key`` as a positive finite time (s), ``None`` when absent."""
+    value = _get(headers, key)
+    if value is None:
+        return None
+    if not _is_number(value) or not math.isfinite(value) or value <= 0:
+        raise InputError(path, f"{key} is {value!r}: expected a positive time in seconds")
+    return float(value)
+
+
+def _check_orientation_keywords(path: Path, headers: tuple[fits.Header, ...]) -> None:
+    """The angles finite numbers and VPARITY +1 or -1, where present (the JWST keywords
+    :class:`~amigo.orientation.Orientation` reads)."""
+    for key in ("PA_APER", "ROLL_REF", "V3I_YANG"):
+        value = _get(headers, key)
+        if value is not None and (not _is_number(value) or not math.isfinite(value)):
+            raise InputError(path, f"{key} is {value!r}: expected an angle in degrees")
+    parity = _get(headers, "VPARITY")
+    if parity is not None and (not _is_number(parity) or parity not in (1, -1)):
+        raise InputError(path, f"VPARITY is {parity!r}: expected +1 or -1")
+
+
+def _array_like(
+    path: Path, hdu: fits.ImageHDU, name: str, shape: tuple[int, ...], dtype: type = np.float64
+) -> np.ndarray:
+    """The data of extension ``name`` as ``dtype``, of the SCI ``shape`` (a per-pixel map
+    of a cube's frame shape also serves); :class:`InputError` otherwise."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # casting NaN or negatives: judged by the caller
+            array = np.array(hdu.data, dtype=dtype)
+    except Exception as error:
+        raise InputError(path, f"{name} data cannot be read ({error})") from None
+    if array.shape != tuple(shape) and array.shape != tuple(shape[-2:]):
+        raise InputError(path, f"{name} has shape {array.shape}, SCI has {tuple(shape)}")
+    return array
 
 
 def _ext(hdul: fits.HDUList, name: str) -> fits.ImageHDU | None:
@@ -281,7 +388,8 @@ def read_header(path: str | os.PathLike[str], *, need_slopes: bool = False) -> E
     path = Path(path)
     hdul = open_fits(path)
     try:
-        return _validate(path, hdul, need_slopes=need_slopes)
+        with damaged(path, "JWST exposure"):
+            return _validate(path, hdul, need_slopes=need_slopes)
     finally:
         hdul.close()
 
@@ -360,8 +468,9 @@ def meta_from_headers(
     if shape[-2:] != (instrument.SUBARRAY_SIZE, instrument.SUBARRAY_SIZE):
         raise InputError(path, f"SCI frames are {shape[-2]}x{shape[-1]}, expected 80x80 (SUB80)")
 
-    ngroups = int(_get(headers, "NGROUPS"))
-    nints = int(_get(headers, "NINTS"))
+    ngroups = _count(path, headers, "NGROUPS", None)
+    nints = _count(path, headers, "NINTS", None)
+    nframes = _count(path, headers, "NFRAMES", 1)
     if kind == "uncal":
         if shape[0] != nints or shape[1] != ngroups:
             raise InputError(
@@ -374,13 +483,14 @@ def meta_from_headers(
     elif kind in CUBE_KINDS and shape[0] < 1:
         raise InputError(path, "SCI has no integrations")
 
+    _check_orientation_keywords(path, headers)
     try:
         orientation = Orientation.from_header(sci_header, primary)
     except KeyError:
         raise InputError(path, "missing orientation keywords (PA_APER or ROLL_REF)") from None
 
-    group_time = _get(headers, "TGROUP")
-    frame_time = _get(headers, "TFRAME")
+    group_time = _positive_seconds(path, headers, "TGROUP")
+    frame_time = _positive_seconds(path, headers, "TFRAME")
     if group_time is None:
         if kind == "uncal":
             raise InputError(path, "missing required keyword TGROUP")
@@ -401,7 +511,7 @@ def meta_from_headers(
         subarray=subarray,
         ngroups=ngroups,
         nints=nints,
-        nframes=int(_get(headers, "NFRAMES") or 1),
+        nframes=nframes,
         group_time_s=float(group_time),
         frame_time_s=float(frame_time) if frame_time is not None else float(group_time),
         program=str(_get(headers, "PROGRAM") or ""),
@@ -429,12 +539,9 @@ def data_kind(path: str | os.PathLike[str]) -> str:
     path = Path(path)
     if path.name.lower().endswith("_calslope.fits"):
         return "calslope"
-    try:
-        with fits.open(path) as hdul:
-            if "SLOPE" in hdul:
-                return "calslope"
-    except (OSError, ValueError):
-        pass  # read_header reports unreadable files precisely
+    with open_fits(path) as hdul:
+        if "SLOPE" in hdul:
+            return "calslope"
     return read_header(path).kind
 
 
@@ -451,42 +558,47 @@ def read_exposure(path: str | os.PathLike[str], *, need_slopes: bool = False) ->
     path = Path(path)
     hdul = open_fits(path)
     try:
-        meta = _validate(path, hdul, need_slopes=need_slopes)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            try:
-                data = np.array(hdul["SCI"].data, dtype=np.float64)
-            except Exception as error:
-                raise InputError(path, f"SCI data cannot be read ({error})") from None
-        frame_shape = data.shape[-2:]
-        usable = ~instrument.reference_row_mask(*frame_shape)
-        if meta.kind == "uncal":
-            dq_hdu = _ext(hdul, "PIXELDQ")
-            dq = None if dq_hdu is None else np.asarray(dq_hdu.data, dtype=np.uint32)
-            if dq is not None:
-                usable &= (dq & DQ_DO_NOT_USE) == 0
-            return Exposure(meta=meta, data=data, err=None, dq=dq, usable=usable)
-
-        err_hdu, dq_hdu = _ext(hdul, "ERR"), _ext(hdul, "DQ")
-        err = None if err_hdu is None else np.array(err_hdu.data, dtype=np.float64)
-        dq = None if dq_hdu is None else np.array(dq_hdu.data, dtype=np.uint32)
-        flagged = np.zeros(data.shape, dtype=bool)
-        if dq is not None:
-            flagged |= np.broadcast_to((dq & DQ_DO_NOT_USE) != 0, data.shape)
-        nonfinite = ~np.isfinite(data)
-        bad_nonfinite = nonfinite & ~flagged & ~instrument.reference_row_mask(*frame_shape)
-        if bad_nonfinite.any():
-            raise InputError(
-                path,
-                f"SCI has {int(bad_nonfinite.sum())} NaN/inf values in pixels not flagged "
-                "DO_NOT_USE",
-            )
-        usable = np.broadcast_to(usable, data.shape) & ~flagged & ~nonfinite
-        if err is not None:
-            usable &= np.isfinite(err) & (err > 0)
-        return Exposure(meta=meta, data=data, err=err, dq=dq, usable=usable)
+        with damaged(path, "JWST exposure"):
+            return _read_exposure(path, hdul, need_slopes)
     finally:
         hdul.close()
+
+
+def _read_exposure(path: Path, hdul: fits.HDUList, need_slopes: bool) -> Exposure:
+    """The body of :func:`read_exposure` (the file is open; the caller closes it)."""
+    meta = _validate(path, hdul, need_slopes=need_slopes)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            data = np.array(hdul["SCI"].data, dtype=np.float64)
+        except Exception as error:
+            raise InputError(path, f"SCI data cannot be read ({error})") from None
+    frame_shape = data.shape[-2:]
+    usable = ~instrument.reference_row_mask(*frame_shape)
+    if meta.kind == "uncal":
+        dq_hdu = _ext(hdul, "PIXELDQ")
+        dq = None if dq_hdu is None else np.asarray(dq_hdu.data, dtype=np.uint32)
+        if dq is not None:
+            usable &= (dq & DQ_DO_NOT_USE) == 0
+        return Exposure(meta=meta, data=data, err=None, dq=dq, usable=usable)
+
+    err_hdu, dq_hdu = _ext(hdul, "ERR"), _ext(hdul, "DQ")
+    err = None if err_hdu is None else _array_like(path, err_hdu, "ERR", data.shape)
+    dq = None if dq_hdu is None else _array_like(path, dq_hdu, "DQ", data.shape, np.uint32)
+    flagged = np.zeros(data.shape, dtype=bool)
+    if dq is not None:
+        flagged |= np.broadcast_to((dq & DQ_DO_NOT_USE) != 0, data.shape)
+    nonfinite = ~np.isfinite(data)
+    bad_nonfinite = nonfinite & ~flagged & ~instrument.reference_row_mask(*frame_shape)
+    if bad_nonfinite.any():
+        raise InputError(
+            path,
+            f"SCI has {int(bad_nonfinite.sum())} NaN/inf values in pixels not flagged DO_NOT_USE",
+        )
+    usable = np.broadcast_to(usable, data.shape) & ~flagged & ~nonfinite
+    if err is not None:
+        usable &= np.isfinite(err) & (err > 0)
+    return Exposure(meta=meta, data=data, err=err, dq=dq, usable=usable)
 
 
 def iter_ramps(

@@ -33,6 +33,8 @@ import numpy as np
 from astropy.io import fits
 
 from amigo.errors import InputError
+from amigo.io.files import damaged, is_regular_file, require_file
+from amigo.io.jwst import open_fits
 
 
 @dataclass(frozen=True)
@@ -109,21 +111,19 @@ class OIFits:
 
 def is_oifits(path: str | os.PathLike[str]) -> bool:
     """True if ``path`` is a FITS file with an ``OI_VIS2`` or ``OI_T3`` table."""
+    if not is_regular_file(path):
+        return False
     try:
-        with fits.open(path, memmap=False) as hdul:
+        with open_fits(path) as hdul:
             return any(h.name in ("OI_VIS2", "OI_T3") for h in hdul)
-    except (OSError, ValueError):
+    except InputError:
         return False
 
 
 def read_oifits(path: str | os.PathLike[str]) -> OIFits:
     """Read V2 and closure phases from an OIFITS file; raise :class:`InputError` if unusable."""
-    path = os.fspath(path)
-    try:
-        hdul = fits.open(path, memmap=False)
-    except (OSError, ValueError) as error:
-        raise InputError(path, f"cannot be read as FITS ({error})") from None
-    with hdul:
+    path = os.fspath(require_file(path, "OIFITS file"))
+    with open_fits(path) as hdul, damaged(path, "OIFITS file"):
         if not any(h.name in ("OI_VIS2", "OI_T3") for h in hdul):
             raise InputError(path, "has neither OI_VIS2 nor OI_T3 table: not an OIFITS file")
         wavelengths = _wavelength_tables(hdul, path)
