@@ -74,6 +74,13 @@ def main() -> None:
         totals.update(counter)
         print(f"| {kind} | {damage} | " + " | ".join(str(counter[o]) for o in outcomes) + " |")
     print("| all | all | " + " | ".join(str(totals[o]) for o in outcomes) + " |")
+    print(f"\n| kind | {' | '.join(outcomes)} |")
+    print("|---|" + "---|" * len(outcomes))
+    by_kind: dict = collections.defaultdict(collections.Counter)
+    for (kind, _), counter in counts.items():
+        by_kind[kind].update(counter)
+    for kind, counter in sorted(by_kind.items()):
+        print(f"| {kind} | " + " | ".join(str(counter[o]) for o in outcomes) + " |")
     print(f"\n{sum(totals.values())} cases in {seconds:.0f} s")
     for kind, case, error in broken[:20]:
         print(f"BROKEN {kind} {case}: {error}")

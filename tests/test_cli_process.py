@@ -63,7 +63,8 @@ def _bad_inputs(tmp_path: Path, good_raw: np.ndarray) -> dict[str, Path]:
     data = truncated.read_bytes()
     truncated.write_bytes(data[: len(data) - 20000])
     bad["truncated"] = truncated
-    bad["one_group"] = write_uncal(tmp_path / "onegroup_uncal.fits", good_raw[:, :1])
+    # (one group per integration is processed since 2026-11-26: its read is the measurement)
+    bad["no_groups"] = write_uncal(tmp_path / "nogroups_uncal.fits", good_raw, NGROUPS=0)
     bad["saturated"] = write_uncal(
         tmp_path / "saturated_uncal.fits", np.full(good_raw.shape, 65535.0)
     )
@@ -86,7 +87,7 @@ def test_bad_inputs_fail_alone_and_the_others_are_processed(tmp_path, good_raw):
     assert "Traceback" not in result.stderr
     expected = {
         "truncated": "truncated",
-        "one_group": "group",
+        "no_groups": "NGROUPS is 0",
         "saturated": "saturated",
         "instrument": "NIRCAM",
     }

@@ -232,8 +232,7 @@ def read_calvis(path: str | os.PathLike[str]) -> CalVis:
             orientation = Orientation.from_header(primary)
         except KeyError as error:
             raise InputError(path, f"orientation keywords missing ({error})") from None
-        n_sci = int(primary.get("NSCI", 0))
-        n_cal = int(primary.get("NCAL", 0))
+        n_sci, n_cal = _file_count(path, primary, "NSCI"), _file_count(path, primary, "NCAL")
         reserved = _reserved_keys(n_sci, n_cal)
         extra = {
             key: primary[key]
@@ -269,6 +268,15 @@ def read_calvis(path: str | os.PathLike[str]) -> CalVis:
 
 # ------------------------------------------------------------------------------ internals
 _ORIENTATION_KEYS = ("PA_APER", "VPARITY", "V3I_YANG", "ROLL_REF")
+
+
+def _file_count(path: str, primary: fits.Header, key: str) -> int:
+    """``NSCI``/``NCAL``: how many ``SCI_n``/``CAL_n`` keywords follow; a count the header
+    cannot hold (more than its cards) is damage, not a loop to run."""
+    value = primary.get(key, 0)
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= len(primary):
+        raise InputError(path, f"{key} is {value!r}: expected the number of input-file keywords")
+    return value
 
 
 def _reserved_keys(n_sci: int, n_cal: int) -> set[str]:
