@@ -130,9 +130,11 @@ CONFIG_LIMITS: dict[str, tuple[float, float]] = {
 
 #: What reading a damaged ``.npz`` raises besides :data:`~amigo.io.files.DAMAGE`: the zip
 #: layer's errors, those of the compressed stream, and of NumPy's parser of a damaged
-#: ``.npy`` header (a Python literal).
+#: ``.npy`` header (a Python literal), and the zip module's for a compression method field
+#: it does not know.
 NPZ_DAMAGE = (
     *DAMAGE, zipfile.BadZipFile, zlib.error, EOFError, OSError, SyntaxError, tokenize.TokenError,
+    NotImplementedError,
 )  # fmt: skip
 
 

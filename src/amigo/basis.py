@@ -319,7 +319,7 @@ def load_basis(
         if candidate is not None and candidate.is_file():
             try:
                 return read_basis(candidate)
-            except (OSError, ValueError, KeyError):
+            except Exception:  # any damage to a cache file: build it again
                 step(f"basis cache {candidate} is unreadable: rebuilding it")
                 break
     if not build:
