@@ -1228,25 +1228,13 @@ def train(
     if dark_residual is not None:
         metadata["dark_residual"] = dark_residual
     if model.superbias is not None:
-        metadata["superbias"] = superbias_summary(model.superbias)
+        metadata["superbias"] = model.superbias.summary()
     save_base_model(model, out, metadata)
     from amigo.plots.optics import save
     from amigo.plots.training import loss_curve_figure
 
     save(loss_curve_figure(trainer.history, title=out.name), loss_curve_path(out))
     return model, metadata
-
-
-def superbias_summary(superbias: Superbias) -> dict[str, Any]:
-    """What the metadata records of a model's superbias: files, pixels known, and the
-    median error (DN) of the known pixels."""
-    known = superbias.known
-    error = np.sqrt(np.median(superbias.variance_dn2[known])) if known.any() else float("nan")
-    return {
-        "files": int(superbias.n_files),
-        "pixels_known": int(known.sum()),
-        "median_error_dn": round(float(error), 4),
-    }
 
 
 def checkpoint_path(out: Path) -> Path:

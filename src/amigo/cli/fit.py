@@ -22,26 +22,15 @@ from amigo.errors import InputError
 
 
 def _superbias(paths: tuple[Path, ...], level: str):
-    """The :class:`~amigo.detector.reset.Superbias` of ``--superbias`` (``None`` without)."""
-    if not paths:
-        return None
+    """The :class:`~amigo.detector.reset.Superbias` of the ``--superbias`` files."""
     if level != "calslope":
         raise InputError(
             paths[0], "--superbias needs calslope inputs (level-2 images have no first group)"
         )
-    import numpy as np
-
     from amigo.detector.reset import estimate_superbias
     from amigo.io.calslope import read_calslope
-    from amigo.progress import step
 
-    superbias = estimate_superbias([read_calslope(p) for p in paths])
-    known = superbias.known
-    rms = float(np.sqrt(np.median(superbias.variance_dn2[known]))) if known.any() else float("nan")
-    step(
-        f"superbias from {len(paths)} file(s): {int(known.sum())} pixels, median error {rms:.2f} DN"
-    )
-    return superbias
+    return estimate_superbias([read_calslope(p) for p in paths])
 
 
 def _check_inputs(sci: tuple[Path, ...], cal: tuple[Path, ...], detector: str | None) -> str:
@@ -270,18 +259,21 @@ def _reset_level(paths: tuple[Path, ...], level: str, fit_model: FitModel, off: 
             )
         return None
     if paths:
-        return _superbias(paths, level)
-    stored = None if fit_model.base is None or level != "calslope" else fit_model.base.superbias
-    if stored is not None:
-        from amigo.calibration import superbias_summary
+        superbias, source = _superbias(paths, level), f"{len(paths)} file(s)"
+    elif fit_model.base is None or level != "calslope":
+        return None
+    else:
+        superbias = fit_model.base.superbias
+        source = f"the base model ({fit_model.base.config.superbias_files} dark file(s))"
+    if superbias is not None:
         from amigo.progress import step
 
-        about = superbias_summary(stored)
+        about = superbias.summary()
         step(
-            f"superbias from the base model ({about['files']} dark file(s), "
-            f"{about['pixels_known']} pixels, median error {about['median_error_dn']:.2f} DN)"
+            f"superbias from {source}: {about['pixels_known']} pixels, "
+            f"median error {about['median_error_dn']:.2f} DN"
         )
-    return stored
+    return superbias
 
 
 _MODEL_OPTIONS = [

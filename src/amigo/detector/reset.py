@@ -88,6 +88,17 @@ class Superbias:
             n_files=n_files,
         )
 
+    def summary(self) -> dict[str, int | float]:
+        """Files, pixels known and the median error (DN) of the known pixels (a model's
+        metadata records it; ``amigo fit`` reports it)."""
+        known = self.known
+        error = np.sqrt(np.median(self.variance_dn2[known])) if known.any() else float("nan")
+        return {
+            "files": int(self.n_files),
+            "pixels_known": int(known.sum()),
+            "median_error_dn": round(float(error), 4),
+        }
+
     @property
     def known(self) -> np.ndarray:
         """(ny, nx) True where the superbias was measured (the test is against half the
