@@ -78,7 +78,7 @@ from amigo.detector.read import ReadModel, default_ipc_kernel
 from amigo.detector.reset import Superbias
 from amigo.errors import InputError
 from amigo.io.atomic import atomic_path
-from amigo.io.files import DAMAGE, require_file
+from amigo.io.files import DAMAGE, is_number, require_file
 from amigo.optics.aperture import PupilGrid, soft_hexagon, zernike_basis
 from amigo.optics.model import NRMOptics, OpticsConfig
 from amigo.optics.spectrum import LinearSpectrum
@@ -136,10 +136,6 @@ NPZ_DAMAGE = (
     *DAMAGE, zipfile.BadZipFile, zlib.error, EOFError, OSError, SyntaxError, tokenize.TokenError,
     NotImplementedError,
 )  # fmt: skip
-
-
-def _is_real(value: Any) -> bool:
-    return isinstance(value, int | float) and not isinstance(value, bool)
 
 
 @dataclass(frozen=True)
@@ -227,7 +223,7 @@ class BaseModelConfig:
         not make the loader allocate without bound)."""
         if not isinstance(record, dict):
             raise ValueError(f"config is {type(record).__name__}, not a mapping")
-        known = {f.name: f for f in dataclasses.fields(cls)}
+        known = {f.name for f in dataclasses.fields(cls)}
         values = {k: v for k, v in record.items() if k in known}
         for key in ("filters", "shape"):
             if key in values:
@@ -239,7 +235,7 @@ class BaseModelConfig:
             expected = type(getattr(default, key))
             ok = isinstance(value, expected) and not (expected is int and isinstance(value, bool))
             if expected is float:
-                ok = _is_real(value) and math.isfinite(value)
+                ok = is_number(value) and math.isfinite(value)
             if not ok:
                 raise ValueError(f"config {key} is {value!r}, not a {expected.__name__}")
             if key in CONFIG_LIMITS and not CONFIG_LIMITS[key][0] <= value <= CONFIG_LIMITS[key][1]:

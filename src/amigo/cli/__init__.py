@@ -108,12 +108,12 @@ def _run(argv: list[str] | None) -> Any:
         click.echo("amigo: interrupted", err=True)
         sys.exit(130)
     except OSError as error:
-        from amigo.io.atomic import OUTPUT_ERRNOS
+        from amigo.io.atomic import OUTPUT_ERRNOS, unwritable
 
         if error.errno not in OUTPUT_ERRNOS or os.environ.get("AMIGO_DEBUG"):
             _internal_error(error)
         # An output folder that cannot be made or written (amigo.io.atomic covers files).
-        fail_input(InputError(error.filename, f"cannot be written ({os.strerror(error.errno)})"))
+        fail_input(unwritable(error.filename, error))
     except Exception as error:
         _internal_error(error)
 

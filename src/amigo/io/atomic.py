@@ -26,6 +26,12 @@ OUTPUT_ERRNOS = frozenset(
 )  # fmt: skip
 
 
+def unwritable(path: str | os.PathLike[str] | None, error: OSError) -> InputError:
+    """The one line for an output that cannot be written (``error.errno`` in
+    :data:`OUTPUT_ERRNOS`), naming ``path``."""
+    return InputError(path, f"cannot be written ({os.strerror(error.errno)})")
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; rename it onto ``path`` on success.
@@ -50,7 +56,7 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
         os.replace(tmp, final)
     except OSError as error:
         if error.errno in OUTPUT_ERRNOS:
-            raise InputError(final, f"cannot be written ({os.strerror(error.errno)})") from None
+            raise unwritable(final, error) from None
         raise
     finally:
         if tmp is not None and tmp.exists():

@@ -43,7 +43,7 @@ from astropy.io import fits
 from amigo._version import __version__
 from amigo.errors import InputError
 from amigo.io.atomic import atomic_path
-from amigo.io.files import damaged, is_regular_file, require_file
+from amigo.io.files import damaged, require_file
 from amigo.io.jwst import open_fits
 from amigo.orientation import Orientation
 
@@ -195,9 +195,7 @@ def write_calvis(
 
 def is_calvis(path: str | os.PathLike[str]) -> bool:
     """True if ``path`` is a FITS file whose primary header says it is a calvis file."""
-    if not is_regular_file(path):
-        return False
-    try:
+    try:  # open_fits refuses a FIFO, a directory... without opening it
         with open_fits(path) as hdul:
             return str(hdul[0].header.get("CONTENT", "")).strip().upper() == CONTENT
     except InputError:

@@ -10,11 +10,13 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import numbers
 import os
 import stat
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 from astropy.io.fits.verify import VerifyError
 
 from amigo.errors import InputError
@@ -65,12 +67,10 @@ def fingerprint(path: str | os.PathLike[str]) -> str:
     return digest.hexdigest()[:16]
 
 
-def is_regular_file(path: str | os.PathLike[str]) -> bool:
-    """Whether ``path`` is a regular file (for predicates that must never block)."""
-    try:
-        return stat.S_ISREG(Path(path).stat().st_mode)
-    except OSError:
-        return False
+def is_number(value: object) -> bool:
+    """A real number as a FITS header or a JSON record holds one (a bool is not one,
+    although Python and NumPy count it as an integer)."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool | np.bool_)
 
 
 #: What reading a damaged file raises in NumPy and astropy once it has opened: a table

@@ -170,16 +170,15 @@ def summarise(path: str | os.PathLike[str]) -> FileSummary:
     """Identify and validate one file; never raises for a bad file (the row says why)."""
     path = Path(path)
     try:
-        hdul = jwst.open_fits(path)
-        with hdul, damaged(path, "file"):
-            names = _hdu_names(hdul)
-            if "SLOPE" in names:
-                return _summarise_calslope(path, hdul)
-            if str(hdul[0].header.get("AMIGOPRD", "")).lower() == "calvis" or "DISCO" in names:
-                return _summarise_calvis(path, hdul)
-            if names & {"OI_VIS2", "OI_T3", "OI_VIS"}:
-                return _summarise_oifits(path, hdul)
         with damaged(path, "file"):
+            with jwst.open_fits(path) as hdul:
+                names = _hdu_names(hdul)
+                if "SLOPE" in names:
+                    return _summarise_calslope(path, hdul)
+                if str(hdul[0].header.get("AMIGOPRD", "")).lower() == "calvis" or "DISCO" in names:
+                    return _summarise_calvis(path, hdul)
+                if names & {"OI_VIS2", "OI_T3", "OI_VIS"}:
+                    return _summarise_oifits(path, hdul)
             return _summarise_exposure(path)
     except InputError as error:
         return FileSummary(path=path, kind="?", verdict=f"invalid: {error.problem}", valid=False)

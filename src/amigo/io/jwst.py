@@ -33,7 +33,7 @@ from astropy.io import fits
 
 from amigo import instrument
 from amigo.errors import InputError
-from amigo.io.files import damaged, require_file
+from amigo.io.files import damaged, is_number, require_file
 from amigo.orientation import Orientation
 
 #: DQ bit flags used by amigo. Source: JWST pipeline DQ definitions (jwst-formats-and-stack).
@@ -288,13 +288,6 @@ def _get(headers: tuple[fits.Header, ...], key: str) -> Any:
     return None
 
 
-def _is_number(value: Any) -> bool:
-    """A FITS number (bool is not one, although Python says it is an int)."""
-    return isinstance(value, int | float | np.integer | np.floating) and not isinstance(
-        value, bool | np.bool_
-    )
-
-
 def _count(path: Path, headers: tuple[fits.Header, ...], key: str, default: int | None) -> int:
     """Keyword ``key`` as a positive integer (``default`` when absent; ``None``: required)."""
     value = _get(headers, key)
@@ -302,7 +295,7 @@ def _count(path: Path, headers: tuple[fits.Header, ...], key: str, default: int 
         if default is None:
             raise InputError(path, f"missing required keyword {key}")
         return default
-    if not _is_number(value) or not math.isfinite(value) or value != int(value) or value < 1:
+    if not is_number(value) or not math.isfinite(value) or value != int(value) or value < 1:
         raise InputError(path, f"{key} is {value!r}: expected a positive integer")
     return int(value)
 
@@ -312,20 +305,25 @@ def _positive_seconds(path: Path, headers: tuple[fits.Header, ...], key: str) ->
     value = _get(headers, key)
     if value is None:
         return None
-    if not _is_number(value) or not math.isfinite(value) or value <= 0:
+    if not is_number(value) or not math.isfinite(value) or value <= 0:
         raise InputError(path, f"{key} is {value!r}: expected a positive time in seconds")
     return float(value)
 
 
 def _check_orientation_keywords(path: Path, headers: tuple[fits.Header, ...]) -> None:
-    """The angles finite numbers and VPARITY +1 or -1, where present (the JWST keywords
-    :class:`~amigo.orientation.Orientation` reads)."""
+    """The angles finite numbers and VPARITY +1 or -1, where present: the values
+    :meth:`~amigo.orientation.Orientation.from_header` reads from ``headers`` (the first
+    header holding a keyword wins, as there)."""
+
+    def first(key: str) -> Any:
+        return next((h[key] for h in headers if key in h and h[key] is not None), None)
+
     for key in ("PA_APER", "ROLL_REF", "V3I_YANG"):
-        value = _get(headers, key)
-        if value is not None and (not _is_number(value) or not math.isfinite(value)):
+        value = first(key)
+        if value is not None and (not is_number(value) or not math.isfinite(value)):
             raise InputError(path, f"{key} is {value!r}: expected an angle in degrees")
-    parity = _get(headers, "VPARITY")
-    if parity is not None and (not _is_number(parity) or parity not in (1, -1)):
+    parity = first("VPARITY")
+    if parity is not None and (not is_number(parity) or parity not in (1, -1)):
         raise InputError(path, f"VPARITY is {parity!r}: expected +1 or -1")
 
 
@@ -483,7 +481,7 @@ def meta_from_headers(
     elif kind in CUBE_KINDS and shape[0] < 1:
         raise InputError(path, "SCI has no integrations")
 
-    _check_orientation_keywords(path, headers)
+    _check_orientation_keywords(path, (sci_header, primary))
     try:
         orientation = Orientation.from_header(sci_header, primary)
     except KeyError:
@@ -542,7 +540,8 @@ def data_kind(path: str | os.PathLike[str]) -> str:
     with open_fits(path) as hdul:
         if "SLOPE" in hdul:
             return "calslope"
-    return read_header(path).kind
+        with damaged(path, "JWST exposure"):
+            return _validate(path, hdul, need_slopes=False).kind
 
 
 def is_level2(path: str | os.PathLike[str]) -> bool:

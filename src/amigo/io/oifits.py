@@ -33,7 +33,7 @@ import numpy as np
 from astropy.io import fits
 
 from amigo.errors import InputError
-from amigo.io.files import damaged, is_regular_file, require_file
+from amigo.io.files import damaged, require_file
 from amigo.io.jwst import open_fits
 
 
@@ -111,9 +111,7 @@ class OIFits:
 
 def is_oifits(path: str | os.PathLike[str]) -> bool:
     """True if ``path`` is a FITS file with an ``OI_VIS2`` or ``OI_T3`` table."""
-    if not is_regular_file(path):
-        return False
-    try:
+    try:  # open_fits refuses a FIFO, a directory... without opening it
         with open_fits(path) as hdul:
             return any(h.name in ("OI_VIS2", "OI_T3") for h in hdul)
     except InputError:
