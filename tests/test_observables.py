@@ -139,3 +139,36 @@ def test_knot_nuisance_makes_the_kernel_blind_to_those_knots():
     blind = kernel.matrix @ to_latent[:, np.concatenate([knots, n_used + knots])]
     assert np.abs(blind).max() < 1e-10
     assert kernel.amp.shape[0] == m - 4 - 3 and kernel.phase.shape[0] == m - 4 - 3
+
+
+def test_discos_leave_out_directions_of_no_variance_and_fail_when_none_is_left():
+    """A kernel covariance that is not positive definite (here: the science and the
+    calibrator covariance cancel along chosen directions) gives no DISCO there, instead
+    of a zero error that would weigh it infinitely; none left is a NumericalFailure."""
+    import pytest
+
+    from amigo.errors import NumericalFailure
+
+    rng = np.random.default_rng(8)
+    m_a, m_p = 6, 5
+    m = m_a + m_p
+    kernel = obs.build_kernel(np.zeros((m, 0)), m_a)  # no nuisance: the identity
+    c_sci = _spd(rng, m)
+    # the calibrator's covariance removes two amplitude directions and one phase one
+    dead = np.zeros((m, 3))
+    dead[[1, 4], [0, 1]] = 1.0
+    dead[m_a + 2, 2] = 1.0
+    c_cal = -dead @ dead.T @ c_sci @ dead @ dead.T
+    # the rest stays positive: add it back off the dead directions
+    keep = np.eye(m) - dead @ dead.T
+    c_cal = c_cal + keep @ _spd(rng, m) @ keep
+    to_knots = np.eye(m)
+    d = obs.discos(np.zeros(m), c_sci, np.zeros(m), c_cal, kernel, to_knots)
+    total = d.dropped + len(d.values)
+    assert total == m and d.dropped >= 1
+    assert np.all(d.errors > 0) and np.all(np.isfinite(d.errors))
+    assert len(d.kinds) == len(d.values) == d.matrix.shape[0]
+    with pytest.raises(NumericalFailure, match="no positive variance"):
+        obs.discos(np.zeros(m), c_sci, np.zeros(m), -c_sci, kernel, to_knots)
+    with pytest.raises(NumericalFailure, match="not finite"):
+        obs.discos(np.full(m, np.nan), c_sci, np.zeros(m), c_cal, kernel, to_knots)

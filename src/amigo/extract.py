@@ -20,11 +20,13 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 
+import jax
 import numpy as np
 
 from amigo import instrument as nis
 from amigo import observables as obs
 from amigo.basis import BasisInfo, load_basis
+from amigo.errors import numerical, require_finite
 from amigo.fitting import (
     FilterFit,
     FitConfig,
@@ -193,18 +195,63 @@ def extract_filter(
         f"{result.iterations} iterations (loss change {result.loss_change:.3g}, "
         f"Newton decrement {result.newton_decrement:.3g} per exposure)"
     )
-    information = latent_information(
-        fit, result.params, label, result.fisher, result.exact_exposures
-    )
     params = result.params
+    # A fit that ran into NaN has no optimum to take Hessians at: a failure of the
+    # filter, reported as such (amigo fit goes on with the other filters).
+    require_finite("fit", "fitted parameters", *jax.tree_util.tree_leaves(params))
+    with numerical("latent Hessians"):
+        information = latent_information(
+            fit, result.params, label, result.fisher, result.exact_exposures
+        )
+    require_finite(
+        "latent Hessians",
+        "Hessian entries",
+        *information.hessian,
+        information.cal_hessian,
+        information.cross,
+    )
     latents = np.concatenate(
         [np.asarray(params.sources.amp, float), np.asarray(params.sources.phase, float)], axis=1
     )
-    covariances = [obs.covariance_from_hessian(h) for h in information.hessian]
+    with numerical("latent covariance"):
+        covariances = [obs.covariance_from_hessian(h) for h in information.hessian]
+    with numerical("calibration kernel"):
+        products, kernel = _calibrate(fit, latents, covariances, information)
+    models = np.asarray(fit.models(params), dtype=float)
+    seconds = time.perf_counter() - start
+    stats = exposure_stats(fit, result, models, seconds / fit.n_exposures)
+    return FilterProduct(
+        filter_name=filter_name,
+        fit=fit,
+        result=result,
+        basis_info=basis_info,
+        stats=stats,
+        models=models,
+        products=products,
+        kernel=kernel,
+        information=information,
+        seconds=seconds,
+        detector=record,
+    )
+
+
+def _calibrate(
+    fit: FilterFit,
+    latents: np.ndarray,
+    covariances: list[np.ndarray],
+    information: LatentInformation,
+) -> tuple[list[TargetProduct], obs.Kernel]:
+    """Steps 4-6 of :func:`extract_filter`: the kernel of the calibrators' nuisances and
+    every science target's DISCOs and baseline log-visibilities.
+
+    ``latents``: (n_targets, m_a + m_p) fitted latent ``[amp, phase]``; ``covariances``
+    their (m, m) covariances, in the order of ``fit.targets``.
+    """
+    setup = fit.setup
+    basis = setup.basis
     roles = fit.target_roles()
-    n_amp = basis.n_amp
-    nuisance = obs.nuisance_regression(information.cal_hessian, information.cross)
     to_knots = basis.latent_from_knots()
+    nuisance = obs.nuisance_regression(information.cal_hessian, information.cross)
     # The knots the fringes do not reach are instrumental too (obs.envelope_knots): on
     # a real null pair their calibrated phases made a false 5-sigma candidate (docs/fit.md).
     # Scaled to the largest nuisance column so that the rank threshold keeps them.
@@ -214,7 +261,7 @@ def extract_filter(
     )
     scale = float(np.max(np.linalg.norm(nuisance, axis=0), initial=1.0))
     nuisance = np.concatenate([nuisance, envelope * scale], axis=1)
-    kernel = obs.build_kernel(nuisance, n_amp)
+    kernel = obs.build_kernel(nuisance, basis.n_amp)
     cal_idx = [i for i, t in enumerate(fit.targets) if roles[t] == "calibrator"]
     cal_value, cal_cov = obs.combine(
         [latents[i] for i in cal_idx], [covariances[i] for i in cal_idx]
@@ -237,19 +284,4 @@ def extract_filter(
                 baseline_covariance=to_baselines @ cov @ to_baselines.T,
             )
         )
-    models = np.asarray(fit.models(params), dtype=float)
-    seconds = time.perf_counter() - start
-    stats = exposure_stats(fit, result, models, seconds / fit.n_exposures)
-    return FilterProduct(
-        filter_name=filter_name,
-        fit=fit,
-        result=result,
-        basis_info=basis_info,
-        stats=stats,
-        models=models,
-        products=products,
-        kernel=kernel,
-        information=information,
-        seconds=seconds,
-        detector=record,
-    )
+    return products, kernel

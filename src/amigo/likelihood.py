@@ -32,7 +32,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from amigo import instrument
-from amigo.errors import InputError
+from amigo.errors import InputError, TooFewPixels
 from amigo.io.jwst import Exposure
 
 if TYPE_CHECKING:
@@ -101,7 +101,7 @@ class ImageData:
         mask = n_used > 0
         mask &= np.isfinite(mean) & np.isfinite(sigma) & (sigma > 0)
         if mask.sum() < MIN_PIXELS:
-            raise InputError(
+            raise TooFewPixels(
                 meta.path, f"only {int(mask.sum())} usable pixels (at least {MIN_PIXELS} needed)"
             )
         return cls(
@@ -146,7 +146,7 @@ class ImageData:
             product.slope_cov_dn2, bad=bad, structure=structure, leading=leading
         )
         if noise.pixels.size < MIN_PIXELS:
-            raise InputError(
+            raise TooFewPixels(
                 path, f"only {noise.pixels.size} usable pixels (at least {MIN_PIXELS} needed)"
             )
         flat = slopes.reshape(m, -1).T[noise.pixels]  # (n, m)

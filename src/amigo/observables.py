@@ -39,6 +39,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from amigo.errors import NumericalFailure, numerical, require_finite
+
 #: Singular values of the nuisance Jacobian above this fraction of the largest one count
 #: as instrumental directions (nulled). The paper's research code used ~1e-12; we use a
 #: slightly larger floor because the Jacobians come from float32 images.
@@ -233,8 +235,10 @@ def decorrelation(covariance: np.ndarray, n_amp: int) -> tuple[np.ndarray, np.nd
     caa, cap, cpp = c[:na, :na], c[:na, na:], c[na:, na:]
     # Amplitudes: eigenbasis of their covariance.
     va, ea = np.linalg.eigh(caa)
-    # Phases conditioned on amplitudes: k_p' = k_p - C_pa C_aa^-1 k_a.
-    condition = np.linalg.solve(caa, cap).T if na else np.zeros((c.shape[0] - na, 0))
+    # Phases conditioned on amplitudes: k_p' = k_p - C_pa C_aa^-1 k_a (least squares: a
+    # C_aa without inverse, from a covariance that is not positive definite, conditions on
+    # the amplitude directions that have variance; the others are left out in discos()).
+    condition = np.linalg.lstsq(caa, cap, rcond=None)[0].T if na else np.zeros((c.shape[0] - na, 0))
     cond_cov = cpp - condition @ cap
     vp, ep = np.linalg.eigh(0.5 * (cond_cov + cond_cov.T))
     k = c.shape[0]
@@ -261,6 +265,9 @@ class Discos:
         (n, m_a + m_p) ``T K``: calibrated latent visibilities -> DISCOs.
     kernel
         The :class:`Kernel` used.
+    dropped
+        Kernel directions left out because their variance is not positive (a
+        covariance that is not positive definite: no DISCO can be formed there).
     """
 
     values: np.ndarray
@@ -269,6 +276,7 @@ class Discos:
     matrix: np.ndarray
     latent_matrix: np.ndarray
     kernel: Kernel
+    dropped: int = 0
 
     def chi2(self, model_log_vis: np.ndarray) -> float:
         """``sum ((d - D v) / sigma)^2`` for a model's ``[log|V|, arg V]`` at the knots."""
@@ -298,18 +306,33 @@ def discos(
     latent_to_knots
         (m, 2 n_uv) ``B^T``: knot log-visibilities -> latents (the transpose of the
         orthonormal basis, restricted to the listed knots).
+
+    Raises
+    ------
+    NumericalFailure
+        Values or covariance not finite, or no direction of positive variance. Directions
+        whose variance is not positive (a covariance that is not positive definite) are
+        left out and counted in :attr:`Discos.dropped`: a zero error would give them
+        infinite weight downstream.
     """
     k = kernel.matrix
     value = k @ (np.asarray(science) - np.asarray(calibrator))
     cov = k @ (np.asarray(science_cov) + np.asarray(calibrator_cov)) @ k.T
-    transform, variances = decorrelation(cov, kernel.n_amp)
-    latent_matrix = transform @ k
-    kinds = ("amplitude",) * kernel.n_amp + ("phase",) * (k.shape[0] - kernel.n_amp)
+    require_finite("DISCOs", "kernel phases and amplitudes", value)
+    require_finite("DISCOs", "kernel covariance entries", cov)
+    with numerical("DISCO decorrelation"):
+        transform, variances = decorrelation(cov, kernel.n_amp)
+    kinds = np.array(["amplitude"] * kernel.n_amp + ["phase"] * (k.shape[0] - kernel.n_amp))
+    keep = np.isfinite(variances) & (variances > 0.0)
+    if not keep.any():
+        raise NumericalFailure("DISCOs", "the kernel covariance has no positive variance")
+    latent_matrix = transform[keep] @ k
     return Discos(
-        values=transform @ value,
-        errors=np.sqrt(np.maximum(variances, 0.0)),
-        kinds=kinds,
+        values=(transform @ value)[keep],
+        errors=np.sqrt(variances[keep]),
+        kinds=tuple(str(kind) for kind in kinds[keep]),
         matrix=latent_matrix @ latent_to_knots,
         latent_matrix=latent_matrix,
         kernel=kernel,
+        dropped=int(np.sum(~keep)),
     )

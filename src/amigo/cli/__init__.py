@@ -6,7 +6,8 @@ command, write ``amigo/cli/<name>.py`` with a :func:`click.command` called ``com
 list it in :data:`COMMANDS`.
 
 Exit status (see docs/interfaces): 0 success, 2 bad input or usage (one line on stderr, no
-traceback), 1 unexpected internal error.
+traceback), 1 unexpected internal error, 3 and 4 some or all of a fit's filters without
+products (:mod:`amigo.cli.fit_outcome`), 130 interrupted.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ import click
 
 from amigo._version import __version__
 from amigo.cachedir import enable_compilation_cache
-from amigo.errors import InputError
+from amigo.errors import InputError, NumericalFailure
 
 #: command name -> (module under amigo.cli, one-line help shown in ``amigo --help``)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -104,6 +105,11 @@ def _run(argv: list[str] | None) -> Any:
         sys.exit(error.exit_code)
     except InputError as error:
         fail_input(error)
+    except NumericalFailure as error:  # a computation without a result, outside a filter
+        from amigo.cli.fit_outcome import EXIT_NO_PRODUCT
+
+        click.echo(f"amigo: failed: {error}", err=True)
+        sys.exit(EXIT_NO_PRODUCT)
     except (KeyboardInterrupt, click.exceptions.Abort):
         click.echo("amigo: interrupted", err=True)
         sys.exit(130)

@@ -33,7 +33,7 @@ DEMO_KNOTS, DEMO_KNOT_SPACING_M = 27, 0.5
 )
 @click.option("--no-hmc", is_flag=True, help="Skip the NUTS posterior (faster).")
 @click.pass_context
-def command(ctx: click.Context, out: Path, no_hmc: bool) -> None:
+def command(ctx: click.Context, out: Path, no_hmc: bool) -> int:
     """Simulate a binary and a calibrator, and take them from raw ramps to a companion."""
     from amigo.basemodel import default_model_path
     from amigo.cli import run, simulate
@@ -45,7 +45,7 @@ def command(ctx: click.Context, out: Path, no_hmc: bool) -> None:
     for path, truth in truths.items():
         uncal = path.with_name(path.name.removesuffix("_truth.json") + "_uncal.fits")
         (sci if truth["exposure"]["role"] == "science" else cal).append(uncal)
-    run.pipeline(
+    calvis, status = run.pipeline(
         ctx,
         tuple(sci),
         tuple(cal),
@@ -56,9 +56,12 @@ def command(ctx: click.Context, out: Path, no_hmc: bool) -> None:
         knot_spacing=DEMO_KNOT_SPACING_M,
         no_hmc=no_hmc,
     )
+    if not calvis:
+        return status  # the fit's warnings and fit_summary.json say why
     science_truth = next(t for t in truths.values() if t["exposure"]["role"] == "science")
     found = json.loads((out / "companions.json").read_text())["companions"]
     click.echo(_comparison(science_truth["scene"]["companions"], found))
+    return status
 
 
 def _comparison(truth: list[dict], found: list[dict]) -> str:

@@ -61,11 +61,15 @@ class FitModel:
         they are: level-2 files, or calslope files with an instrument file).
     detector
         ``"full"`` or ``"linear"`` (``fit_summary.json``).
+    source
+        The model file's name and content fingerprint, or ``"nominal"``: part of the
+        identity of a fit (a re-run keeps products of the same model).
     """
 
     instrument: Callable[[str], Any]
     base: Any
     detector: str
+    source: str = "nominal"
 
 
 def _fit_model(model: Path | None, detector: str | None, level: str) -> FitModel:
@@ -89,13 +93,16 @@ def _fit_model(model: Path | None, detector: str | None, level: str) -> FitModel
     if model is None:
         nominal = Instrument.nominal()
         return FitModel(lambda filter_name: nominal, None, "linear")
+    from amigo.io.files import fingerprint, require_file
+
+    source = f"{model.name}:{fingerprint(require_file(model, 'model file'))}"
     if model.suffix.lower() != ".npz":
         if detector == "full":
             raise InputError(
                 model, "--detector full needs a trained base model (.npz), not an instrument file"
             )
         instrument = load_instrument(model)
-        return FitModel(lambda filter_name: instrument, None, "linear")
+        return FitModel(lambda filter_name: instrument, None, "linear", source)
     from amigo.basemodel import load_base_model, read_metadata
 
     base = load_base_model(model)
@@ -125,13 +132,41 @@ def _fit_model(model: Path | None, detector: str | None, level: str) -> FitModel
         if level == "level2":
             ramp = ramp.for_level2()  # dark, flat and linearity already corrected
     return FitModel(
-        lambda filter_name: Instrument.from_base_model(base, filter_name, name, mode), ramp, mode
+        lambda filter_name: Instrument.from_base_model(base, filter_name, name, mode),
+        ramp,
+        mode,
+        source,
     )
 
 
-def _read_fit_exposure(path: Path, role: str, level: str, superbias=None):
-    """(FitExposure, ExposureMeta, RampInput or Level2Input) of one input file; a
-    calslope file keeps its first group in the likelihood when ``superbias`` is given."""
+@dataclass(frozen=True)
+class ReadExposure:
+    """One input file of a fit, read.
+
+    Attributes
+    ----------
+    exposure
+        The :class:`~amigo.fitting.FitExposure` (``None`` where ``problem`` is set).
+    meta
+        Its :class:`~amigo.io.jwst.ExposureMeta`.
+    ramp
+        Its ``RampInput`` (calslope) or ``Level2Input`` (``None`` where ``problem``).
+    problem
+        Why the exposure has no star to fit (too few usable pixels, no flux above the
+        noise), or ``None``: such an exposure is left out of its filter.
+    """
+
+    exposure: Any
+    meta: Any
+    ramp: Any = None
+    problem: str | None = None
+
+
+def _read_fit_exposure(path: Path, role: str, level: str, superbias=None) -> ReadExposure:
+    """One input file, read and reduced to what the fit needs; a calslope file keeps its
+    first group in the likelihood when ``superbias`` is given. A damaged or foreign file
+    raises :class:`InputError`; an image without a star is returned with its problem."""
+    from amigo.errors import TooFewPixels
     from amigo.fitting import FitExposure
     from amigo.likelihood import ImageData
 
@@ -152,20 +187,28 @@ def _read_fit_exposure(path: Path, role: str, level: str, superbias=None):
         meta = meta_from_headers(
             path, product.primary_header, product.slope_header, kind="calslope"
         )
-        ramp = RampInput.create(product, meta.group_time_s, superbias)
-        image = ramp.image(None)
+        try:
+            ramp = RampInput.create(product, meta.group_time_s, superbias)
+            image = ramp.image(None)
+        except TooFewPixels as error:
+            return ReadExposure(None, meta, problem=error.problem)
     else:
         from amigo.io.jwst import read_exposure
         from amigo.ramp_fit import Level2Input
 
         exposure = read_exposure(path)
         meta = exposure.meta
-        image = ImageData.from_exposure(exposure)
+        try:
+            image = ImageData.from_exposure(exposure)
+        except TooFewPixels as error:
+            return ReadExposure(None, meta, problem=error.problem)
         ramp = Level2Input(
             image, meta.ngroups, meta.nframes, meta.group_time_s, meta.dark_reference
         )
-    _require_star(path, image)
-    return FitExposure(path.name, role, meta.target, image), meta, ramp
+    problem = star_problem(image)
+    if problem is not None:
+        return ReadExposure(None, meta, problem=problem)
+    return ReadExposure(FitExposure(path.name, role, meta.target, image), meta, ramp)
 
 
 #: Smallest signal-to-noise ratio of an image's total flux that counts as a star: an AMI
@@ -173,10 +216,11 @@ def _read_fit_exposure(path: Path, role: str, level: str, superbias=None):
 MIN_STAR_SNR = 25.0
 
 
-def _require_star(path: Path, image) -> None:
-    """Refuse an image without a star: the total flux over the usable pixels, in units of
-    its own error, below :data:`MIN_STAR_SNR` (an all-negative image, a dark, a shutter
-    closed), which a fit would otherwise chase to z-scores of 1e5."""
+def star_problem(image) -> str | None:
+    """Why an image has no star to fit, or ``None``: the total flux over the usable
+    pixels, in units of its own error, below
+    :data:`MIN_STAR_SNR` (an all-negative image, a dark, a shutter closed), which a fit
+    would otherwise chase to z-scores of 1e5."""
     import numpy as np
 
     mask = image.mask
@@ -184,11 +228,11 @@ def _require_star(path: Path, image) -> None:
     error = float(np.sqrt(np.sum(image.error[mask] ** 2)))
     snr = total / error if error > 0 else 0.0
     if not snr >= MIN_STAR_SNR:
-        raise InputError(
-            path,
+        return (
             f"no star: the image's total flux is {snr:.1f} times its error "
-            f"(at least {MIN_STAR_SNR:g} expected of an AMI target)",
+            f"(at least {MIN_STAR_SNR:g} expected of an AMI target)"
         )
+    return None
 
 
 def key_targets(items: list) -> list:
@@ -352,6 +396,12 @@ def model_options(command):
     "Calslope files of the same detector (darks preferably) to measure each pixel's reset "
     "level from; the first group's photons then enter the fit (calslope inputs only)"
 )
+@click.option(
+    "--force",
+    is_flag=True,
+    help="Fit every filter again [default: keep a filter whose products in OUT are "
+    "complete and record the same inputs, model, options and version].",
+)
 def command(
     sci: tuple[Path, ...],
     cal: tuple[Path, ...],
@@ -365,13 +415,18 @@ def command(
     knot_spacing: float | None,
     superbias: tuple[Path, ...] = (),
     no_first_group: bool = False,
-) -> None:
+    force: bool = False,
+) -> int:
     """Fit the instrument model to each exposure and extract calibrated observables.
 
     Science and calibrator files are grouped by filter (from their headers); in each
     filter all exposures are fitted jointly (visibilities shared per target, wavefront
     from the calibrators), then each science target gets a calvis file of DISCOs and
     an OIFITS file of calibrated V2 and closure phases.
+
+    Exit status: 0 every filter has products; 3 some filters failed or exposures were
+    left out, the others' products are written; 4 no filter has products
+    (fit_summary.json says why, per filter and exposure).
     """
     os.environ.setdefault("JAX_PLATFORMS", "cpu")
     overlap = set(sci) & set(cal)
@@ -386,28 +441,44 @@ def command(
 
     import dataclasses
 
+    from amigo._version import __version__
+    from amigo.cli.fit_outcome import exit_status, fit_key, kept_records, previous_summary
     from amigo.fitting import FitConfig
+    from amigo.io.files import fingerprint
     from amigo.progress import step
 
     fit_model = _fit_model(model, detector, level)
     reset = _reset_level(superbias, level, fit_model, no_first_group)
-    by_filter: dict[str, list] = defaultdict(list)
-    ramps = {}
     read = []
+    ramps = {}
+    excluded = []  # (role, ReadExposure) of the exposures without a star to fit
+    given: dict[str, list] = defaultdict(list)  # filter -> (role, meta) of every input
     for role, paths in (("science", sci), ("calibrator", cal)):
         for path in paths:
-            fit_exposure, meta, ramp = _read_fit_exposure(path, role, level, reset)
-            read.append((fit_exposure, meta))
-            ramps[fit_exposure.name] = ramp
-    for fit_exposure, meta in key_targets(read):
-        by_filter[meta.filter].append((fit_exposure, meta))
-    for filter_name, items in by_filter.items():
-        roles = {e.role for e, _ in items}
+            item = _read_fit_exposure(path, role, level, reset)
+            given[item.meta.filter].append((role, item.meta))
+            if item.problem is not None:
+                excluded.append((role, item))
+                continue
+            read.append((item.exposure, item.meta))
+            ramps[item.exposure.name] = item.ramp
+    for filter_name, inputs in given.items():
+        roles = {role for role, _ in inputs}
         if "calibrator" not in roles:
-            raise InputError(items[0][1].path, f"no calibrator exposure in {filter_name}")
+            raise InputError(inputs[0][1].path, f"no calibrator exposure in {filter_name}")
         if "science" not in roles:
             step(f"{filter_name}: calibrators only (no science exposure): skipped")
+    by_filter: dict[str, list] = defaultdict(list)
+    for fit_exposure, meta in key_targets(read):
+        by_filter[meta.filter].append((fit_exposure, meta))
+    for items in by_filter.values():
         _check_orientations(items)
+    fitted = {
+        name: by_filter.get(name, [])
+        for name, inputs in sorted(given.items())
+        if any(role == "science" for role, _ in inputs)
+    }
+    _refuse_if_nothing_left(fitted, excluded)
     config = FitConfig(polish_steps=polish)
     if wavefront_prior is not None:
         config = dataclasses.replace(
@@ -420,37 +491,124 @@ def command(
         from amigo.ramp_fit import RampDetector
 
         detector_model = RampDetector(fit_model.base, ramps)
+    settings = {
+        "amigo_version": __version__,
+        "level": level,
+        "model": fit_model.source,
+        "detector": fit_model.detector,
+        "grid": [knots, knot_spacing],
+        "config": repr(config),
+        "superbias": [fingerprint(p) for p in superbias],
+        "first_group": reset is not None,
+    }
 
     out.mkdir(parents=True, exist_ok=True)
-    summary_exposures = []
-    filters_summary = {}
+    previous = {} if force else previous_summary(out)
+    summary_exposures = [
+        {
+            "file": item.meta.path.name,
+            "role": role,
+            "target": item.meta.target,
+            "filter": item.meta.filter,
+            "status": "excluded",
+            "problem": item.problem,
+        }
+        for role, item in excluded
+    ]
+    for _, item in excluded:
+        click.echo(f"warning: {item.meta.path}: {item.problem}: left out of the fit", err=True)
+    filters_summary: dict[str, dict] = {}
     names = []
-    unconverged = []
-    for filter_name, items in sorted(by_filter.items()):
-        if not any(e.role == "science" for e, _ in items):
-            continue
+    for filter_name, items in fitted.items():
         instrument = fit_model.instrument(filter_name)
         names.append(instrument.name)
-        product = _run_filter(
-            instrument, filter_name, items, config, out, grid, detector_model, reset is not None
+        key = fit_key(settings, [(e.role, e.target, fingerprint(m.path)) for e, m in items])
+        kept = None if force else kept_records(out, filter_name, key, previous)
+        if kept is not None:
+            record, records = kept
+            records = [r for r in records if r.get("status") != "excluded"]
+            step(f"{filter_name}: products up to date in {out}, kept (--force fits again)")
+        else:
+            record, records = _fit_filter(
+                instrument, filter_name, items, config, out, grid, detector_model, reset, key
+            )
+        filters_summary[filter_name] = record
+        summary_exposures.extend(records)
+        # After each filter: an interrupted run keeps what it finished (kept_records).
+        _write_summary(
+            out,
+            "; ".join(dict.fromkeys(names)),
+            fit_model.detector,
+            summary_exposures,
+            filters_summary,
         )
-        summary_exposures.extend(product["exposures"])
-        filters_summary[filter_name] = product["filter"]
-        if not product["filter"]["converged"]:
-            unconverged.append(filter_name)
-    _write_summary(
-        out,
-        "; ".join(dict.fromkeys(names)),
-        fit_model.detector,
-        summary_exposures,
-        filters_summary,
-    )
     step(f"wrote {out / 'fit_summary.json'}")
+    _report(filters_summary)
+    return exit_status(filters_summary, summary_exposures)
+
+
+def _refuse_if_nothing_left(fitted: dict[str, list], excluded: list) -> None:
+    """Bad input rather than a result: when the exposures without a star leave no filter
+    with both a science and a calibrator exposure, the first of them is refused."""
+    if any({"science", "calibrator"} <= {e.role for e, _ in items} for items in fitted.values()):
+        return
+    if excluded:
+        _, item = excluded[0]
+        raise InputError(item.meta.path, item.problem)
+
+
+def _fit_filter(
+    instrument, filter_name: str, items, config, out: Path, grid, detector, reset, key: str
+) -> tuple[dict, list[dict]]:
+    """Fit one filter and write its products; a numerical failure, or no science or
+    calibrator exposure left, becomes a ``"failed"`` record (no products) instead of an
+    exception. Returns the filter's record and its exposures' records."""
+    from amigo.errors import NumericalFailure
+
+    roles = {e.role for e, _ in items}
+    missing = [r for r in ("science", "calibrator") if r not in roles]
+    try:
+        if missing:
+            raise NumericalFailure("exposures", f"no usable {missing[0]} exposure left")
+        product = _run_filter(
+            instrument, filter_name, items, config, out, grid, detector, reset is not None, key
+        )
+    except NumericalFailure as failure:
+        click.echo(
+            f"warning: {filter_name}: failed ({failure}); no products for it (fit_summary.json)",
+            err=True,
+        )
+        record = {"status": "failed", "problem": str(failure), "fit_key": key, "products": []}
+        records = [
+            {
+                "file": e.name,
+                "role": e.role,
+                "target": e.target,
+                "filter": filter_name,
+                "status": "failed",
+                "problem": str(failure),
+            }
+            for e, _ in items
+        ]
+        return record, records
+    return product["filter"], product["exposures"]
+
+
+def _report(filters: dict[str, dict]) -> None:
+    """Warnings for the filters whose products are flagged or missing."""
+    unconverged = [name for name, f in filters.items() if f["status"] == "unconverged"]
     if unconverged:
         click.echo(
             f"warning: the fit did not converge in {', '.join(unconverged)}; its products are "
             "written and flagged (CONVERGD = F in the calvis header, 'converged': false per "
             "exposure in fit_summary.json): raise --max-iterations or check the residuals",
+            err=True,
+        )
+    failed = [name for name, f in filters.items() if f["status"] == "failed"]
+    if failed:
+        click.echo(
+            f"warning: no products for {', '.join(failed)} "
+            f"({len(filters) - len(failed)} of {len(filters)} filters have them)",
             err=True,
         )
 
@@ -515,7 +673,12 @@ def _run_filter(
     grid=None,
     detector=None,
     first_group: bool = False,
+    key: str = "",
 ) -> dict:
+    """Fit one filter, write its calvis, OIFITS and plot files; return its records for
+    ``fit_summary.json`` (``"filter"``: the filter's, ``"exposures"``: its exposures').
+    ``key``: the fit's identity (:func:`amigo.cli.fit_outcome.fit_key`), recorded in
+    the products so that a re-run can keep them."""
     import numpy as np
 
     from amigo import instrument as nis
@@ -546,6 +709,8 @@ def _run_filter(
     # The fitted detector geometry (calibrators) places the sky on the optical frame.
     fitted = instrument.with_geometry(params.optics.geometry)
     geometry = _geometry_record(product.result)
+    status = "ok" if product.result.converged else "unconverged"
+    written = []
     for target_product in product.products:
         target = target_product.target
         sci_items = [(e, metas[e.name]) for e in exposures if e.target == target]
@@ -585,6 +750,8 @@ def _run_filter(
                 "NNUIS": (discos.kernel.n_nuisance, "nuisance parameters nulled"),
                 # Products of an unconverged fit are still written, but flagged.
                 "CONVERGD": (bool(product.result.converged), "fit converged (fit_summary.json)"),
+                "NDISCDRP": (discos.dropped, "DISCOs dropped: variance not positive"),
+                "FITKEY": (key, "identity of inputs and settings (amigo fit)"),
             },
         )
         step(f"wrote {calvis_path}")
@@ -605,6 +772,7 @@ def _run_filter(
             int_time_s=float(meta.primary_header.get("EFFEXPTM") or 0.0),
         )
         step(f"wrote {oifits_path}")
+        written += [calvis_path.name, oifits_path.name]
     info = product.basis_info
     record = product.detector
     detector_summary = {}
@@ -629,6 +797,7 @@ def _run_filter(
                 "chi2": round(s.chi2, 3),
                 "dof": round(s.dof, 3),
                 "zscore_std": round(s.zscore_std, 5),
+                "status": status,
                 "converged": s.converged,
                 "iterations": s.iterations,
                 "seconds": round(s.seconds, 2),
@@ -641,6 +810,10 @@ def _run_filter(
             for e, s in enumerate(product.stats)
         ],
         "filter": {
+            "status": status,
+            "fit_key": key,
+            "products": written,
+            "discos_dropped": sum(t.discos.dropped for t in product.products),
             "converged": bool(product.result.converged),
             "basis_amplitude_modes": info.n_amp,
             "basis_phase_modes": info.n_phase,

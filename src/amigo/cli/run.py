@@ -31,12 +31,15 @@ def pipeline(
     superbias: tuple[Path, ...] = (),
     no_first_group: bool = False,
     force: bool = False,
-) -> list[Path]:
-    """Run process -> fit -> detect; return the calvis files that were searched.
+) -> tuple[list[Path], int]:
+    """Run process -> fit -> detect; return the calvis files that were searched and the
+    exit status of the fit (:mod:`amigo.cli.fit_outcome`; detect is skipped when no
+    filter has products).
     ``superbias``: raw ramps (darks) processed with the rest and given to ``amigo fit
     --superbias``, so the first group's photons enter the fit; ``no_first_group`` as
-    ``amigo fit --no-first-group``; ``force``: process every ramp again (as ``amigo
-    process --force``; by default complete calslope products are kept)."""
+    ``amigo fit --no-first-group``; ``force``: process and fit everything again (as
+    ``amigo process --force`` and ``amigo fit --force``; by default complete products of
+    the same inputs are kept)."""
     from amigo.cli import detect, fit, process
     from amigo.io.calslope import calslope_name
     from amigo.progress import step
@@ -49,7 +52,7 @@ def pipeline(
     ctx.invoke(process.command, uncal=inputs, out_dir=out, force=force)
     slopes = {path: out / calslope_name(path) for path in inputs}
     step("run: fitting")
-    ctx.invoke(
+    status = ctx.invoke(
         fit.command,
         sci=tuple(slopes[p] for p in sci),
         cal=tuple(slopes[p] for p in cal),
@@ -60,13 +63,33 @@ def pipeline(
         knot_spacing=knot_spacing,
         superbias=tuple(slopes[p] for p in superbias),
         no_first_group=no_first_group,
+        force=force,
     )
-    calvis = sorted(out.glob("*_calvis.fits"))
+    # The products of this fit, as its summary lists them (not every calvis file in OUT:
+    # one of an earlier fit of a filter that failed this time is not this run's).
+    calvis = fitted_calvis(out)
     if not calvis:
+        if status:
+            return calvis, status  # fit_summary.json and the warnings say why
         raise InputError(out, "amigo fit wrote no calvis file (no science exposure?)")
     step(f"run: searching {len(calvis)} calvis file(s) for companions")
     ctx.invoke(detect.command, files=tuple(calvis), out_dir=out, rmax_mas=rmax_mas, no_hmc=no_hmc)
-    return calvis
+    return calvis, status
+
+
+def fitted_calvis(out: Path) -> list[Path]:
+    """The calvis files of the usable filters in ``out/fit_summary.json``, in filter
+    order."""
+    from amigo.cli.fit_outcome import USABLE, previous_summary
+
+    filters = previous_summary(out).get("filters", {})
+    return [
+        out / name
+        for _, record in sorted(filters.items())
+        if record.get("status") in USABLE
+        for name in record.get("products", [])
+        if name.endswith("_calvis.fits")
+    ]
 
 
 @click.command("run")
@@ -85,8 +108,8 @@ def pipeline(
 @click.option(
     "--force",
     is_flag=True,
-    help="Process every raw file again [default: keep complete calslope products of the "
-    "same input and options, e.g. after an interruption].",
+    help="Process and fit everything again [default: keep complete calslope products and "
+    "fitted filters of the same inputs and options, e.g. after an interruption].",
 )
 @click.pass_context
 def command(
@@ -106,9 +129,10 @@ def command(
 ) -> None:
     """Raw ramps to companions: amigo process, amigo fit and amigo detect in one go.
 
-    All outputs go directly under OUT, named as by the individual commands.
+    All outputs go directly under OUT, named as by the individual commands. Exit status
+    as amigo fit's (3: some filters without products, 4: none).
     """
-    pipeline(
+    _, status = pipeline(
         ctx,
         sci,
         cal,
@@ -123,3 +147,4 @@ def command(
         no_first_group=no_first_group,
         force=force,
     )
+    return status

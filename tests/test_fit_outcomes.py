@@ -1,0 +1,201 @@
+"""Numerical failures are results, not crashes, and an interrupted fit resumes to the
+products of an uninterrupted one (issue 26, docs/reliability.md) (slow: real fits of two
+filters of small simulated level-2 images).
+
+One sequence of runs on the same inputs, each building on the last:
+
+1. a fit whose F430M Hessians fail (injected: a singular matrix, what numpy raises) and
+   whose F480M has a calibrator with every pixel flagged: F480M is fitted without that
+   calibrator, F430M is reported failed, exit status 3, nothing for F430M written;
+2. the same command again: F480M is kept (its products are complete and record the same
+   inputs), F430M is fitted;
+3. a fit of the same exposures killed (SIGKILL) after its first filter and run again:
+   its products are byte for byte those of runs 1 and 2.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from jwst_files import write_level2
+
+pytestmark = pytest.mark.slow
+
+FILTERS = ("F430M", "F480M")  # fitted in this order (sorted)
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory) -> dict[str, Path]:
+    """Level-2 images of a point source through amigo's nominal instrument (3
+    wavelengths), with photon and read noise; and a calibrator with every pixel flagged."""
+    import jax.numpy as jnp
+
+    from amigo.model import (
+        ExposureParams,
+        FilterSetup,
+        Instrument,
+        OpticsParams,
+        image_from_log_vis,
+        save_instrument,
+    )
+
+    folder = tmp_path_factory.mktemp("in")
+    instrument = Instrument.nominal(n_wavelengths=3)
+    paths = {"model": folder / "nominal.eqx"}
+    save_instrument(instrument, paths["model"])
+    rng = np.random.default_rng(3)
+    optics = OpticsParams.from_instrument(instrument)
+    jitter = float(instrument.detector.jitter_arcsec) * 1000.0
+    for filter_name in FILTERS:
+        setup = FilterSetup.create(filter_name, instrument)
+        position = jnp.asarray([0.03, -0.02], jnp.float32)
+        exposure = ExposureParams(position, jnp.log(jnp.float32(2e5)), jnp.float32(jitter))
+        image = np.asarray(
+            image_from_log_vis(instrument, setup, optics, 0.0, exposure, None, None), float
+        )
+        error = np.sqrt(np.maximum(image, 0.0) / 80.0 + 4.0)
+        for role, observation in (("sci", "001"), ("cal", "002")):
+            name = f"{role}_{filter_name}"
+            paths[name] = write_level2(
+                folder / f"{name}_cal.fits",
+                image + error * rng.standard_normal(image.shape),
+                error,
+                overrides={
+                    "FILTER": filter_name,
+                    "TARGPROP": f"STAR-{role}",
+                    "OBSERVTN": observation,
+                },
+            )
+    paths["flagged"] = write_level2(
+        folder / "flagged_F480M_cal.fits",
+        image,
+        error,
+        dq=np.ones(image.shape, np.uint32),  # DO_NOT_USE everywhere
+        overrides={"FILTER": "F480M", "TARGPROP": "STAR-cal", "OBSERVTN": "003"},
+    )
+    return paths
+
+
+def _args(inputs: dict[str, Path], out: Path, flagged: bool) -> list[str]:
+    cal = [inputs[f"cal_{f}"] for f in FILTERS] + ([inputs["flagged"]] if flagged else [])
+    return [
+        "fit",
+        "--sci",
+        *[str(inputs[f"sci_{f}"]) for f in FILTERS],
+        "--cal",
+        *map(str, cal),
+        "--out",
+        str(out),
+        "--model",
+        str(inputs["model"]),
+        "--knots",
+        "27",
+        "--knot-spacing",
+        "0.5",
+    ]
+
+
+def _main(args: list[str]) -> int:
+    from amigo.cli import main
+
+    try:
+        main(args)
+    except SystemExit as exit_:
+        return int(exit_.code or 0)
+    return 0
+
+
+def _products(out: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(out.glob("*_calvis.fits"))} | {
+        p.name: p.read_bytes() for p in sorted(out.glob("*.oifits"))
+    }
+
+
+def test_failures_are_reported_per_filter_and_runs_resume(inputs, tmp_path, monkeypatch, capsys):
+    import amigo.extract
+
+    out = tmp_path / "out"
+    real = amigo.extract.latent_information
+
+    def singular_in_f430m(fit, *args, **kwargs):
+        if fit.setup.name == "F430M":
+            raise np.linalg.LinAlgError("Singular matrix")
+        return real(fit, *args, **kwargs)
+
+    # 1. F430M fails, F480M is fitted without its calibrator that has no usable pixel
+    monkeypatch.setattr(amigo.extract, "latent_information", singular_in_f430m)
+    assert _main(_args(inputs, out, flagged=True)) == 3
+    err = capsys.readouterr().err
+    assert "flagged_F480M_cal.fits: only 0 usable pixels" in err
+    assert "F430M: failed (latent Hessians: LinAlgError: Singular matrix)" in err
+    assert "Traceback" not in err
+    summary = json.loads((out / "fit_summary.json").read_text())
+    f430, f480 = summary["filters"]["F430M"], summary["filters"]["F480M"]
+    assert f430["status"] == "failed" and f430["products"] == []
+    assert "Singular matrix" in f430["problem"]
+    assert f480["status"] == "ok"
+    assert f480["products"] == ["STAR-sci_F480M_calvis.fits", "STAR-sci_F480M.oifits"]
+    status = {e["file"]: e["status"] for e in summary["exposures"]}
+    assert status == {
+        "flagged_F480M_cal.fits": "excluded",
+        "sci_F430M_cal.fits": "failed",
+        "cal_F430M_cal.fits": "failed",
+        "sci_F480M_cal.fits": "ok",
+        "cal_F480M_cal.fits": "ok",
+    }
+    assert sorted(_products(out)) == ["STAR-sci_F480M.oifits", "STAR-sci_F480M_calvis.fits"]
+    first = _products(out)
+
+    # 2. the same command: F480M kept as it is, F430M fitted
+    monkeypatch.setattr(amigo.extract, "latent_information", real)
+    assert _main(_args(inputs, out, flagged=True)) == 3  # the flagged calibrator is still out
+    err = capsys.readouterr().err
+    assert "F480M: products up to date" in err and "F430M: products up to date" not in err
+    summary = json.loads((out / "fit_summary.json").read_text())
+    assert {f: r["status"] for f, r in summary["filters"].items()} == {
+        "F430M": "ok",
+        "F480M": "ok",
+    }
+    uninterrupted = _products(out)
+    assert {k: uninterrupted[k] for k in first} == first
+    assert len(uninterrupted) == 4
+
+    # 3. killed after its first filter, then run again: the same bytes. Without the
+    # flagged calibrator the fit of each filter is the same (same exposures fitted).
+    resumed = tmp_path / "resumed"
+    process = subprocess.Popen(
+        [sys.executable, "-m", "amigo", *_args(inputs, resumed, flagged=False)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        env={**os.environ, "JAX_PLATFORMS": "cpu"},
+    )
+    start = time.monotonic()
+    try:
+        while '"F430M"' not in _text(resumed / "fit_summary.json"):
+            assert process.poll() is None, "the fit ended before it could be interrupted"
+            assert time.monotonic() - start < 300, "the first filter did not finish"
+            time.sleep(0.05)
+    finally:
+        process.send_signal(signal.SIGKILL)
+        process.wait()
+    partial = _products(resumed)
+    assert sorted(partial) == ["STAR-sci_F430M.oifits", "STAR-sci_F430M_calvis.fits"]
+    assert _main(_args(inputs, resumed, flagged=False)) == 0
+    assert "F430M: products up to date" in capsys.readouterr().err
+    assert _products(resumed) == uninterrupted
+
+
+def _text(path: Path) -> str:
+    try:
+        return path.read_text()
+    except OSError:
+        return ""
