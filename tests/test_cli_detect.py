@@ -124,6 +124,19 @@ def test_calvis_end_to_end(tmp_path, capsys):
         "photon_limit_dmag",
         "sep_lambda_d",
     }
+    # The same search again keeps the products (companions.json, written last, records
+    # the inputs and options); another option or input is another search.
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    argv = [*inputs, "--out", str(out), "--rmax-mas", "600", "--warmup", "60", "--samples",
+            "60", "--chains", "1", "--no-per-filter"]  # fmt: skip
+    assert run(argv) == 0
+    assert "up to date (same inputs and options), kept" in capsys.readouterr().out
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    from amigo.cli.detect import _detect_key
+
+    settings = {"rmax_mas": 600.0, "seed": 0}
+    assert _detect_key(inputs, settings) != _detect_key(inputs, {**settings, "seed": 1})
+    assert _detect_key(inputs, settings) != _detect_key(inputs[:1], settings)
 
 
 @pytest.mark.parametrize("kind", ["missing", "text", "image"])

@@ -88,6 +88,12 @@ from amigo.errors import InputError
     "--chains", type=click.IntRange(min=1), default=2, show_default=True, help="NUTS chains."
 )
 @click.option("--seed", type=int, default=0, show_default=True, help="Random seed of NUTS.")
+@click.option(
+    "--force",
+    is_flag=True,
+    help="Search again [default: keep the products in DIR when its companions.json records "
+    "the same input files, options and version].",
+)
 def command(
     files,
     out_dir,
@@ -104,11 +110,21 @@ def command(
     samples,
     chains,
     seed,
+    force=False,
 ) -> None:
     """Search calibrated observables (calvis or OIFITS FILEs) for companions.
 
     Writes DIR/companions.json, DIR/contrast_limits.csv and figures (DIR/*.png).
     """
+    options = dict(locals())  # the parameters, before any other name is bound
+    settings = {k: v for k, v in options.items() if k not in ("files", "out_dir", "force")}
+    key = _detect_key(files, settings)
+    if not force and _up_to_date(Path(out_dir), key):
+        click.echo(
+            f"{Path(out_dir) / 'companions.json'}: up to date (same inputs and options), "
+            "kept (--force searches again)"
+        )
+        return
     import jax
 
     # Fits, Hessians and HMC need float64. A context rather than the global switch, so a
@@ -130,7 +146,40 @@ def command(
             samples,
             chains,
             seed,
+            key,
         )
+
+
+def _detect_key(files, settings: dict) -> str:
+    """Identity of a search: 16 hex characters of the SHA-256 of the amigo version, the
+    options and the input files' names and content fingerprints."""
+    import hashlib
+    import json
+
+    from amigo._version import __version__
+    from amigo.io.files import fingerprint, require_file
+
+    inputs = [(Path(f).name, fingerprint(require_file(f, "input file"))) for f in files]
+    text = json.dumps(
+        {"version": __version__, "settings": settings, "inputs": inputs}, sort_keys=True
+    )
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def _up_to_date(out: Path, key: str) -> bool:
+    """Whether ``out`` holds a complete search with identity ``key``: companions.json,
+    written last, records it, and contrast_limits.csv is there."""
+    import json
+
+    try:
+        document = json.loads((out / "companions.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return (
+        isinstance(document, dict)
+        and document.get("detect_key") == key
+        and (out / "contrast_limits.csv").is_file()
+    )
 
 
 def _detect(
@@ -149,6 +198,7 @@ def _detect(
     samples,
     chains,
     seed,
+    key: str = "",
 ) -> None:
     from amigo.companions import observables as obs
     from amigo.companions import plots, products
@@ -180,9 +230,12 @@ def _detect(
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    products.write_companions_json(out / "companions.json", result, list(files))
+    # companions.json last: a search interrupted before it is not taken for complete.
     products.write_contrast_csv(out / "contrast_limits.csv", result)
     plots.write_all(result, out)
+    products.write_companions_json(
+        out / "companions.json", result, list(files), {"detect_key": key}
+    )
 
     if not result.companions:
         click.echo(f"no companion above {threshold:g} sigma within {rmax_mas:g} mas")

@@ -37,9 +37,9 @@ def pipeline(
     filter has products).
     ``superbias``: raw ramps (darks) processed with the rest and given to ``amigo fit
     --superbias``, so the first group's photons enter the fit; ``no_first_group`` as
-    ``amigo fit --no-first-group``; ``force``: process and fit everything again (as
-    ``amigo process --force`` and ``amigo fit --force``; by default complete products of
-    the same inputs are kept)."""
+    ``amigo fit --no-first-group``; ``force``: process, fit and search everything again
+    (``--force`` of each command; by default complete products of the same inputs are
+    kept)."""
     from amigo.cli import detect, fit, process
     from amigo.io.calslope import calslope_name
     from amigo.progress import step
@@ -73,7 +73,14 @@ def pipeline(
             return calvis, status  # fit_summary.json and the warnings say why
         raise InputError(out, "amigo fit wrote no calvis file (no science exposure?)")
     step(f"run: searching {len(calvis)} calvis file(s) for companions")
-    ctx.invoke(detect.command, files=tuple(calvis), out_dir=out, rmax_mas=rmax_mas, no_hmc=no_hmc)
+    ctx.invoke(
+        detect.command,
+        files=tuple(calvis),
+        out_dir=out,
+        rmax_mas=rmax_mas,
+        no_hmc=no_hmc,
+        force=force,
+    )
     return calvis, status
 
 
@@ -108,8 +115,9 @@ def fitted_calvis(out: Path) -> list[Path]:
 @click.option(
     "--force",
     is_flag=True,
-    help="Process and fit everything again [default: keep complete calslope products and "
-    "fitted filters of the same inputs and options, e.g. after an interruption].",
+    help="Process, fit and search everything again [default: keep complete calslope "
+    "products, fitted filters and the search of the same inputs and options, e.g. after "
+    "an interruption].",
 )
 @click.pass_context
 def command(

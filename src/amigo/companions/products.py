@@ -167,10 +167,14 @@ def companions_document(result: DetectionResult, inputs: list[str]) -> dict[str,
 
 
 def write_companions_json(
-    path: str | os.PathLike[str], result: DetectionResult, inputs: list[str]
+    path: str | os.PathLike[str],
+    result: DetectionResult,
+    inputs: list[str],
+    extra: dict | None = None,
 ) -> Path:
-    """Write ``companions.json`` atomically."""
-    text = json.dumps(companions_document(result, inputs), indent=2) + "\n"
+    """Write ``companions.json`` atomically; ``extra`` keys are added at the top level."""
+    document = companions_document(result, inputs) | dict(extra or {})
+    text = json.dumps(document, indent=2) + "\n"
     write_text(path, text)
     return Path(path)
 
