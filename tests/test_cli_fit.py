@@ -182,3 +182,27 @@ def test_level2_images_default_to_the_shipped_real_data_model(tmp_path, monkeypa
     assert float(linear.instrument("F480M").optics.defocus_nm) == 30.0
     ramp = _fit_model(None, None, "calslope")
     assert ramp.base.config.data_level == "ramp"
+
+
+def test_images_without_a_star_are_named_for_what_they_show():
+    """A dark (no flux), a flat field (flux, no peak) and a hot pixel on an empty image
+    (a peak holding all the flux) are not stars; a star through the mask is, with its
+    1-2 % of the flux in the brightest pixel."""
+    from amigo.cli.fit import star_problem
+
+    rng = np.random.default_rng(4)
+    error = np.full((80, 80), 2.0)
+    mask = np.ones((80, 80), bool)
+
+    def problem(data):
+        return star_problem(ImageData(data=data, error=error, mask=mask, n_integrations=1))
+
+    noise = 2.0 * rng.standard_normal((80, 80))
+    assert "total flux is" in problem(noise)
+    assert "brightest pixel stands" in problem(100.0 + noise)
+    hot = noise.copy()
+    hot[40, 40] = 1e6
+    assert "% of the image's flux is in one pixel" in problem(hot)
+    y, x = np.mgrid[:80, :80]
+    star = 3e3 * np.exp(-((x - 40.0) ** 2 + (y - 40.0) ** 2) / (2 * 4.0**2))  # 1 % at peak
+    assert problem(star + noise) is None

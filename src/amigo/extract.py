@@ -218,6 +218,9 @@ def extract_filter(
     with numerical("calibration kernel"):
         products, kernel = _calibrate(fit, latents, covariances, information)
     models = np.asarray(fit.models(params), dtype=float)
+    # Finite parameters can still overflow the images (a wavefront fitted to a hot pixel):
+    # no goodness of fit, and no trust in the products, without finite model images.
+    require_finite("model images", "model pixel values", models)
     seconds = time.perf_counter() - start
     stats = exposure_stats(fit, result, models, seconds / fit.n_exposures)
     return FilterProduct(
