@@ -117,9 +117,9 @@ def fit_single_star(image: ImageData, filter_name: str, row: str, basis) -> dict
 
 def simulated_image(filter_name: str, like: ImageData, seed: int = 0) -> ImageData:
     """The project's simulator's point source with the flux and noise of a real file."""
-    from amigo.simulate.optics_illumination import OpticalModelIllumination
-    from amigo.simulate.scene import DetectorScene, PointSource
-    from amigo.simulate.state import InstrumentState
+    from amigo.simulation.optics_illumination import OpticalModelIllumination
+    from amigo.simulation.scene import DetectorScene, PointSource
+    from amigo.simulation.state import InstrumentState
 
     state = dataclasses.replace(InstrumentState.perfect(), jitter_mas=SIM_JITTER_MAS)
     k = 3

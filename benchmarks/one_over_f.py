@@ -5,7 +5,7 @@
 
 A single star (the analytic NRM image, the exposure's brightest pixel at ``peak`` DN at
 the last group) is simulated with the full default detector physics
-(:class:`amigo.simulate.detector.DetectorConfig`: photon and read noise, BFE, IPC,
+(:class:`amigo.simulation.detector.DetectorConfig`: photon and read noise, BFE, IPC,
 non-linearity, cosmic rays, ADC, ...) twice from the same seeds: with 1/f noise
 (``one_over_f_dn`` = 1.5 DN per column and group) and without. Each is processed with
 ``ProcessSettings(one_over_f="none")`` and ``"stripes"``. The truth is the simulator's
@@ -36,12 +36,12 @@ import time
 import numpy as np
 
 from amigo import instrument
-from amigo.process import ArraySource, ProcessSettings, SlopeProduct, process_ramps
-from amigo.simulate import detector as simulator_detector
-from amigo.simulate.detector import DetectorConfig, RampSimulator, draw_detector
-from amigo.simulate.illumination import AnalyticNRM
-from amigo.simulate.scene import REFERENCE_PIXEL_XY, DetectorScene, PointSource
-from amigo.simulate.state import StateSpread, draw_instrument_state
+from amigo.processing import ArraySource, ProcessSettings, SlopeProduct, process_ramps
+from amigo.simulation import detector as simulator_detector
+from amigo.simulation.detector import DetectorConfig, RampSimulator, draw_detector
+from amigo.simulation.illumination import AnalyticNRM
+from amigo.simulation.scene import REFERENCE_PIXEL_XY, DetectorScene, PointSource
+from amigo.simulation.state import StateSpread, draw_instrument_state
 
 FAINT_DN = 20.0
 

@@ -3,7 +3,7 @@
     python benchmarks/optics_fidelity.py [--filters F380M] [--pupils 128,256]
                                          [--methods angular_spectrum,pupil]
 
-A noiseless image of the simulator's optics (:class:`amigo.simulate.OpticalModelIllumination`:
+A noiseless image of the simulator's optics (:class:`amigo.simulation.OpticalModelIllumination`:
 512-pixel pupil, 15 wavelengths, 4x sub-pixels) with the instrument state that
 ``amigo simulate --seed 0`` draws is fitted with the base model's optics at each setting
 (its pupil sampling and defocus method; 9 wavelengths, 3x sub-pixels), every optical
@@ -34,11 +34,11 @@ from jax.flatten_util import ravel_pytree
 from amigo import instrument
 from amigo.basemodel import BaseModel, BaseModelConfig
 from amigo.detector.linear import bin_pixels
-from amigo.simulate.optics_illumination import OpticalModelIllumination
-from amigo.simulate.run import REFERENCE_PIXEL_XY
-from amigo.simulate.scenarios import load_scenario
-from amigo.simulate.scene import DetectorScene, PointSource
-from amigo.simulate.state import draw_instrument_state
+from amigo.simulation.optics_illumination import OpticalModelIllumination
+from amigo.simulation.run import REFERENCE_PIXEL_XY
+from amigo.simulation.scenarios import load_scenario
+from amigo.simulation.scene import DetectorScene, PointSource
+from amigo.simulation.state import draw_instrument_state
 
 READ_VARIANCE_E2 = 300.0
 

@@ -87,9 +87,9 @@ def _render(filter_name: str, orientation, xy, companion, seed: int) -> np.ndarr
     import jax.numpy as jnp
 
     from amigo.detector.linear import bin_pixels
-    from amigo.simulate.optics_illumination import OpticalModelIllumination
-    from amigo.simulate.scene import DetectorScene, PointSource
-    from amigo.simulate.state import InstrumentState
+    from amigo.simulation.optics_illumination import OpticalModelIllumination
+    from amigo.simulation.scene import DetectorScene, PointSource
+    from amigo.simulation.state import InstrumentState
 
     state = dataclasses.replace(InstrumentState.perfect(), jitter_mas=SIM_JITTER_MAS)
     sources = [PointSource(xy[0], xy[1], 1.0)]

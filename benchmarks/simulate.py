@@ -24,11 +24,11 @@ import numpy as np
 
 from amigo import instrument
 from amigo.orientation import Orientation
-from amigo.simulate.detector import DetectorConfig, RampSimulator, draw_detector
-from amigo.simulate.illumination import AnalyticNRM
-from amigo.simulate.scene import DetectorScene, PointSource
-from amigo.simulate.state import StateSpread, draw_instrument_state
-from amigo.simulate.writer import UncalWriter, primary_header, sci_header
+from amigo.simulation.detector import DetectorConfig, RampSimulator, draw_detector
+from amigo.simulation.illumination import AnalyticNRM
+from amigo.simulation.scene import DetectorScene, PointSource
+from amigo.simulation.state import StateSpread, draw_instrument_state
+from amigo.simulation.writer import UncalWriter, primary_header, sci_header
 
 
 def run(rate: np.ndarray, ngroups: int, nints: int, folder: Path) -> tuple[float, float]:

@@ -132,7 +132,7 @@ def test_calvis_end_to_end(tmp_path, capsys):
     assert run(argv) == 0
     assert "up to date (same inputs and options), kept" in capsys.readouterr().out
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
-    from amigo.cli.detect import _detect_key
+    from amigo.pipeline._detect import _detect_key
 
     settings = {"rmax_mas": 600.0, "seed": 0}
     assert _detect_key(inputs, settings) != _detect_key(inputs, {**settings, "seed": 1})

@@ -129,8 +129,8 @@ def test_several_files_after_one_flag_or_the_flag_repeated(tmp_path, capsys):
 def test_the_same_star_as_science_and_calibrator_stays_two_targets(tmp_path):
     """The null test (one visit of a star against another): the calibrator exposures get
     their own target, named with their observation; other calibrators keep their names."""
-    from amigo.cli.fit import key_targets
     from amigo.fitting import FitExposure
+    from amigo.pipeline._fit import key_targets
 
     def item(name, role, observation, target="HD-37093"):
         path = write_level2(
@@ -162,7 +162,7 @@ def test_level2_images_default_to_the_shipped_real_data_model(tmp_path, monkeypa
 
     import amigo.basemodel as basemodel
     from amigo.basemodel import BaseModel, BaseModelConfig, save_base_model
-    from amigo.cli.fit import _fit_model
+    from amigo.pipeline._fit import _fit_model
 
     config = BaseModelConfig(filters=("F480M",), n_wavelengths=3, pupil_npix=64)
     model = BaseModel.create(config).for_level2()
@@ -188,7 +188,7 @@ def test_images_without_a_star_are_named_for_what_they_show():
     """A dark (no flux), a flat field (flux, no peak) and a hot pixel on an empty image
     (a peak holding all the flux) are not stars; a star through the mask is, with its
     1-2 % of the flux in the brightest pixel."""
-    from amigo.cli.fit import star_problem
+    from amigo.pipeline._fit import star_problem
 
     rng = np.random.default_rng(4)
     error = np.full((80, 80), 2.0)

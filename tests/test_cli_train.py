@@ -27,7 +27,7 @@ from amigo.basemodel import (
     save_base_model,
 )
 from amigo.io.calslope import write_calslope
-from amigo.process import ProcessSettings, SlopeProduct
+from amigo.processing import ProcessSettings, SlopeProduct
 from amigo.slope_model import FlatParams, PointSourceParams, predict_slopes
 
 SRC = str(Path(__file__).resolve().parents[1] / "src")

@@ -45,7 +45,7 @@ def _star(shape=(80, 80), peak=3.0e4) -> np.ndarray:
 def make_seeds(folder: Path) -> dict[str, Path]:
     """One small valid file of every kind amigo reads."""
     from amigo.basemodel import BaseModel, BaseModelConfig, save_base_model
-    from amigo.process import process_file
+    from amigo.processing import process_file
     from detect_helpers import write_sim_calvis, write_sim_oifits
 
     folder.mkdir(parents=True, exist_ok=True)
@@ -75,7 +75,7 @@ def make_seeds(folder: Path) -> dict[str, Path]:
 
 def _read_uncal(path: Path, out: Path) -> None:
     from amigo.io.identify import summarise
-    from amigo.process import process_file
+    from amigo.processing import process_file
 
     summarise(path)
     try:
@@ -88,8 +88,8 @@ def _read_uncal(path: Path, out: Path) -> None:
 
 def _read_for_fit(level: str):
     def read(path: Path, out: Path) -> None:
-        from amigo.cli.fit import _read_fit_exposure
         from amigo.io.identify import summarise
+        from amigo.pipeline._fit import _read_fit_exposure
 
         del out
         summarise(path)

@@ -1,4 +1,4 @@
-"""Physics and algorithm tests of amigo.process, on ramps from an independent generator."""
+"""Physics and algorithm tests of amigo.processing, on ramps from an independent generator."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import pytest
 from astropy.io import fits
 
 from amigo import instrument
-from amigo.process import (
+from amigo.processing import (
     BAD_DQ,
     BAD_LOW_SUPPORT,
     BAD_NO_NOISE,

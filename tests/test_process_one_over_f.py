@@ -14,7 +14,7 @@ from astropy.io import fits
 from amigo import instrument
 from amigo.cli import main
 from amigo.io.calslope import read_calslope
-from amigo.process import (
+from amigo.processing import (
     ArraySource,
     ProcessSettings,
     SlopeProduct,

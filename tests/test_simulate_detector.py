@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from amigo import instrument
-from amigo.simulate.detector import (
+from amigo.simulation.detector import (
     DetectorConfig,
     EdgeStrips,
     RampSimulator,
@@ -20,9 +20,9 @@ from amigo.simulate.detector import (
     ipc_kernel,
     one_over_f_columns,
 )
-from amigo.simulate.illumination import AnalyticNRM
-from amigo.simulate.scene import DetectorScene, PointSource
-from amigo.simulate.state import InstrumentState
+from amigo.simulation.illumination import AnalyticNRM
+from amigo.simulation.scene import DetectorScene, PointSource
+from amigo.simulation.state import InstrumentState
 
 TG = instrument.GROUP_TIME_S
 GAIN = instrument.GAIN_E_PER_DN

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from amigo import instrument
-from amigo.simulate.illumination import (
+from amigo.simulation.illumination import (
     AnalyticNRM,
     UniformIllumination,
     hexagon_vertices_m,
@@ -15,8 +15,8 @@ from amigo.simulate.illumination import (
     nrm_intensity,
     polygon_fourier_transform,
 )
-from amigo.simulate.scene import DetectorScene, PointSource
-from amigo.simulate.state import InstrumentState
+from amigo.simulation.scene import DetectorScene, PointSource
+from amigo.simulation.state import InstrumentState
 
 HEX_AREA = 1.5 * np.sqrt(3.0) * (0.80 / np.sqrt(3.0)) ** 2
 
@@ -118,7 +118,7 @@ def test_project_optics_and_analytic_model_agree_for_piston_tilt_and_hole_positi
     """Two independent implementations (sampled pupil + MFT + resampling in JAX, and the
     closed form here) of the same instrument state: Noll 1-3 per hole, distorted and
     shifted holes, jitter, two sources. The closed form is exact for this state."""
-    from amigo.simulate.optics_illumination import OpticalModelIllumination
+    from amigo.simulation.optics_illumination import OpticalModelIllumination
 
     rng = np.random.default_rng(4)
     zernike = np.zeros((7, 10))

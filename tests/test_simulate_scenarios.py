@@ -7,8 +7,8 @@ import pytest
 
 from amigo.errors import InputError
 from amigo.orientation import Orientation, separation_pa
-from amigo.simulate.scenarios import builtin_names, load_scenario, parse_scenario
-from amigo.simulate.scene import Companion, Target, detector_scene, dither_offsets
+from amigo.simulation.scenarios import builtin_names, load_scenario, parse_scenario
+from amigo.simulation.scene import Companion, Target, detector_scene, dither_offsets
 
 MINIMAL = """
 name = "mini"

@@ -190,7 +190,7 @@ def test_amigo_train_on_real_level2_calibrators(tmp_path, capsys):
 
     # One model cannot stand both in front of and behind the pipeline: the model trained
     # here refuses calslope files, and a training refuses a mix of the two kinds.
-    from amigo.cli.fit import _fit_model
+    from amigo.pipeline._fit import _fit_model
 
     with pytest.raises(InputError, match="level-2"):
         _fit_model(out, None, "calslope")

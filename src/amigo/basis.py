@@ -330,7 +330,16 @@ def load_basis(
         save_basis(cache_dir() / name, basis, info)
     except OSError as error:  # a read-only home must not stop a fit
         step(f"could not cache the basis ({error})")
-    return basis, info
+    # The basis as the cache holds it (float32): a fit must not depend on whether its
+    # basis was built in this process or read back, or a re-run's products would differ
+    # in their last bits from an uninterrupted run's.
+    stored = LatentBasis(
+        amp=jnp.asarray(np.asarray(basis.amp, np.float32)),
+        phase=jnp.asarray(np.asarray(basis.phase, np.float32)),
+        knots=basis.knots,
+        grid=basis.grid,
+    )
+    return stored, info
 
 
 def spectrum_figure(info: BasisInfo):

@@ -1275,7 +1275,7 @@ def process_flat_field(uncal_path: str | Path, out_dir: str | Path) -> Path:
     from astropy.io import fits
 
     from amigo.io.calslope import calslope_name, write_calslope
-    from amigo.process import ArraySource, check_usable, process_ramps
+    from amigo.processing import ArraySource, check_usable, process_ramps
 
     path = Path(uncal_path)
     try:

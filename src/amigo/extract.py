@@ -29,9 +29,9 @@ from amigo.basis import BasisInfo, load_basis
 from amigo.errors import numerical, require_finite
 from amigo.fitting import (
     FilterFit,
+    FilterFitResult,
     FitConfig,
     FitExposure,
-    FitResult,
     LatentInformation,
     latent_information,
 )
@@ -88,7 +88,7 @@ class FilterProduct:
 
     filter_name: str
     fit: FilterFit
-    result: FitResult
+    result: FilterFitResult
     basis_info: BasisInfo
     stats: list[ExposureStats]
     models: np.ndarray
@@ -116,7 +116,7 @@ def baseline_map(setup: FilterSetup) -> np.ndarray:
 
 
 def exposure_stats(
-    fit: FilterFit, result: FitResult, models: np.ndarray, seconds_each: float
+    fit: FilterFit, result: FilterFitResult, models: np.ndarray, seconds_each: float
 ) -> list[ExposureStats]:
     """chi2, dof and z-score spread of every exposure at the optimum.
 

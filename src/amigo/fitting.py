@@ -185,7 +185,7 @@ class FitParams(eqx.Module):
 
 
 @dataclass
-class FitResult:
+class FilterFitResult:
     """Outcome of :meth:`FilterFit.fit`.
 
     Attributes
@@ -487,7 +487,7 @@ class FilterFit:
         config: FitConfig | None = None,
         params: FitParams | None = None,
         label: str = "fit",
-    ) -> FitResult:
+    ) -> FilterFitResult:
         """Natural-gradient descent from ``params`` (default :meth:`initial_params`)."""
         config = FitConfig() if config is None else config
         start = time.perf_counter()
@@ -597,7 +597,7 @@ class FilterFit:
             change = (
                 (min(history[:-window]) - min(history)) / per_exposure if window > 0 else np.inf
             )
-        return FitResult(
+        return FilterFitResult(
             params=best,
             converged=converged,
             iterations=iteration,
@@ -841,7 +841,7 @@ def latent_information(
     (forward mode, exact) and the sums. Covariances use the Hessians at the optimum; the
     kernel's terms are taken at the calibrators' point-source state (see
     :class:`LatentInformation`). ``fisher``: the float64 Fisher matrix of the global
-    vector at ``params`` summed over ``exact_exposures`` (:attr:`FitResult.fisher`):
+    vector at ``params`` summed over ``exact_exposures`` (:attr:`FilterFitResult.fisher`):
     the latent blocks of those exposures' targets are read from it, the others computed.
     """
     start = time.perf_counter()

@@ -53,3 +53,9 @@ def track(items: Iterable[T], description: str, total: int | None = None) -> Ite
 def step(message: str) -> None:
     """Report one step of a longer job (one line on stderr)."""
     print(message, file=sys.stderr, flush=True)
+
+
+def warn(message: str) -> None:
+    """Report something the user should look at, which did not stop the job: one line
+    ``warning: <message>`` on stderr."""
+    print(f"warning: {message}", file=sys.stderr, flush=True)

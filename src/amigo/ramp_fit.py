@@ -49,7 +49,7 @@ from jaxtyping import Array, Float
 from amigo.basemodel import BaseModel
 from amigo.detector.dark_residual import HALO_FRACTION, pattern_amplitude
 from amigo.detector.reset import Superbias, with_first_group
-from amigo.fitting import FilterFit, FitConfig, FitExposure, FitParams, FitResult
+from amigo.fitting import FilterFit, FilterFitResult, FitConfig, FitExposure, FitParams
 from amigo.instrument import GAIN_E_PER_DN
 from amigo.io.calslope import CalSlope
 from amigo.likelihood import ImageData
@@ -395,7 +395,7 @@ def fit_through_detector(
     config: FitConfig,
     detector: RampDetector,
     label: str = "fit",
-) -> tuple[FilterFit, FitResult, DetectorRecord]:
+) -> tuple[FilterFit, FilterFitResult, DetectorRecord]:
     """Fit a filter's exposures with the base model's detector (see module notes).
 
     The first correction is taken at the starting point (point sources at their
@@ -434,7 +434,7 @@ def fit_through_detector(
         if changes[-1] < detector.tolerance or last:
             break  # the data now carry the correction at the final parameters
         newton = levenberg_marquardt(fit, result.params, refit, f"{label} round {round_}")
-        result = FitResult(
+        result = FilterFitResult(
             params=newton.params,
             converged=newton.converged,
             iterations=result.iterations + newton.iterations,

@@ -7,7 +7,7 @@ list it in :data:`COMMANDS`.
 
 Exit status (see docs/interfaces): 0 success, 2 bad input or usage (one line on stderr, no
 traceback), 1 unexpected internal error, 3 and 4 some or all of a fit's filters without
-products (:mod:`amigo.cli.fit_outcome`), 130 interrupted.
+products (:mod:`amigo.pipeline.outcome`), 130 interrupted.
 """
 
 from __future__ import annotations
@@ -106,7 +106,7 @@ def _run(argv: list[str] | None) -> Any:
     except InputError as error:
         fail_input(error)
     except NumericalFailure as error:  # a computation without a result, outside a filter
-        from amigo.cli.fit_outcome import EXIT_NO_PRODUCT
+        from amigo.pipeline.outcome import EXIT_NO_PRODUCT
 
         click.echo(f"amigo: failed: {error}", err=True)
         sys.exit(EXIT_NO_PRODUCT)

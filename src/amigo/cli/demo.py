@@ -32,36 +32,36 @@ DEMO_KNOTS, DEMO_KNOT_SPACING_M = 27, 0.5
     help="Output folder.",
 )
 @click.option("--no-hmc", is_flag=True, help="Skip the NUTS posterior (faster).")
-@click.pass_context
-def command(ctx: click.Context, out: Path, no_hmc: bool) -> int:
+def command(out: Path, no_hmc: bool) -> int:
     """Simulate a binary and a calibrator, and take them from raw ramps to a companion."""
     from amigo.basemodel import default_model_path
-    from amigo.cli import run, simulate
+    from amigo.pipeline import run, simulate
 
     raw = out / "raw"
-    ctx.invoke(simulate.command, scenario=SCENARIO, out_dir=str(raw), seed=0)
-    truths = {p: json.loads(p.read_text()) for p in sorted(raw.glob("*_truth.json"))}
+    written = sorted(simulate(SCENARIO, raw, seed=0), key=lambda item: str(item.truth))
+    for item in written:
+        click.echo(f"{item.uncal}\t{item.truth}")
+    truths = {item.truth: json.loads(Path(item.truth).read_text()) for item in written}
     sci, cal = [], []
-    for path, truth in truths.items():
-        uncal = path.with_name(path.name.removesuffix("_truth.json") + "_uncal.fits")
-        (sci if truth["exposure"]["role"] == "science" else cal).append(uncal)
-    calvis, status = run.pipeline(
-        ctx,
-        tuple(sci),
-        tuple(cal),
+    for item in written:
+        role = truths[item.truth]["exposure"]["role"]
+        (sci if role == "science" else cal).append(Path(item.uncal))
+    result = run(
+        sci,
+        cal,
         out,
         model=default_model_path(),
         detector=None,  # the default: the base model's full detector (network on)
         knots=DEMO_KNOTS,
         knot_spacing=DEMO_KNOT_SPACING_M,
-        no_hmc=no_hmc,
+        hmc=not no_hmc,
     )
-    if not calvis:
-        return status  # the fit's warnings and fit_summary.json say why
+    if not result.calvis:
+        return result.status  # the fit's warnings and fit_summary.json say why
     science_truth = next(t for t in truths.values() if t["exposure"]["role"] == "science")
     found = json.loads((out / "companions.json").read_text())["companions"]
     click.echo(_comparison(science_truth["scene"]["companions"], found))
-    return status
+    return result.status
 
 
 def _comparison(truth: list[dict], found: list[dict]) -> str:

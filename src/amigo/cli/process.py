@@ -7,13 +7,9 @@ are still processed; the exit status is 2 at the end if any file failed.
 from __future__ import annotations
 
 import sys
-import warnings
-from collections.abc import Iterable
 from pathlib import Path
 
 import click
-
-from amigo.errors import InputError
 
 
 @click.command("process")
@@ -74,48 +70,17 @@ def command(
     writes means, covariances of the means, supports and a bad-pixel map
     (docs/process.md).
     """
-    from amigo.io.calslope import calslope_name, is_up_to_date
-    from amigo.process import SATURATION_DN, ProcessSettings, process_file
-    from amigo.progress import track
+    from amigo.pipeline import process
 
-    settings = ProcessSettings(
-        nsigma=sigma,
-        adc_correction=not no_adc,
-        saturation_dn=SATURATION_DN if saturation_dn is None else saturation_dn,
+    result = process(
+        uncal,
+        out_dir,
+        sigma=sigma,
+        adc=not no_adc,
+        saturation_dn=saturation_dn,
         one_over_f=one_over_f,
+        force=force,
     )
-    failed = 0
-    claimed: dict[str, Path] = {}
-    for path in uncal:
-        name = calslope_name(path)
-
-        def progress(
-            items: Iterable[object], total: int, stage: str, _label: str = path.name
-        ) -> Iterable[object]:
-            return track(items, f"process {_label}: {stage}", total=total)
-
-        try:
-            if name in claimed:
-                raise InputError(path, f"writes the same {name} as {claimed[name]}")
-            claimed[name] = path
-            if not force and path.is_file() and is_up_to_date(out_dir / name, path, settings):
-                click.echo(f"{out_dir / name}: up to date, skipped (--force processes it again)")
-                continue
-            with warnings.catch_warnings(record=True) as caught:
-                warnings.simplefilter("always")
-                out, product = process_file(path, out_dir, settings, progress=progress)
-            # The reader validates the file on each pass: say each note once.
-            for message in dict.fromkeys(str(warning.message) for warning in caught):
-                click.echo(f"amigo: note: {message}", err=True)
-        except InputError as error:
-            click.echo(f"amigo: error: {error}", err=True)
-            failed += 1
-            continue
-        nbad = int(product.badpix.sum())
-        click.echo(
-            f"{out}: {product.nints} integrations x {product.ramp_dn.shape[0]} groups, "
-            f"{nbad} bad pixels"
-        )
-    if failed:
-        click.echo(f"amigo: {failed} of {len(uncal)} file(s) failed", err=True)
+    if result.failed:
+        click.echo(f"amigo: {len(result.failed)} of {len(uncal)} file(s) failed", err=True)
         sys.exit(2)

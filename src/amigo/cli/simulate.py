@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import click
 
-from amigo.errors import InputError
-
 
 @click.command("simulate")
 @click.argument("scenario")
@@ -40,20 +38,7 @@ def command(scenario: str, out_dir: str, seed: int, full: bool, only: tuple[str,
     Built-in scenarios: cal4481, com1093, go1843 (copy their TOML from amigo/data/scenarios
     to make your own; see docs/simulate.md).
     """
-    from amigo.simulate.run import simulate_scenario
-    from amigo.simulate.scenarios import load_scenario
+    from amigo.pipeline import simulate
 
-    loaded = load_scenario(scenario)
-    select = None
-    if only:
-        stems = [e.stem(loaded.program) for e in loaded.exposures]
-        for prefix in only:
-            if not any(s.startswith(prefix) for s in stems):
-                raise InputError(None, f"--only {prefix!r} matches no exposure of {loaded.name}")
-
-        def select(spec):  # type: ignore[no-untyped-def]
-            return any(spec.stem(loaded.program).startswith(p) for p in only)
-
-    written = simulate_scenario(loaded, out_dir, seed=seed, full=full, select=select)
-    for item in written:
+    for item in simulate(scenario, out_dir, seed=seed, full=full, only=only):
         click.echo(f"{item.uncal}\t{item.truth}")

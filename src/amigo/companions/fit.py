@@ -69,7 +69,7 @@ def estimate_scales(dataset: Dataset, offsets_mas, contrasts, primary_diameter_m
 
 
 @dataclass(frozen=True)
-class FitResult:
+class CompanionFitResult:
     """Best fit of ``K`` companions in ``F`` filters.
 
     Attributes
@@ -186,7 +186,7 @@ def fit_companions(
     group_scales: np.ndarray | None = None,
     primary_diameter_mas: float = 0.0,
     max_steps: int = 200,
-) -> FitResult:
+) -> CompanionFitResult:
     """Levenberg-Marquardt fit of all companions jointly, from the given starting point.
 
     Parameters
@@ -211,7 +211,7 @@ def fit_companions(
         lambda y: _residual_and_jacobian(jnp.asarray(y), args), y0, max_steps
     )
     covariance = np.linalg.pinv(jacobian.T @ jacobian, rcond=1e-12, hermitian=True)
-    return FitResult(
+    return CompanionFitResult(
         offsets_mas=best[: 2 * k].reshape(k, 2),
         log10_contrasts=np.clip(best[2 * k :].reshape(k, -1), LOG10_CONTRAST_FLOOR, 0.0),
         covariance=covariance,

@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from amigo.companions.fit import FitResult, block_residuals
+from amigo.companions.fit import CompanionFitResult, block_residuals
 from amigo.companions.observables import Dataset
 
 #: Thresholds below which a chain is reported as poorly converged.
@@ -115,7 +115,7 @@ def _potential(z: dict, dataset: Dataset, bounds: dict, primary_diameter_mas: fl
 
 def sample_posterior(
     dataset: Dataset,
-    best: FitResult,
+    best: CompanionFitResult,
     initial_scales: np.ndarray,
     *,
     num_warmup: int = 500,

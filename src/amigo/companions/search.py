@@ -148,7 +148,7 @@ class DetectionResult:
     detection_maps: tuple[GridResult, ...]
     residual_map: GridResult
     companions: tuple[Companion, ...]
-    fit: fitting.FitResult | None
+    fit: fitting.CompanionFitResult | None
     posterior: Posterior | None
     per_filter_posteriors: dict[str, Posterior]
     group_scales: np.ndarray
@@ -209,7 +209,7 @@ def _photon_counts(dataset: Dataset) -> dict[str, float]:
 class _Candidate:
     """One more companion, refined: the joint fit, its chi2 gain and the scales used."""
 
-    fit: fitting.FitResult
+    fit: fitting.CompanionFitResult
     dchi2: float
     scales: np.ndarray
 
@@ -217,7 +217,7 @@ class _Candidate:
 def _search_one(
     dataset: Dataset,
     grid: Grid,
-    current: fitting.FitResult | None,
+    current: fitting.CompanionFitResult | None,
     settings: SearchSettings,
 ) -> tuple[GridResult, list[_Candidate]]:
     """Grid-search one more companion; refine the best peaks; settle the error scales.
@@ -270,13 +270,13 @@ def _chi2(dataset, offsets, log10c, scales, diameter) -> float:
 class _Hypothesis:
     """A scene on the search path: its fit, significances and the maps that led to it."""
 
-    fit: fitting.FitResult | None
+    fit: fitting.CompanionFitResult | None
     chi2: float  # with unit error scales, to rank hypotheses on the same footing
     significances: tuple[Significance, ...]
     maps: tuple[GridResult, ...]
 
 
-def _unit_chi2(dataset: Dataset, fit: fitting.FitResult | None, diameter: float) -> float:
+def _unit_chi2(dataset: Dataset, fit: fitting.CompanionFitResult | None, diameter: float) -> float:
     ones = np.ones(dataset.n_groups)
     if fit is None:
         return fitting.background_chi2(dataset, ones, diameter)
@@ -421,7 +421,7 @@ def _filter_wavelengths_um(dataset: Dataset) -> np.ndarray:
 
 def _rejected(
     dataset: Dataset,
-    fit: fitting.FitResult,
+    fit: fitting.CompanionFitResult,
     sig: Significance,
     context: _Context,
 ) -> bool:
@@ -458,7 +458,7 @@ def _rejected(
     return True
 
 
-def _outside(fit: fitting.FitResult, settings: SearchSettings, notes: list[str]) -> bool:
+def _outside(fit: fitting.CompanionFitResult, settings: SearchSettings, notes: list[str]) -> bool:
     """Whether the joint fit of a candidate scene put a companion beyond the search
     radius (the grid starts inside it, but the least-squares fit is unbounded); if so,
     say so in ``notes``: signal from outside the searched field is not a detection."""
@@ -504,7 +504,7 @@ def _estimate_from_samples(dra, ddec, log10c, filters) -> Estimate:
     )
 
 
-def _estimate_from_fit(fit: fitting.FitResult, k: int, filters) -> Estimate:
+def _estimate_from_fit(fit: fitting.CompanionFitResult, k: int, filters) -> Estimate:
     dra, ddec = fit.offsets_mas[k]
     cov = fit.covariance[2 * k : 2 * k + 2, 2 * k : 2 * k + 2]
     sep, pa = separation_pa(dra, ddec)

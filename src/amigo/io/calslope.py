@@ -14,7 +14,7 @@ Layout (the public contract of docs/interfaces; ``ng`` groups, ``(ny, nx)`` = (8
     RAMP_COV   float32 (ng, ng, ny, nx)      covariance of RAMP, DN^2
     RAMP_SUP   float32 (ng, ny, nx)          integrations used for each group
     BADPIX     uint8   (ny, nx)              1 = do not use
-    BADPIX_WHY uint8   (ny, nx)              why (bit mask, see amigo.process.BAD_REASONS);
+    BADPIX_WHY uint8   (ny, nx)              why (bit mask, see amigo.processing.BAD_REASONS);
                                              an amigo extension beyond the contract
 
 Undefined values (no integration kept) are NaN, and their pixels are flagged in BADPIX.
@@ -34,7 +34,7 @@ from amigo.errors import InputError
 from amigo.io.atomic import atomic_path
 from amigo.io.files import damaged, fingerprint
 from amigo.io.jwst import open_fits
-from amigo.process import BAD_REASONS, ProcessSettings, SlopeProduct
+from amigo.processing import BAD_REASONS, ProcessSettings, SlopeProduct
 
 #: Extensions every calslope file has, in order.
 EXTENSIONS: tuple[str, ...] = (
@@ -151,7 +151,7 @@ def write_calslope(
     path
         Output file (``<stem>_calslope.fits``).
     product
-        The result of :func:`amigo.process.process_ramps`.
+        The result of :func:`amigo.processing.process_ramps`.
     primary_header, sci_header
         The uncal file's PRIMARY and SCI headers (copied, never modified).
     uncal_name

@@ -11,7 +11,7 @@ One entry point per need:
   model predicts all 80x80 pixels); reference rows are *flagged*, never trimmed, so that
   pixel indices mean the same thing in every product.
 * :func:`iter_ramps` streams the integrations of a raw-ramp file in chunks (memory bounded
-  whatever NINTS is), for :mod:`amigo.process`.
+  whatever NINTS is), for :mod:`amigo.processing`.
 
 Kinds: ``uncal`` (SCI uint16, (nints, ngroups, ny, nx)), ``rateints`` / ``calints``
 (SCI float DN/s, (nints, ny, nx)), ``rate`` / ``cal`` (SCI float DN/s, (ny, nx)).

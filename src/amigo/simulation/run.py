@@ -21,13 +21,13 @@ from amigo import instrument
 from amigo._version import __version__
 from amigo.orientation import Orientation
 from amigo.progress import step, track
-from amigo.simulate.detector import DetectorConfig, RampSimulator, draw_detector
-from amigo.simulate.illumination import AnalyticNRM, Illumination, UniformIllumination
-from amigo.simulate.optics_illumination import OpticalModelIllumination
-from amigo.simulate.scenarios import ExposureSpec, Scenario
-from amigo.simulate.scene import REFERENCE_PIXEL_XY, DetectorScene, PointSource, detector_scene
-from amigo.simulate.state import InstrumentState, draw_instrument_state
-from amigo.simulate.writer import (
+from amigo.simulation.detector import DetectorConfig, RampSimulator, draw_detector
+from amigo.simulation.illumination import AnalyticNRM, Illumination, UniformIllumination
+from amigo.simulation.optics_illumination import OpticalModelIllumination
+from amigo.simulation.scenarios import ExposureSpec, Scenario
+from amigo.simulation.scene import REFERENCE_PIXEL_XY, DetectorScene, PointSource, detector_scene
+from amigo.simulation.state import InstrumentState, draw_instrument_state
+from amigo.simulation.writer import (
     UncalWriter,
     exposure_duration_s,
     primary_header,
@@ -53,8 +53,8 @@ def default_illumination(scenario: Scenario) -> Illumination:
     """The optical model a scenario asks for.
 
     ``auto`` and ``optics``: the project's optical model at simulation fidelity
-    (:class:`~amigo.simulate.optics_illumination.OpticalModelIllumination`); ``analytic``:
-    the closed-form :class:`~amigo.simulate.illumination.AnalyticNRM` (no JAX, no
+    (:class:`~amigo.simulation.optics_illumination.OpticalModelIllumination`); ``analytic``:
+    the closed-form :class:`~amigo.simulation.illumination.AnalyticNRM` (no JAX, no
     intra-hole aberrations; fast, for tests and quick looks).
     """
     if scenario.illumination == "analytic":
@@ -300,7 +300,7 @@ def simulate_scenario(
     Parameters
     ----------
     scenario
-        From :func:`amigo.simulate.scenarios.load_scenario`.
+        From :func:`amigo.simulation.scenarios.load_scenario`.
     out_dir
         Output folder (created).
     seed

@@ -1,15 +1,15 @@
 """Illumination: the photon-rate image that falls on the detector.
 
 An *illumination* is any object with a ``render`` method that turns a
-:class:`~amigo.simulate.scene.DetectorScene` (point sources in detector pixels with their
-photon rates), a filter and an :class:`~amigo.simulate.state.InstrumentState` into the
+:class:`~amigo.simulation.scene.DetectorScene` (point sources in detector pixels with their
+photon rates), a filter and an :class:`~amigo.simulation.state.InstrumentState` into the
 photon rate on an oversampled SUB80 grid::
 
     rate = illumination.render(scene, "F430M", state, oversample=4)
     rate.shape == (80 * 4, 80 * 4)       # photons / s per sub-pixel, [y, x]
 
 and a ``describe()`` method returning a JSON-ready dict for the truth file. The detector
-(:mod:`amigo.simulate.detector`) never looks inside: the optics is pluggable.
+(:mod:`amigo.simulation.detector`) never looks inside: the optics is pluggable.
 
 This module provides:
 
@@ -22,7 +22,7 @@ This module provides:
   quadratic phase at the hole), the hole-position distortion and the detector's
   rotation and anisotropy (the geometry of :mod:`amigo.detector.linear`). It ignores the higher-order (Noll >= 4) shape of
   the wavefront *within* each hole; an optical model that propagates a sampled pupil is
-  needed for those: :mod:`amigo.simulate.optics_illumination`, the default.
+  needed for those: :mod:`amigo.simulation.optics_illumination`, the default.
 * :class:`UniformIllumination`: a flat field (uniformly illuminated detector).
 """
 
@@ -34,8 +34,8 @@ from typing import Any, Protocol
 import numpy as np
 
 from amigo import instrument
-from amigo.simulate.scene import DetectorScene, pixel_grid
-from amigo.simulate.state import HOLE_ZERNIKE_RADIUS_M, InstrumentState
+from amigo.simulation.scene import DetectorScene, pixel_grid
+from amigo.simulation.state import HOLE_ZERNIKE_RADIUS_M, InstrumentState
 
 RAD_PER_ARCSEC = np.pi / (180.0 * 3600.0)
 

@@ -18,9 +18,9 @@ from typing import Any
 
 from amigo import instrument
 from amigo.errors import InputError
-from amigo.simulate.detector import DetectorConfig
-from amigo.simulate.scene import Companion, Target, dither_offsets
-from amigo.simulate.state import StateSpread
+from amigo.simulation.detector import DetectorConfig
+from amigo.simulation.scene import Companion, Target, dither_offsets
+from amigo.simulation.state import StateSpread
 
 ROLES = ("science", "calibrator", "flat")
 ILLUMINATIONS = ("auto", "analytic", "optics")

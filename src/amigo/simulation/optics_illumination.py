@@ -6,7 +6,7 @@ pixel integration) and :class:`amigo.detector.linear.LinearDetector` (jitter, de
 rotation and anisotropy), at a higher fidelity than the fitting model uses by default:
 more wavelengths (15 instead of 9), a finer sub-pixel grid (the detector's 4x instead of
 3x) and a finer pupil (512 pixels across instead of 256). Every element of the drawn
-:class:`~amigo.simulate.state.InstrumentState` enters:
+:class:`~amigo.simulation.state.InstrumentState` enters:
 
 * ``zernike_nm`` -> ``NRMOptics.zernikes_nm`` (same convention: Noll 1..10 per hole, RMS
   nm, disc 1.2 x the hole circumradius);
@@ -30,8 +30,8 @@ from typing import Any
 import numpy as np
 
 from amigo import instrument
-from amigo.simulate.scene import DetectorScene
-from amigo.simulate.state import InstrumentState
+from amigo.simulation.scene import DetectorScene
+from amigo.simulation.state import InstrumentState
 
 
 @functools.cache

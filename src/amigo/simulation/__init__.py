@@ -3,33 +3,33 @@
 ``amigo simulate SCENARIO --out DIR`` writes level-1b ``_uncal.fits`` files and their
 ``_truth.json``. The pieces, each usable on its own:
 
-* :mod:`~amigo.simulate.scene`: targets and companions on the sky, their detector
+* :mod:`~amigo.simulation.scene`: targets and companions on the sky, their detector
   positions (through :mod:`amigo.orientation`), dither patterns.
-* :mod:`~amigo.simulate.state`: the random optical state (aberrations, defocus, pupil
+* :mod:`~amigo.simulation.state`: the random optical state (aberrations, defocus, pupil
   distortion, jitter) recorded as truth.
-* :mod:`~amigo.simulate.illumination`: pluggable optical models returning the
+* :mod:`~amigo.simulation.illumination`: pluggable optical models returning the
   oversampled photon-rate image (an analytic NRM image; a flat field).
-* :mod:`~amigo.simulate.detector`: the detector's own physics, integration by
+* :mod:`~amigo.simulation.detector`: the detector's own physics, integration by
   integration (brighter-fatter boundary shifts, IPC, non-linearity, noise, ADC...),
   independent of the fitting model's detector.
-* :mod:`~amigo.simulate.scenarios`: scenario TOML files (built-ins in
+* :mod:`~amigo.simulation.scenarios`: scenario TOML files (built-ins in
   ``amigo/data/scenarios``).
-* :mod:`~amigo.simulate.writer` and :mod:`~amigo.simulate.run`: streamed files.
+* :mod:`~amigo.simulation.writer` and :mod:`~amigo.simulation.run`: streamed files.
 
 See docs/simulate.md.
 """
 
-from amigo.simulate.detector import (
+from amigo.simulation.detector import (
     DetectorConfig,
     DetectorRealisation,
     RampSimulator,
     draw_detector,
 )
-from amigo.simulate.illumination import AnalyticNRM, Illumination, UniformIllumination
-from amigo.simulate.run import simulate_scenario
-from amigo.simulate.scenarios import Scenario, builtin_names, load_scenario, parse_scenario
-from amigo.simulate.scene import Companion, DetectorScene, PointSource, Target, detector_scene
-from amigo.simulate.state import InstrumentState, StateSpread, draw_instrument_state
+from amigo.simulation.illumination import AnalyticNRM, Illumination, UniformIllumination
+from amigo.simulation.run import simulate_scenario
+from amigo.simulation.scenarios import Scenario, builtin_names, load_scenario, parse_scenario
+from amigo.simulation.scene import Companion, DetectorScene, PointSource, Target, detector_scene
+from amigo.simulation.state import InstrumentState, StateSpread, draw_instrument_state
 
 __all__ = [
     "AnalyticNRM",

@@ -1,0 +1,200 @@
+"""The work of ``amigo detect`` (:func:`amigo.pipeline.detect`): calibrated observables ->
+companions, posteriors and contrast limits.
+
+A search whose ``companions.json`` (written last, after the CSV and the figures) records
+the same inputs, options and version is kept unless ``force``.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from amigo.errors import InputError
+
+
+@dataclass
+class DetectResult:
+    """What :func:`amigo.pipeline.detect` did.
+
+    Attributes
+    ----------
+    out
+        The output folder.
+    document
+        The contents of ``out/companions.json`` (docs/interfaces.md).
+    result
+        The :class:`~amigo.companions.search.DetectionResult` of a search run by this
+        call (maps, limits, posteriors), ``None`` where an earlier search was kept.
+    """
+
+    out: Path
+    document: dict[str, Any]
+    result: Any = None
+
+    @property
+    def companions(self) -> list[dict[str, Any]]:
+        """The detected companions, as in ``companions.json``."""
+        return list(self.document.get("companions", []))
+
+
+def detect_files(
+    files: Sequence[str | Path],
+    out: str | Path,
+    *,
+    rmax_mas: float = 1000.0,
+    threshold: float = 5.0,
+    step_mas: float | None = None,
+    max_companions: int = 3,
+    observables: str = "all",
+    cp_correlation: str = "baseline",
+    primary_diameter_mas: float = 0.0,
+    hmc: bool = True,
+    per_filter: bool = True,
+    warmup: int = 500,
+    samples: int = 1000,
+    chains: int = 2,
+    seed: int = 0,
+    force: bool = False,
+) -> DetectResult:
+    """Search calvis or OIFITS files; see :func:`amigo.pipeline.detect`."""
+    options = dict(locals())  # the parameters, before any other name is bound
+    import json
+
+    settings = {k: v for k, v in options.items() if k not in ("files", "out", "force")}
+    files = [str(f) for f in files]
+    out = Path(out)
+    key = _detect_key(files, settings)
+    if not force and _up_to_date(out, key):
+        print(
+            f"{out / 'companions.json'}: up to date (same inputs and options), "
+            "kept (--force searches again)"
+        )
+        return DetectResult(out, json.loads((out / "companions.json").read_text()))
+    import jax
+
+    # Fits, Hessians and HMC need float64. A context rather than the global switch, so a
+    # process that calls this (tests, notebooks) keeps its own precision after.
+    with jax.enable_x64(True):
+        result = _search(
+            files, out, rmax_mas, threshold, step_mas, max_companions, observables,
+            cp_correlation, primary_diameter_mas, hmc, per_filter, warmup, samples,
+            chains, seed, key,
+        )  # fmt: skip
+    return DetectResult(out, json.loads((out / "companions.json").read_text()), result)
+
+
+def _detect_key(files, settings: dict) -> str:
+    """Identity of a search: 16 hex characters of the SHA-256 of the amigo version, the
+    options and the input files' names and content fingerprints."""
+    import hashlib
+    import json
+
+    from amigo._version import __version__
+    from amigo.io.files import fingerprint, require_file
+
+    inputs = [(Path(f).name, fingerprint(require_file(f, "input file"))) for f in files]
+    text = json.dumps(
+        {"version": __version__, "settings": settings, "inputs": inputs}, sort_keys=True
+    )
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def _up_to_date(out: Path, key: str) -> bool:
+    """Whether ``out`` holds a complete search with identity ``key``: companions.json,
+    written last, records it, and contrast_limits.csv is there."""
+    import json
+
+    try:
+        document = json.loads((out / "companions.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return (
+        isinstance(document, dict)
+        and document.get("detect_key") == key
+        and (out / "contrast_limits.csv").is_file()
+    )
+
+
+def _search(
+    files,
+    out_dir,
+    rmax_mas,
+    threshold,
+    step_mas,
+    max_companions,
+    observables,
+    cp_correlation,
+    primary_diameter_mas,
+    hmc,
+    per_filter,
+    warmup,
+    samples,
+    chains,
+    seed,
+    key: str = "",
+):
+    from amigo.companions import observables as obs
+    from amigo.companions import plots, products
+    from amigo.companions.search import SearchSettings, detect
+    from amigo.progress import step
+
+    blocks = [obs.load(f, cp_correlation=cp_correlation, observables=observables) for f in files]
+    for path, block in zip(files, blocks, strict=True):
+        step(f"{path}: {block.filter_name}, {block.n_obs} observables, {block.n_uv} uv points")
+    dataset = obs.Dataset.from_blocks(blocks)
+    if step_mas is not None and step_mas >= rmax_mas:
+        raise InputError(
+            None, f"--step-mas ({step_mas}) must be smaller than --rmax-mas ({rmax_mas})"
+        )
+    settings = SearchSettings(
+        rmax_mas=rmax_mas,
+        step_mas=step_mas,
+        threshold_sigma=threshold,
+        max_companions=max_companions,
+        primary_diameter_mas=primary_diameter_mas,
+        hmc=hmc,
+        per_filter=per_filter,
+        num_warmup=warmup,
+        num_samples=samples,
+        num_chains=chains,
+        seed=seed,
+    )
+    result = detect(dataset, settings)
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    # companions.json last: a search interrupted before it is not taken for complete.
+    products.write_contrast_csv(out / "contrast_limits.csv", result)
+    plots.write_all(result, out)
+    products.write_companions_json(
+        out / "companions.json", result, list(files), {"detect_key": key}
+    )
+
+    if not result.companions:
+        print(f"no companion above {threshold:g} sigma within {rmax_mas:g} mas")
+    for c in result.companions:
+        e = c.estimate
+        dmag = ", ".join(f"{f} {e.dmag[f]:.3f}±{e.dmag_err[f]:.3f}" for f in dataset.filters)
+        print(
+            f"companion {c.id}: sep {e.sep_mas:.2f}±{e.sep_err_mas:.2f} mas, "
+            f"PA {e.pa_deg:.2f}±{e.pa_err_deg:.2f} deg, dmag {dmag}, "
+            f"{c.detection_sigma:.1f} sigma ({c.method}"
+            + (
+                ""
+                if c.significance is None
+                else f"; false-alarm probability {c.significance.false_alarm_probability:.2g}"
+            )
+            + ")"
+        )
+    for r in result.rejected:
+        print(f"not a detection: {r.note}")
+    scales = ", ".join(f"{f} {v:.2f}" for f, v in result.sigma_scale.items())
+    print(f"sigma_scale: {scales}")
+    for message in result.warnings:
+        print(f"warning: {message}", file=sys.stderr)
+    print(f"wrote {out / 'companions.json'}, {out / 'contrast_limits.csv'} and figures")
+    return result

@@ -1,0 +1,864 @@
+"""The work of ``amigo fit`` (:func:`amigo.pipeline.fit`): files -> calibrated observables.
+
+Reads the science and calibrator files, leaves out exposures without a star, groups the
+exposures by filter, fits each filter jointly (:func:`amigo.extract.extract_filter`),
+writes per science target and filter a calvis and an OIFITS file, the plots and
+``fit_summary.json`` (rewritten after each filter), and keeps the filters whose products
+a previous run left complete for the same inputs (:mod:`amigo.pipeline.outcome`).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections import defaultdict
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from amigo.errors import InputError
+from amigo.progress import warn
+
+
+@dataclass
+class FitResult:
+    """What :func:`amigo.pipeline.fit` did.
+
+    Attributes
+    ----------
+    out
+        The output folder.
+    summary
+        The contents of ``out/fit_summary.json`` (per exposure and per filter: statuses,
+        goodness of fit, fitted geometry; docs/interfaces.md).
+    status
+        0 every filter has products; 3 some filters failed or exposures were left out;
+        4 no filter has products (:mod:`amigo.pipeline.outcome`).
+    products
+        Filter -> :class:`~amigo.extract.FilterProduct` of the filters fitted in this call
+        (the fit, its images and models, the DISCOs); filters kept from an earlier run
+        are not in it (``force=True`` fits them again).
+    """
+
+    out: Path
+    summary: dict[str, Any]
+    status: int
+    products: dict[str, Any] = field(default_factory=dict)
+
+    def _files(self, suffix: str) -> list[Path]:
+        from amigo.pipeline.outcome import USABLE
+
+        filters = self.summary.get("filters", {})
+        return [
+            self.out / name
+            for _, record in sorted(filters.items())
+            if record.get("status") in USABLE
+            for name in record.get("products", [])
+            if name.endswith(suffix)
+        ]
+
+    @property
+    def calvis(self) -> list[Path]:
+        """The calvis files of the filters with products, in filter order."""
+        return self._files("_calvis.fits")
+
+    @property
+    def oifits(self) -> list[Path]:
+        """The OIFITS files of the filters with products, in filter order."""
+        return self._files(".oifits")
+
+    def plot_residuals(self, file: str | None = None) -> list:
+        """Figures of data, model, residuals in sigma and their histogram, one per
+        exposure (``file``: only that exposure's, by file name). Exposures of filters
+        kept from an earlier run show the figure that run saved in ``out/plots``."""
+        import matplotlib.image as mpimg
+        import matplotlib.pyplot as plt
+
+        from amigo.plots.fit import exposure_figure
+
+        figures = []
+        for record in self.summary.get("exposures", []):
+            name = record.get("file")
+            if (file is not None and name != file) or record.get("status") not in (
+                "ok",
+                "unconverged",
+            ):
+                continue
+            product = self.products.get(record.get("filter"))
+            names = [e.name for e in product.fit.exposures] if product else []
+            if name in names:
+                e = names.index(name)
+                exposure = product.fit.exposures[e]
+                figures.append(exposure_figure(exposure.image, product.models[e], product.stats[e]))
+                continue
+            saved = self.out / "plots" / f"{Path(name).name.removesuffix('.fits')}_fit.png"
+            if saved.is_file():
+                figure, axis = plt.subplots(figsize=(12, 3.2))
+                axis.imshow(mpimg.imread(saved))
+                axis.set_axis_off()
+                axis.set_title(f"{name} (saved by the run that fitted it)")
+                figures.append(figure)
+        if file is not None and not figures:
+            raise InputError(None, f"no fitted exposure {file!r} in {self.out}")
+        return figures
+
+
+def fit_files(
+    sci: Sequence[Path],
+    cal: Sequence[Path],
+    out: Path,
+    *,
+    model: Path | None = None,
+    detector: str | None = None,
+    knots: int | None = None,
+    knot_spacing: float | None = None,
+    max_iterations: int | None = None,
+    polish: int = 0,
+    wavefront_prior: float | None = None,
+    superbias: Sequence[Path] = (),
+    first_group: bool = True,
+    force: bool = False,
+) -> FitResult:
+    """Fit science and calibrator files; write and return the products (see
+    :func:`amigo.pipeline.fit`, which documents the arguments)."""
+    os.environ.setdefault("JAX_PLATFORMS", "cpu")
+    sci, cal, superbias = tuple(map(Path, sci)), tuple(map(Path, cal)), tuple(map(Path, superbias))
+    out = Path(out)
+    overlap = set(sci) & set(cal)
+    if overlap:
+        raise InputError(sorted(overlap)[0], "is given both as --sci and --cal")
+    # A reset level measured on a fitted exposure itself would count its slopes twice.
+    overlap = set(superbias) & (set(sci) | set(cal))
+    if overlap:
+        raise InputError(sorted(overlap)[0], "is given both as --superbias and as --sci/--cal")
+    level = _check_inputs(sci, cal, detector)
+    grid = _grid(knots, knot_spacing)
+
+    import dataclasses
+
+    from amigo._version import __version__
+    from amigo.fitting import FitConfig
+    from amigo.io.files import fingerprint
+    from amigo.pipeline.outcome import exit_status, fit_key, kept_records, previous_summary
+    from amigo.progress import step
+
+    fit_model = _fit_model(model, detector, level)
+    reset = _reset_level(superbias, level, fit_model, not first_group)
+    read = []
+    ramps = {}
+    excluded = []  # (role, ReadExposure) of the exposures without a star to fit
+    given: dict[str, list] = defaultdict(list)  # filter -> (role, meta) of every input
+    for role, paths in (("science", sci), ("calibrator", cal)):
+        for path in paths:
+            item = _read_fit_exposure(path, role, level, reset)
+            given[item.meta.filter].append((role, item.meta))
+            if item.problem is not None:
+                excluded.append((role, item))
+                continue
+            read.append((item.exposure, item.meta))
+            ramps[item.exposure.name] = item.ramp
+    for filter_name, inputs in given.items():
+        roles = {role for role, _ in inputs}
+        if "calibrator" not in roles:
+            raise InputError(inputs[0][1].path, f"no calibrator exposure in {filter_name}")
+        if "science" not in roles:
+            step(f"{filter_name}: calibrators only (no science exposure): skipped")
+    by_filter: dict[str, list] = defaultdict(list)
+    for fit_exposure, meta in key_targets(read):
+        by_filter[meta.filter].append((fit_exposure, meta))
+    for items in by_filter.values():
+        _check_orientations(items)
+    fitted = {
+        name: by_filter.get(name, [])
+        for name, inputs in sorted(given.items())
+        if any(role == "science" for role, _ in inputs)
+    }
+    _refuse_if_nothing_left(fitted, excluded)
+    config = FitConfig(polish_steps=polish)
+    if wavefront_prior is not None:
+        config = dataclasses.replace(
+            config, newton=dataclasses.replace(config.newton, wavefront_prior_nm=wavefront_prior)
+        )
+    if max_iterations is not None:
+        config = dataclasses.replace(config, max_iterations=max_iterations)
+    detector_model = None
+    if fit_model.base is not None:
+        from amigo.ramp_fit import RampDetector
+
+        detector_model = RampDetector(fit_model.base, ramps)
+    settings = {
+        "amigo_version": __version__,
+        "level": level,
+        "model": fit_model.source,
+        "detector": fit_model.detector,
+        "grid": [knots, knot_spacing],
+        "config": repr(config),
+        "superbias": [fingerprint(p) for p in superbias],
+        "first_group": reset is not None,
+    }
+
+    out.mkdir(parents=True, exist_ok=True)
+    previous = {} if force else previous_summary(out)
+    summary_exposures = [
+        {
+            "file": item.meta.path.name,
+            "role": role,
+            "target": item.meta.target,
+            "filter": item.meta.filter,
+            "status": "excluded",
+            "problem": item.problem,
+        }
+        for role, item in excluded
+    ]
+    for _, item in excluded:
+        warn(f"{item.meta.path}: {item.problem}: left out of the fit")
+    filters_summary: dict[str, dict] = {}
+    products = {}
+    names = []
+    for filter_name, items in fitted.items():
+        instrument = fit_model.instrument(filter_name)
+        names.append(instrument.name)
+        key = fit_key(settings, [(e.role, e.target, fingerprint(m.path)) for e, m in items])
+        kept = None if force else kept_records(out, filter_name, key, previous)
+        if kept is not None:
+            record, records = kept
+            records = [r for r in records if r.get("status") != "excluded"]
+            step(f"{filter_name}: products up to date in {out}, kept (--force fits again)")
+        else:
+            record, records, product = _fit_filter(
+                instrument, filter_name, items, config, out, grid, detector_model, reset, key
+            )
+            if product is not None:
+                products[filter_name] = product
+        filters_summary[filter_name] = record
+        summary_exposures.extend(records)
+        # After each filter: an interrupted run keeps what it finished (kept_records).
+        _write_summary(
+            out,
+            "; ".join(dict.fromkeys(names)),
+            fit_model.detector,
+            summary_exposures,
+            filters_summary,
+        )
+    step(f"wrote {out / 'fit_summary.json'}")
+    _report(filters_summary)
+    return FitResult(
+        out=out,
+        summary=previous_summary(out),
+        status=exit_status(filters_summary, summary_exposures),
+        products=products,
+    )
+
+
+def _superbias(paths: tuple[Path, ...], level: str):
+    """The :class:`~amigo.detector.reset.Superbias` of the ``--superbias`` files."""
+    if level != "calslope":
+        raise InputError(
+            paths[0], "--superbias needs calslope inputs (level-2 images have no first group)"
+        )
+    from amigo.detector.reset import estimate_superbias
+    from amigo.io.calslope import read_calslope
+
+    return estimate_superbias([read_calslope(p) for p in paths])
+
+
+def _check_inputs(sci: tuple[Path, ...], cal: tuple[Path, ...], detector: str | None) -> str:
+    """Validate the kinds of the inputs; return ``"calslope"`` or ``"level2"``."""
+    from amigo.io.jwst import LEVEL2_KINDS, data_kind
+
+    kinds = {path: data_kind(path) for path in (*sci, *cal)}
+    for path, kind in kinds.items():
+        if kind == "uncal":
+            raise InputError(path, "is a raw ramp (uncal): run 'amigo process' first")
+    levels = {"level2" if k in LEVEL2_KINDS else k for k in kinds.values()}
+    if len(levels) > 1:
+        raise InputError(None, "mixing raw-ramp products and level-2 images in one call")
+    return levels.pop()
+
+
+@dataclass(frozen=True)
+class FitModel:
+    """What ``--model``/``--detector`` resolve to.
+
+    Attributes
+    ----------
+    instrument
+        Filter -> image-level :class:`~amigo.model.Instrument`.
+    base
+        The base model whose ramp and read models sit in front of calslope fits (with
+        its network for ``full``, without for ``linear``), or ``None`` (images fitted as
+        they are: level-2 files, or calslope files with an instrument file).
+    detector
+        ``"full"`` or ``"linear"`` (``fit_summary.json``).
+    source
+        The model file's name and content fingerprint, or ``"nominal"``: part of the
+        identity of a fit (a re-run keeps products of the same model).
+    """
+
+    instrument: Callable[[str], Any]
+    base: Any
+    detector: str
+    source: str = "nominal"
+
+
+def _fit_model(model: Path | None, detector: str | None, level: str) -> FitModel:
+    """Resolve the options: calslope files default to the shipped base model with its
+    network; level-2 images to the shipped model trained on real level-2 calibrators
+    (:func:`amigo.basemodel.level2_model_path`; the nominal instrument where none is
+    shipped) with its ramp seen through the pipeline's slope estimator
+    (:class:`amigo.ramp_fit.Level2Input`; a model trained on ramps, or the nominal
+    instrument, fits level-2 images with the linear detector unless ``--detector
+    full``)."""
+    from amigo.model import Instrument, load_instrument
+
+    if model is None and level == "level2":
+        from amigo.basemodel import level2_model_path
+
+        model = level2_model_path()
+    if model is None and (level == "calslope" or detector == "full"):
+        from amigo.basemodel import default_model_path
+
+        model = default_model_path()
+    if model is None:
+        nominal = Instrument.nominal()
+        return FitModel(lambda filter_name: nominal, None, "linear")
+    from amigo.io.files import fingerprint, require_file
+
+    source = f"{model.name}:{fingerprint(require_file(model, 'model file'))}"
+    if model.suffix.lower() != ".npz":
+        if detector == "full":
+            raise InputError(
+                model, "--detector full needs a trained base model (.npz), not an instrument file"
+            )
+        instrument = load_instrument(model)
+        return FitModel(lambda filter_name: instrument, None, "linear", source)
+    from amigo.basemodel import load_base_model, read_metadata
+
+    base = load_base_model(model)
+    if level == "calslope" and base.config.data_level == "level2":
+        raise InputError(
+            model,
+            "was trained on level-2 images (it has no dark current or non-linearity); "
+            "calslope files from raw ramps need a model trained on ramps",
+        )
+    record = read_metadata(model)
+    trained = record.get("trained_on", "?").split(":")[0]
+    scenario = record.get("scenario", "?").split(" ")[0]
+    # e.g. "(trained on cal4481, simulated ...)"; "(trained on real JWST ...)" when the
+    # scenario's first word only repeats the description.
+    about = trained if scenario == "?" or trained.startswith(scenario) else f"{scenario}, {trained}"
+    name = f"{model.name} (trained on {about})"
+    if level == "level2" and detector is None and base.config.data_level == "level2":
+        # A model trained behind the pipeline is made for level-2 images with its
+        # detector: on held-out COM 1093 images it fits 0.1-0.6 closer to the noise (z
+        # std) than the same optics with the linear detector (docs/detector.md).
+        detector = "full"
+    if level == "level2" and detector != "full":
+        mode, ramp = "linear", None
+    else:
+        mode = detector or "full"
+        ramp = base if mode == "full" else base.with_linear_detector()
+        if level == "level2":
+            ramp = ramp.for_level2()  # dark, flat and linearity already corrected
+    return FitModel(
+        lambda filter_name: Instrument.from_base_model(base, filter_name, name, mode),
+        ramp,
+        mode,
+        source,
+    )
+
+
+@dataclass(frozen=True)
+class ReadExposure:
+    """One input file of a fit, read.
+
+    Attributes
+    ----------
+    exposure
+        The :class:`~amigo.fitting.FitExposure` (``None`` where ``problem`` is set).
+    meta
+        Its :class:`~amigo.io.jwst.ExposureMeta`.
+    ramp
+        Its ``RampInput`` (calslope) or ``Level2Input`` (``None`` where ``problem``).
+    problem
+        Why the exposure has no star to fit (too few usable pixels, no flux above the
+        noise), or ``None``: such an exposure is left out of its filter.
+    """
+
+    exposure: Any
+    meta: Any
+    ramp: Any = None
+    problem: str | None = None
+
+
+def _read_fit_exposure(path: Path, role: str, level: str, superbias=None) -> ReadExposure:
+    """One input file, read and reduced to what the fit needs; a calslope file keeps its
+    first group in the likelihood when ``superbias`` is given. A damaged or foreign file
+    raises :class:`InputError`; an image without a star is returned with its problem."""
+    from amigo.errors import TooFewPixels
+    from amigo.fitting import FitExposure
+    from amigo.likelihood import ImageData
+
+    ramp = None
+    if level == "calslope":
+        from amigo.io.calslope import read_calslope
+        from amigo.io.jwst import meta_from_headers
+        from amigo.ramp_fit import RampInput
+
+        product = read_calslope(path)
+        if product.slope_dn.shape[0] == 0 and superbias is None:
+            raise InputError(
+                path,
+                "has one group per integration: its only measurement is the first read, "
+                "which needs the detector's reset level (--superbias DARKS, or a base "
+                "model trained with --darks)",
+            )
+        meta = meta_from_headers(
+            path, product.primary_header, product.slope_header, kind="calslope"
+        )
+        try:
+            ramp = RampInput.create(product, meta.group_time_s, superbias)
+            image = ramp.image(None)
+        except TooFewPixels as error:
+            return ReadExposure(None, meta, problem=error.problem)
+    else:
+        from amigo.io.jwst import read_exposure
+        from amigo.ramp_fit import Level2Input
+
+        exposure = read_exposure(path)
+        meta = exposure.meta
+        try:
+            image = ImageData.from_exposure(exposure)
+        except TooFewPixels as error:
+            return ReadExposure(None, meta, problem=error.problem)
+        ramp = Level2Input(
+            image, meta.ngroups, meta.nframes, meta.group_time_s, meta.dark_reference
+        )
+    problem = star_problem(image)
+    if problem is not None:
+        return ReadExposure(None, meta, problem=problem)
+    return ReadExposure(FitExposure(path.name, role, meta.target, image), meta, ramp)
+
+
+#: Smallest signal-to-noise ratio of an image's total flux that counts as a star: an AMI
+#: target gives thousands; an exposure of the dark sky, or a damaged file, about zero.
+MIN_STAR_SNR = 25.0
+#: Largest fraction of an image's flux in its brightest pixel that a star through the
+#: mask can give: its PSF puts 1.5 % there in F480M (amigo's nominal optics), 1.7-1.9 %
+#: on the 40 real COM 1093 images. A hot pixel or a cosmic ray on an empty image: ~100 %.
+MAX_PEAK_FRACTION = 0.25
+#: Least height of an image's brightest pixel above the image's median, in units of that
+#: pixel's error, for a star: pure noise over 6,000 pixels reaches about 4; the real COM
+#: 1093 images 400 to 650.
+MIN_PEAK_SIGMA = 10.0
+
+
+def star_problem(image) -> str | None:
+    """Why an image has no star to fit, or ``None``. Tested over the usable pixels: a
+    brightest pixel less than :data:`MIN_PEAK_SIGMA` errors above the median (a flat
+    field), more than :data:`MAX_PEAK_FRACTION` of the flux in one pixel (a hot pixel),
+    or the total flux, in units of its own error, below
+    :data:`MIN_STAR_SNR` (an all-negative image, a dark, a shutter closed), which a fit
+    would otherwise chase to z-scores of 1e5."""
+    import numpy as np
+
+    mask = image.mask
+    total = float(np.sum(image.data[mask]))
+    error = float(np.sqrt(np.sum(image.error[mask] ** 2)))
+    snr = total / error if error > 0 else 0.0
+    if not snr >= MIN_STAR_SNR:
+        return (
+            f"no star: the image's total flux is {snr:.1f} times its error "
+            f"(at least {MIN_STAR_SNR:g} expected of an AMI target)"
+        )
+    brightest = int(np.argmax(np.where(mask, image.data, -np.inf)))
+    value = float(image.data.flat[brightest])
+    height = (value - float(np.median(image.data[mask]))) / float(image.error.flat[brightest])
+    if not height >= MIN_PEAK_SIGMA:
+        return (
+            f"no star: the brightest pixel stands {height:.1f} times its error above the "
+            f"image's median (a flat field or the sky; at least {MIN_PEAK_SIGMA:g} expected)"
+        )
+    peak = value / total
+    if peak > MAX_PEAK_FRACTION:
+        return (
+            f"no star: {100 * peak:.0f} % of the image's flux is in one pixel (a hot pixel "
+            f"or a cosmic ray; the mask's PSF puts a few per cent there)"
+        )
+    return None
+
+
+def key_targets(items: list) -> list:
+    """``(FitExposure, ExposureMeta)`` pairs with each exposure's target keyed by role.
+
+    Exposures of one target share latent visibilities in the fit, so a star given both as
+    science and as calibrator (the standard null test: one visit against another) must
+    not become one target: its calibrator exposures are renamed ``"<name> (cal obs
+    <OBSERVTN>)"``. Science targets keep their names (the product files are named after
+    them); a calibrator star that is nobody's science keeps its name too.
+    """
+    import dataclasses
+
+    science = {e.target for e, _ in items if e.role == "science"}
+    keyed = []
+    for exposure, meta in items:
+        if exposure.role == "calibrator" and exposure.target in science:
+            visit = f" obs {meta.observation}" if meta.observation else ""
+            exposure = dataclasses.replace(exposure, target=f"{exposure.target} (cal{visit})")
+        keyed.append((exposure, meta))
+    return keyed
+
+
+def _reset_level(paths: tuple[Path, ...], level: str, fit_model: FitModel, off: bool):
+    """The superbias of a fit: from ``--superbias`` files, else the base model's (calslope
+    inputs), else ``None`` (also with ``--no-first-group``)."""
+    if off:
+        if paths:
+            raise InputError(None, "--superbias cannot be combined with --no-first-group")
+        return None
+    if paths:
+        superbias, source = _superbias(paths, level), f"{len(paths)} file(s)"
+    elif fit_model.base is None or level != "calslope":
+        return None
+    else:
+        superbias = fit_model.base.superbias
+        source = f"the base model ({fit_model.base.config.superbias_files} dark file(s))"
+    if superbias is not None:
+        from amigo.progress import step
+
+        about = superbias.summary()
+        step(
+            f"superbias from {source}: {about['pixels_known']} pixels, "
+            f"median error {about['median_error_dn']:.2f} DN"
+        )
+    return superbias
+
+
+def _refuse_if_nothing_left(fitted: dict[str, list], excluded: list) -> None:
+    """Bad input rather than a result: when the exposures without a star leave no filter
+    with both a science and a calibrator exposure, the first of them is refused."""
+    if any({"science", "calibrator"} <= {e.role for e, _ in items} for items in fitted.values()):
+        return
+    if excluded:
+        _, item = excluded[0]
+        raise InputError(item.meta.path, item.problem)
+
+
+def _fit_filter(
+    instrument, filter_name: str, items, config, out: Path, grid, detector, reset, key: str
+) -> tuple[dict, list[dict], Any]:
+    """Fit one filter and write its products; a numerical failure, or no science or
+    calibrator exposure left, becomes a ``"failed"`` record (no products) instead of an
+    exception. Returns the filter's record, its exposures' records and its
+    :class:`~amigo.extract.FilterProduct` (``None`` where it failed)."""
+    from amigo.errors import NumericalFailure
+
+    roles = {e.role for e, _ in items}
+    missing = [r for r in ("science", "calibrator") if r not in roles]
+    try:
+        if missing:
+            raise NumericalFailure("exposures", f"no usable {missing[0]} exposure left")
+        product = _run_filter(
+            instrument, filter_name, items, config, out, grid, detector, reset is not None, key
+        )
+    except NumericalFailure as failure:
+        warn(f"{filter_name}: failed ({failure}); no products for it (fit_summary.json)")
+        record = {"status": "failed", "problem": str(failure), "fit_key": key, "products": []}
+        records = [
+            {
+                "file": e.name,
+                "role": e.role,
+                "target": e.target,
+                "filter": filter_name,
+                "status": "failed",
+                "problem": str(failure),
+            }
+            for e, _ in items
+        ]
+        return record, records, None
+    return product["filter"], product["exposures"], product["product"]
+
+
+def _report(filters: dict[str, dict]) -> None:
+    """Warnings for the filters whose products are flagged or missing."""
+    unconverged = [name for name, f in filters.items() if f["status"] == "unconverged"]
+    if unconverged:
+        warn(
+            f"the fit did not converge in {', '.join(unconverged)}; its products are "
+            "written and flagged (CONVERGD = F in the calvis header, 'converged': false per "
+            "exposure in fit_summary.json): raise --max-iterations or check the residuals"
+        )
+    failed = [name for name, f in filters.items() if f["status"] == "failed"]
+    if failed:
+        warn(
+            f"no products for {', '.join(failed)} "
+            f"({len(filters) - len(failed)} of {len(filters)} filters have them)"
+        )
+
+
+def _grid(knots: int | None, spacing: float | None):
+    """The uv knot grid from the options (``None``: the defaults)."""
+    if knots is None and spacing is None:
+        return None
+    from amigo.visibility import DEFAULT_KNOT_SPACING_M, DEFAULT_N_KNOTS, UVGrid
+
+    try:
+        return UVGrid(
+            DEFAULT_N_KNOTS if knots is None else knots,
+            DEFAULT_KNOT_SPACING_M if spacing is None else spacing,
+        )
+    except ValueError as error:
+        raise InputError(None, f"--knots/--knot-spacing: {error}") from None
+
+
+def _check_orientations(items) -> None:
+    """Exposures of one target in one filter share visibilities: same roll required."""
+    by_target = defaultdict(list)
+    for exposure, meta in items:
+        by_target[exposure.target].append(meta)
+    for metas in by_target.values():
+        pas = [m.orientation.pa_aper_deg for m in metas]
+        spread = max((p - pas[0] + 180) % 360 - 180 for p in pas) - min(
+            (p - pas[0] + 180) % 360 - 180 for p in pas
+        )
+        if spread > 0.1:
+            raise InputError(
+                metas[0].path,
+                f"exposures of {metas[0].target} in {metas[0].filter} have roll angles "
+                f"{spread:.2f} deg apart; fit each roll separately",
+            )
+
+
+def _dark_residual_record(detector, name: str) -> dict:
+    """What the fit did with the dark residual of a level-2 image (base models that hold
+    one): ``dark_pattern_amplitude`` (and ``_err``), the amplitude of the model's read
+    offsets measured in the image (1: as the model says; below 0.5 the image is fitted
+    without them), and ``read_offset_sigma_dn_s``, the median noise added for the
+    offsets the model does not know; ``{}`` where nothing applies."""
+    if detector is None:
+        return {}
+    record = {}
+    if name in detector.pattern_amplitudes:
+        amplitude, error = detector.pattern_amplitudes[name]
+        record["dark_pattern_amplitude"] = round(amplitude, 4)
+        record["dark_pattern_amplitude_err"] = round(error, 4)
+    if name in detector.added_sigma_dn_s:
+        record["read_offset_sigma_dn_s"] = round(detector.added_sigma_dn_s[name], 4)
+    return record
+
+
+def _run_filter(
+    instrument,
+    filter_name,
+    items,
+    config,
+    out: Path,
+    grid=None,
+    detector=None,
+    first_group: bool = False,
+    key: str = "",
+) -> dict:
+    """Fit one filter, write its calvis, OIFITS and plot files; return its records for
+    ``fit_summary.json`` (``"filter"``: the filter's, ``"exposures"``: its exposures').
+    ``key``: the fit's identity (:func:`amigo.pipeline.outcome.fit_key`), recorded in
+    the products so that a re-run can keep them."""
+    import numpy as np
+
+    from amigo import instrument as nis
+    from amigo.basis import spectrum_figure
+    from amigo.detector.linear import sky_to_optical_matrix
+    from amigo.extract import extract_filter
+    from amigo.io.calvis import calvis_filename, write_calvis
+    from amigo.io.oifits_write import write_oifits
+    from amigo.plots.fit import exposure_figure, save_figure
+    from amigo.progress import step
+
+    exposures = [e for e, _ in items]
+    metas = {e.name: m for e, m in items}
+    product = extract_filter(
+        instrument, filter_name, exposures, config, grid=grid, detector=detector
+    )
+    fit = product.fit
+    plots = out / "plots"
+    save_figure(spectrum_figure(product.basis_info), plots / f"basis_{filter_name}.png")
+    for e, exposure in enumerate(fit.exposures):
+        stem = Path(exposure.name).name.removesuffix(".fits")
+        figure = exposure_figure(exposure.image, product.models[e], product.stats[e])
+        save_figure(figure, plots / f"{stem}_fit.png")
+
+    bins = nis.filter_bins(filter_name, instrument.n_wavelengths)
+    blue, red = nis.half_power_limits(filter_name)
+    params = product.result.params
+    # The fitted detector geometry (calibrators) places the sky on the optical frame.
+    fitted = instrument.with_geometry(params.optics.geometry)
+    geometry = _geometry_record(product.result)
+    status = "ok" if product.result.converged else "unconverged"
+    written = []
+    for target_product in product.products:
+        target = target_product.target
+        sci_items = [(e, metas[e.name]) for e in exposures if e.target == target]
+        cal_names = [e.name for e in exposures if e.role == "calibrator"]
+        orientation = sci_items[0][1].orientation
+        sky_to_uv = sky_to_optical_matrix(orientation, fitted.detector)
+        # Photons the fit used: the fitted count rate times the time its values span
+        # (ExposureMeta.photon_time_s: the slopes', or every group's with the first group
+        # in the likelihood), never EFFEXPTM, which counts the first group's photons
+        # whether the fit used them or not.
+        photons = 0.0
+        for e, exposure in enumerate(fit.exposures):
+            if exposure.target == target:
+                seconds = metas[exposure.name].photon_time_s(first_group)
+                photons += float(np.exp(params.exposures.log_flux[e])) * seconds * nis.GAIN_E_PER_DN
+        discos = target_product.discos
+        calvis_path = out / calvis_filename(target, filter_name)
+        write_calvis(
+            calvis_path,
+            values=discos.values,
+            errors=discos.errors,
+            kinds=discos.kinds,
+            disco_matrix=discos.matrix,
+            uv_m=fit.setup.basis.knots_m(),
+            wavelengths_m=bins.wavelengths_m,
+            weights=bins.weights,
+            sky_to_uv=sky_to_uv,
+            orientation=orientation,
+            n_photons=photons,
+            target=target,
+            filter_name=filter_name,
+            science_files=[e.name for e, _ in sci_items],
+            calibrator_files=cal_names,
+            header={
+                "NAMP": (fit.setup.basis.n_amp, "latent log-amplitude modes"),
+                "NPHA": (fit.setup.basis.n_phase, "latent phase modes"),
+                "NNUIS": (discos.kernel.n_nuisance, "nuisance parameters nulled"),
+                # Products of an unconverged fit are still written, but flagged.
+                "CONVERGD": (bool(product.result.converged), "fit converged (fit_summary.json)"),
+                "NDISCDRP": (discos.dropped, "DISCOs dropped: variance not positive"),
+                "FITKEY": (key, "identity of inputs and settings (amigo fit)"),
+            },
+        )
+        step(f"wrote {calvis_path}")
+        n_b = len(nis.baselines_m())
+        oifits_path = out / f"{calvis_path.name.removesuffix('_calvis.fits')}.oifits"
+        meta = sci_items[0][1]
+        write_oifits(
+            oifits_path,
+            target=target,
+            filter_name=filter_name,
+            wavelength_m=bins.central_wavelength_m,
+            bandwidth_m=red - blue,
+            log_amp=target_product.baseline_log_vis[:n_b],
+            phase_rad=target_product.baseline_log_vis[n_b:],
+            covariance=target_product.baseline_covariance,
+            sky_to_uv=sky_to_uv,
+            date_obs=meta.date_obs,
+            int_time_s=float(meta.primary_header.get("EFFEXPTM") or 0.0),
+        )
+        step(f"wrote {oifits_path}")
+        written += [calvis_path.name, oifits_path.name]
+    info = product.basis_info
+    record = product.detector
+    detector_summary = {}
+    if record is not None:
+        detector_summary = {
+            "detector": {
+                "mode": record.mode,
+                "rounds": len(record.changes),
+                "correction_changes_sigma": [round(c, 5) for c in record.changes],
+                "converged": record.converged,
+                "seconds": round(record.seconds, 2),
+            }
+        }
+    return {
+        "product": product,
+        "exposures": [
+            {
+                "file": s.name,
+                "role": s.role,
+                "target": s.target,
+                "filter": s.filter,
+                "npix": s.npix,
+                "chi2": _json_number(s.chi2, 3),
+                "dof": _json_number(s.dof, 3),
+                "zscore_std": _json_number(s.zscore_std, 5),
+                "status": status,
+                "converged": s.converged,
+                "iterations": s.iterations,
+                "seconds": round(s.seconds, 2),
+                "loss_change": _json_number(product.result.loss_change, 12),
+                "newton_decrement": _json_number(product.result.newton_decrement, 12),
+                **geometry["filter"],
+                **geometry["exposures"][e],
+                **_dark_residual_record(detector, s.name),
+            }
+            for e, s in enumerate(product.stats)
+        ],
+        "filter": {
+            "status": status,
+            "fit_key": key,
+            "products": written,
+            "discos_dropped": sum(t.discos.dropped for t in product.products),
+            "converged": bool(product.result.converged),
+            "basis_amplitude_modes": info.n_amp,
+            "basis_phase_modes": info.n_phase,
+            "kernel_amplitudes": int(product.kernel.amp.shape[0]),
+            "kernel_phases": int(product.kernel.phase.shape[0]),
+            "seconds": round(product.seconds, 2),
+            **detector_summary,
+        },
+    }
+
+
+def _json_number(value: float, digits: int) -> float | None:
+    """``value`` rounded, or ``None`` (JSON null) where it is not finite."""
+    import math
+
+    return round(float(value), digits) if math.isfinite(value) else None
+
+
+def _geometry_record(result) -> dict:
+    """The fitted detector geometry of the filter (``rotation_deg``, ``anisotropy``,
+    ``skew_deg``, ``scale``), its band taper (``band_taper_per_um2``) and each exposure's
+    ``jitter_mas``, with ``_err`` twins
+    (marginal standard errors from the fit's Fisher matrix, priors included; null where
+    the fit did not confirm its optimum in float64)."""
+    import numpy as np
+
+    from amigo.detector.linear import GEOMETRY_NAMES
+    from amigo.newton import Layout, marginal_errors
+
+    params = result.params
+    layout = Layout.of(params)
+    values = np.asarray(params.optics.geometry, np.float64)
+    errors = marginal_errors(result.fisher, layout.geometry)
+    filter_record = {}
+    for name, value, error in zip(GEOMETRY_NAMES, values, errors, strict=True):
+        filter_record[name] = _json_number(value, 6)
+        filter_record[f"{name}_err"] = _json_number(error, 6)
+    taper_error = marginal_errors(result.fisher, layout.band)[0]
+    filter_record["band_taper_per_um2"] = _json_number(float(params.optics.band_taper_per_um2), 4)
+    filter_record["band_taper_per_um2_err"] = _json_number(taper_error, 4)
+    jitters = np.abs(np.asarray(params.exposures.jitter_mas, np.float64))
+    jitter_errors = marginal_errors(result.fisher, layout.jitters)
+    exposures = [
+        {"jitter_mas": _json_number(j, 4), "jitter_mas_err": _json_number(err, 4)}
+        for j, err in zip(jitters, jitter_errors, strict=True)
+    ]
+    return {"filter": filter_record, "exposures": exposures}
+
+
+def _write_summary(
+    out: Path, model_name: str, detector: str, exposures: list[dict], filters: dict
+) -> None:
+    from amigo._version import __version__
+    from amigo.io.atomic import write_text
+
+    summary = {
+        "amigo_version": __version__,
+        "model": model_name,
+        "detector": detector,
+        "exposures": exposures,
+        "filters": filters,
+    }
+    write_text(out / "fit_summary.json", json.dumps(summary, indent=2) + "\n")

@@ -1,0 +1,93 @@
+"""The work of ``amigo run`` (:func:`amigo.pipeline.run`): raw ramps -> companions.
+
+process -> fit -> detect, each step keeping what an earlier run left complete for the
+same inputs (``force`` redoes all three).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from amigo.errors import InputError
+from amigo.pipeline._detect import DetectResult, detect_files
+from amigo.pipeline._fit import FitResult, fit_files
+from amigo.pipeline._process import ProcessResult, process_files
+
+
+@dataclass
+class RunResult:
+    """What :func:`amigo.pipeline.run` did: the three steps' results (``detect`` is
+    ``None`` when no filter has products), and the fit's exit status
+    (:mod:`amigo.pipeline.outcome`)."""
+
+    process: ProcessResult
+    fit: FitResult
+    detect: DetectResult | None
+
+    @property
+    def status(self) -> int:
+        return self.fit.status
+
+    @property
+    def calvis(self) -> list[Path]:
+        """The calvis files searched."""
+        return self.fit.calvis
+
+
+def run_files(
+    sci: Sequence[Path],
+    cal: Sequence[Path],
+    out: Path,
+    *,
+    model: Path | None = None,
+    detector: str | None = None,
+    knots: int | None = None,
+    knot_spacing: float | None = None,
+    rmax_mas: float = 1000.0,
+    hmc: bool = True,
+    superbias: Sequence[Path] = (),
+    first_group: bool = True,
+    force: bool = False,
+) -> RunResult:
+    """Raw ramps to companions; see :func:`amigo.pipeline.run`."""
+    from amigo.io.calslope import calslope_name
+    from amigo.progress import step
+
+    sci, cal, superbias = tuple(map(Path, sci)), tuple(map(Path, cal)), tuple(map(Path, superbias))
+    out = Path(out)
+    overlap = set(sci) & set(cal)
+    if overlap:
+        raise InputError(sorted(overlap)[0], "is given both as --sci and --cal")
+    inputs = tuple(dict.fromkeys((*sci, *cal, *superbias)))
+    step(f"run: processing {len(inputs)} raw exposures")
+    processed = process_files(inputs, out, force=force)
+    if processed.failed:  # each named on its own line already
+        raise InputError(
+            None, f"{len(processed.failed)} of {len(inputs)} raw file(s) could not be processed"
+        )
+    slopes = {path: out / calslope_name(path) for path in inputs}
+    step("run: fitting")
+    fitted = fit_files(
+        [slopes[p] for p in sci],
+        [slopes[p] for p in cal],
+        out,
+        model=model,
+        detector=detector,
+        knots=knots,
+        knot_spacing=knot_spacing,
+        superbias=[slopes[p] for p in superbias],
+        first_group=first_group,
+        force=force,
+    )
+    # The products of this fit, as its summary lists them (not every calvis file in OUT:
+    # one of an earlier fit of a filter that failed this time is not this run's).
+    calvis = fitted.calvis
+    if not calvis:
+        if fitted.status:
+            return RunResult(processed, fitted, None)  # the warnings say why
+        raise InputError(out, "amigo fit wrote no calvis file (no science exposure?)")
+    step(f"run: searching {len(calvis)} calvis file(s) for companions")
+    found = detect_files(calvis, out, rmax_mas=rmax_mas, hmc=hmc, force=force)
+    return RunResult(processed, fitted, found)
