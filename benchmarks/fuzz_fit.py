@@ -32,7 +32,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent / "tests"))
 
-from jwst_files import write_level2  # noqa: E402
+from jwst_files import nominal_star, write_level2  # noqa: E402
 
 FILTER = "F480M"
 
@@ -40,26 +40,8 @@ FILTER = "F480M"
 def star_image() -> tuple[np.ndarray, np.ndarray]:
     """(80, 80) image (DN/s) of a point source through the nominal instrument and its
     error (photon and read noise)."""
-    import jax.numpy as jnp
-
-    from amigo.model import (
-        ExposureParams,
-        FilterSetup,
-        Instrument,
-        OpticsParams,
-        image_from_log_vis,
-    )
-
-    instrument = Instrument.nominal(n_wavelengths=3)
-    setup = FilterSetup.create(FILTER, instrument)
-    jitter = float(instrument.detector.jitter_arcsec) * 1000.0
-    exposure = ExposureParams(
-        jnp.asarray([0.03, -0.02], jnp.float32), jnp.log(jnp.float32(2e5)), jnp.float32(jitter)
-    )
-    optics = OpticsParams.from_instrument(instrument)
-    image = np.asarray(image_from_log_vis(instrument, setup, optics, 0.0, exposure, None, None))
-    error = np.sqrt(np.maximum(image, 0.0) / 80.0 + 4.0)
-    return image.astype(float), error
+    image = nominal_star(FILTER)
+    return image, np.sqrt(np.maximum(image, 0.0) / 80.0 + 4.0)
 
 
 #: case name -> (which file is damaged, damage of (sci, err, dq, rng) -> (sci, err, dq)).

@@ -92,3 +92,29 @@ def write_level2(
     )
     hdus.writeto(path, overwrite=True)
     return path
+
+
+def nominal_star(filter_name: str = "F480M", flux_dn_s: float = 2e5) -> np.ndarray:
+    """(80, 80) DN/s: a point source (0.03, -0.02 pixels off the reference position,
+    ``flux_dn_s`` entering the mask) through amigo's nominal instrument at 3 wavelengths,
+    with its nominal jitter; no noise."""
+    import jax.numpy as jnp
+
+    from amigo.model import (
+        ExposureParams,
+        FilterSetup,
+        Instrument,
+        OpticsParams,
+        image_from_log_vis,
+    )
+
+    instrument = Instrument.nominal(n_wavelengths=3)
+    setup = FilterSetup.create(filter_name, instrument)
+    exposure = ExposureParams(
+        jnp.asarray([0.03, -0.02], jnp.float32),
+        jnp.log(jnp.float32(flux_dn_s)),
+        jnp.float32(float(instrument.detector.jitter_arcsec) * 1000.0),
+    )
+    optics = OpticsParams.from_instrument(instrument)
+    image = image_from_log_vis(instrument, setup, optics, 0.0, exposure, None, None)
+    return np.asarray(image, dtype=float)

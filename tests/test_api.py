@@ -98,30 +98,14 @@ def test_fit_and_detect_return_what_they_wrote(tmp_path):
     """A single-filter fit of two simulated level-2 images, then a search: the results
     hold the files, the summary and the figures; the same call again keeps the products
     and still draws the residuals (from the saved figures)."""
-    import jax.numpy as jnp
     from matplotlib.figure import Figure
 
-    from amigo.model import (
-        ExposureParams,
-        FilterSetup,
-        Instrument,
-        OpticsParams,
-        image_from_log_vis,
-        save_instrument,
-    )
-    from jwst_files import write_level2
+    from amigo.model import Instrument, save_instrument
+    from jwst_files import nominal_star, write_level2
 
-    instrument = Instrument.nominal(n_wavelengths=3)
     model = tmp_path / "nominal.eqx"
-    save_instrument(instrument, model)
-    setup = FilterSetup.create("F480M", instrument)
-    exposure = ExposureParams(
-        jnp.asarray([0.03, -0.02], jnp.float32),
-        jnp.log(jnp.float32(2e5)),
-        jnp.float32(float(instrument.detector.jitter_arcsec) * 1000.0),
-    )
-    optics = OpticsParams.from_instrument(instrument)
-    image = np.asarray(image_from_log_vis(instrument, setup, optics, 0.0, exposure, None, None))
+    save_instrument(Instrument.nominal(n_wavelengths=3), model)
+    image = nominal_star("F480M")
     error = np.sqrt(np.maximum(image, 0.0) / 80.0 + 4.0)
     rng = np.random.default_rng(2)
     files = {

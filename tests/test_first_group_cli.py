@@ -10,34 +10,12 @@ import numpy as np
 import pytest
 from astropy.io import fits
 
+from jwst_files import nominal_star
 from ramp_sim import GAIN_E_PER_DN, simulate, write_uncal
 
 pytestmark = pytest.mark.slow
 
 NINTS, TGROUP = 60, 0.07544
-
-
-def _star(flux_dn_s: float) -> np.ndarray:
-    """(80, 80) DN/s: amigo's nominal instrument's image of a star (3 wavelengths)."""
-    import jax.numpy as jnp
-
-    from amigo.model import (
-        ExposureParams,
-        FilterSetup,
-        Instrument,
-        OpticsParams,
-        image_from_log_vis,
-    )
-
-    instrument = Instrument.nominal(n_wavelengths=3)
-    setup = FilterSetup.create("F480M", instrument)
-    jitter = float(instrument.detector.jitter_arcsec) * 1000.0
-    exposure = ExposureParams(
-        jnp.asarray([0.03, -0.02], jnp.float32), jnp.log(jnp.float32(flux_dn_s)),
-        jnp.float32(jitter),
-    )  # fmt: skip
-    optics = OpticsParams.from_instrument(instrument)
-    return np.asarray(image_from_log_vis(instrument, setup, optics, 0.0, exposure, None, None))
 
 
 @pytest.mark.parametrize(("ngroups", "source"), [(2, "model"), (1, "files")])
@@ -51,7 +29,7 @@ def test_fit_with_superbias_uses_every_group(tmp_path, capsys, ngroups, source):
     rng = np.random.default_rng(11)
     bias = 11000.0 + 200.0 * rng.standard_normal((80, 80))
     flux_dn_s = 3.0e6  # entering the mask; peak ~ 20,000 DN per group
-    image = _star(flux_dn_s)
+    image = nominal_star("F480M", flux_dn_s)
     raw = tmp_path / "raw"
     raw.mkdir()
     files = {}

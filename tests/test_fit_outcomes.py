@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jwst_files import write_level2
+from jwst_files import nominal_star, write_level2
 
 pytestmark = pytest.mark.slow
 
@@ -37,31 +37,15 @@ FILTERS = ("F430M", "F480M")  # fitted in this order (sorted)
 def inputs(tmp_path_factory) -> dict[str, Path]:
     """Level-2 images of a point source through amigo's nominal instrument (3
     wavelengths), with photon and read noise; and a calibrator with every pixel flagged."""
-    import jax.numpy as jnp
-
-    from amigo.model import (
-        ExposureParams,
-        FilterSetup,
-        Instrument,
-        OpticsParams,
-        image_from_log_vis,
-        save_instrument,
-    )
+    from amigo.model import Instrument, save_instrument
 
     folder = tmp_path_factory.mktemp("in")
     instrument = Instrument.nominal(n_wavelengths=3)
     paths = {"model": folder / "nominal.eqx"}
     save_instrument(instrument, paths["model"])
     rng = np.random.default_rng(3)
-    optics = OpticsParams.from_instrument(instrument)
-    jitter = float(instrument.detector.jitter_arcsec) * 1000.0
     for filter_name in FILTERS:
-        setup = FilterSetup.create(filter_name, instrument)
-        position = jnp.asarray([0.03, -0.02], jnp.float32)
-        exposure = ExposureParams(position, jnp.log(jnp.float32(2e5)), jnp.float32(jitter))
-        image = np.asarray(
-            image_from_log_vis(instrument, setup, optics, 0.0, exposure, None, None), float
-        )
+        image = nominal_star(filter_name)
         error = np.sqrt(np.maximum(image, 0.0) / 80.0 + 4.0)
         for role, observation in (("sci", "001"), ("cal", "002")):
             name = f"{role}_{filter_name}"

@@ -32,13 +32,12 @@ from __future__ import annotations
 
 import os
 from collections.abc import Sequence
-from pathlib import Path
 from typing import Any
 
-from amigo.pipeline._detect import DetectResult, detect_files
-from amigo.pipeline._fit import FitResult, fit_files
-from amigo.pipeline._process import ProcessResult, process_files
-from amigo.pipeline._run import RunResult, run_files
+from amigo.pipeline._detect import DetectResult, detect
+from amigo.pipeline._fit import FitResult, fit
+from amigo.pipeline._process import ProcessResult, process
+from amigo.pipeline._run import RunResult, run
 
 PathLike = str | os.PathLike[str]
 
@@ -80,100 +79,6 @@ def open(path: PathLike) -> Any:
     return read_exposure(path)
 
 
-def process(
-    uncal: Sequence[PathLike],
-    out: PathLike,
-    *,
-    sigma: float = 3.0,
-    adc: bool = True,
-    saturation_dn: float | None = None,
-    one_over_f: str = "stripes",
-    force: bool = False,
-) -> ProcessResult:
-    """Raw ramps (``_uncal.fits``) to ``out/<stem>_calslope.fits``, as ``amigo process``.
-
-    ``sigma``: outlier clipping threshold (robust standard deviations); ``adc``: correct
-    the ADC's integral non-linearity; ``saturation_dn``: raw count of saturation
-    (default the ADC full scale); ``one_over_f``: ``"stripes"`` removes 1/f column
-    offsets, ``"none"`` leaves them; ``force``: process files whose product is already
-    complete. A bad file is reported (``ProcessResult.failed``) and the others go on.
-    """
-    return process_files(
-        [Path(p) for p in uncal],
-        Path(out),
-        sigma=sigma,
-        adc=adc,
-        saturation_dn=saturation_dn,
-        one_over_f=one_over_f,
-        force=force,
-    )
-
-
-def fit(
-    sci: Sequence[PathLike],
-    cal: Sequence[PathLike],
-    out: PathLike,
-    *,
-    model: PathLike | None = None,
-    detector: str | None = None,
-    knots: int | None = None,
-    knot_spacing: float | None = None,
-    max_iterations: int | None = None,
-    polish: int = 0,
-    wavefront_prior: float | None = None,
-    superbias: Sequence[PathLike] = (),
-    first_group: bool = True,
-    force: bool = False,
-) -> FitResult:
-    """Fit science and calibrator exposures and extract calibrated observables, as ``amigo
-    fit``: per science target and filter ``out/<TARGPROP>_<FILTER>_calvis.fits`` and
-    ``.oifits``, with ``out/fit_summary.json`` and ``out/plots``.
-
-    ``sci``, ``cal``: level-2 images or calslope files (not both kinds). ``model``: a base
-    model (``.npz``) or instrument file (default: the shipped model for the data's
-    level); ``detector``: ``"full"`` or ``"linear"`` (default: as docs/fit.md says);
-    ``knots``, ``knot_spacing``: the uv grid of the latent visibilities;
-    ``max_iterations``, ``polish``: optimiser bounds; ``wavefront_prior``: nm rms prior on
-    the calibrators' wavefront; ``superbias``: calslope darks giving each pixel's reset
-    level (calslope inputs; default the model's); ``first_group=False`` fits the group
-    differences only; ``force``: fit filters whose products are already complete.
-
-    Returns a :class:`FitResult` (``.status``, ``.calvis``, ``.summary``,
-    ``.plot_residuals()``). Numerical failures end their filter, not the call
-    (``.status`` 3 or 4, docs/reliability.md).
-    """
-    return fit_files(
-        [Path(p) for p in sci],
-        [Path(p) for p in cal],
-        Path(out),
-        model=None if model is None else Path(model),
-        detector=detector,
-        knots=knots,
-        knot_spacing=knot_spacing,
-        max_iterations=max_iterations,
-        polish=polish,
-        wavefront_prior=wavefront_prior,
-        superbias=[Path(p) for p in superbias],
-        first_group=first_group,
-        force=force,
-    )
-
-
-def detect(files: Sequence[PathLike], out: PathLike, **options: Any) -> DetectResult:
-    """Search calvis or OIFITS files for companions, as ``amigo detect``: writes
-    ``out/companions.json``, ``out/contrast_limits.csv`` and figures.
-
-    ``options`` (keywords, the command's options): ``rmax_mas`` (1000), ``threshold``
-    (5 sigma), ``step_mas`` (None: lambda_min / 3 B_max), ``max_companions`` (3),
-    ``observables`` (``"all"``, ``"phase"``, ``"amplitude"``), ``cp_correlation``
-    (``"baseline"``, ``"independent"``), ``primary_diameter_mas`` (0), ``hmc`` (True),
-    ``per_filter`` (True), ``warmup`` (500), ``samples`` (1000), ``chains`` (2),
-    ``seed`` (0), ``force`` (False: keep a search of the same inputs and options).
-    Returns a :class:`DetectResult` (``.companions``, ``.document``, ``.result``).
-    """
-    return detect_files(list(files), Path(out), **options)
-
-
 def simulate(
     scenario: str | PathLike,
     out: PathLike,
@@ -203,38 +108,3 @@ def simulate(
             return any(spec.stem(loaded.program).startswith(p) for p in only)
 
     return simulate_scenario(loaded, os.fspath(out), seed=seed, full=full, select=select)
-
-
-def run(
-    sci: Sequence[PathLike],
-    cal: Sequence[PathLike],
-    out: PathLike,
-    *,
-    model: PathLike | None = None,
-    detector: str | None = None,
-    knots: int | None = None,
-    knot_spacing: float | None = None,
-    rmax_mas: float = 1000.0,
-    hmc: bool = True,
-    superbias: Sequence[PathLike] = (),
-    first_group: bool = True,
-    force: bool = False,
-) -> RunResult:
-    """Raw ramps to companions, as ``amigo run``: :func:`process`, :func:`fit` and
-    :func:`detect` into ``out``, each keeping what an earlier run left complete for the
-    same inputs (``force`` redoes all three). ``superbias``: raw dark ramps, processed
-    with the rest, whose reset levels let the first group's photons into the fit."""
-    return run_files(
-        [Path(p) for p in sci],
-        [Path(p) for p in cal],
-        Path(out),
-        model=None if model is None else Path(model),
-        detector=detector,
-        knots=knots,
-        knot_spacing=knot_spacing,
-        rmax_mas=rmax_mas,
-        hmc=hmc,
-        superbias=[Path(p) for p in superbias],
-        first_group=first_group,
-        force=force,
-    )

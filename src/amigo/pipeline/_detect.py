@@ -41,7 +41,7 @@ class DetectResult:
         return list(self.document.get("companions", []))
 
 
-def detect_files(
+def detect(
     files: Sequence[str | Path],
     out: str | Path,
     *,
@@ -60,7 +60,17 @@ def detect_files(
     seed: int = 0,
     force: bool = False,
 ) -> DetectResult:
-    """Search calvis or OIFITS files; see :func:`amigo.pipeline.detect`."""
+    """Search calvis or OIFITS files for companions, as ``amigo detect``: writes
+    ``out/companions.json``, ``out/contrast_limits.csv`` and figures.
+
+    Keywords (the command's options, defaults in brackets): ``rmax_mas`` (1000), ``threshold``
+    (5 sigma), ``step_mas`` (None: lambda_min / 3 B_max), ``max_companions`` (3),
+    ``observables`` (``"all"``, ``"phase"``, ``"amplitude"``), ``cp_correlation``
+    (``"baseline"``, ``"independent"``), ``primary_diameter_mas`` (0), ``hmc`` (True),
+    ``per_filter`` (True), ``warmup`` (500), ``samples`` (1000), ``chains`` (2),
+    ``seed`` (0), ``force`` (False: keep a search of the same inputs and options).
+    Returns a :class:`DetectResult` (``.companions``, ``.document``, ``.result``).
+    """
     options = dict(locals())  # the parameters, before any other name is bound
     import json
 

@@ -104,27 +104,43 @@ class FitResult:
         return figures
 
 
-def fit_files(
-    sci: Sequence[Path],
-    cal: Sequence[Path],
-    out: Path,
+def fit(
+    sci: Sequence[str | Path],
+    cal: Sequence[str | Path],
+    out: str | Path,
     *,
-    model: Path | None = None,
+    model: str | Path | None = None,
     detector: str | None = None,
     knots: int | None = None,
     knot_spacing: float | None = None,
     max_iterations: int | None = None,
     polish: int = 0,
     wavefront_prior: float | None = None,
-    superbias: Sequence[Path] = (),
+    superbias: Sequence[str | Path] = (),
     first_group: bool = True,
     force: bool = False,
 ) -> FitResult:
-    """Fit science and calibrator files; write and return the products (see
-    :func:`amigo.pipeline.fit`, which documents the arguments)."""
+    """Fit science and calibrator exposures and extract calibrated observables, as ``amigo
+    fit``: per science target and filter ``out/<TARGPROP>_<FILTER>_calvis.fits`` and
+    ``.oifits``, with ``out/fit_summary.json`` and ``out/plots``.
+
+    ``sci``, ``cal``: level-2 images or calslope files (not both kinds). ``model``: a base
+    model (``.npz``) or instrument file (default: the shipped model for the data's
+    level); ``detector``: ``"full"`` or ``"linear"`` (default: as docs/fit.md says);
+    ``knots``, ``knot_spacing``: the uv grid of the latent visibilities;
+    ``max_iterations``, ``polish``: optimiser bounds; ``wavefront_prior``: nm rms prior on
+    the calibrators' wavefront; ``superbias``: calslope darks giving each pixel's reset
+    level (calslope inputs; default the model's); ``first_group=False`` fits the group
+    differences only; ``force``: fit filters whose products are already complete.
+
+    Returns a :class:`FitResult` (``.status``, ``.calvis``, ``.summary``,
+    ``.plot_residuals()``). Numerical failures end their filter, not the call
+    (``.status`` 3 or 4, docs/reliability.md).
+    """
     os.environ.setdefault("JAX_PLATFORMS", "cpu")
     sci, cal, superbias = tuple(map(Path, sci)), tuple(map(Path, cal)), tuple(map(Path, superbias))
     out = Path(out)
+    model = None if model is None else Path(model)
     overlap = set(sci) & set(cal)
     if overlap:
         raise InputError(sorted(overlap)[0], "is given both as --sci and --cal")

@@ -40,9 +40,9 @@ class ProcessResult:
         return [*self.written, *self.kept]
 
 
-def process_files(
-    uncal: Sequence[Path],
-    out: Path,
+def process(
+    uncal: Sequence[str | Path],
+    out: str | Path,
     *,
     sigma: float = 3.0,
     adc: bool = True,
@@ -50,7 +50,14 @@ def process_files(
     one_over_f: str = "stripes",
     force: bool = False,
 ) -> ProcessResult:
-    """Process raw ramps into ``out``; see :func:`amigo.pipeline.process`."""
+    """Raw ramps (``_uncal.fits``) to ``out/<stem>_calslope.fits``, as ``amigo process``.
+
+    ``sigma``: outlier clipping threshold (robust standard deviations); ``adc``: correct
+    the ADC's integral non-linearity; ``saturation_dn``: raw count of saturation
+    (default the ADC full scale); ``one_over_f``: ``"stripes"`` removes 1/f column
+    offsets, ``"none"`` leaves them; ``force``: process files whose product is already
+    complete. A bad file is reported (``ProcessResult.failed``) and the others go on.
+    """
     from amigo.io.calslope import calslope_name, is_up_to_date
     from amigo.processing import SATURATION_DN, ProcessSettings, process_file
     from amigo.progress import track

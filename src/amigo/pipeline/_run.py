@@ -11,9 +11,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from amigo.errors import InputError
-from amigo.pipeline._detect import DetectResult, detect_files
-from amigo.pipeline._fit import FitResult, fit_files
-from amigo.pipeline._process import ProcessResult, process_files
+from amigo.pipeline._detect import DetectResult, detect
+from amigo.pipeline._fit import FitResult, fit
+from amigo.pipeline._process import ProcessResult, process
 
 
 @dataclass
@@ -36,22 +36,25 @@ class RunResult:
         return self.fit.calvis
 
 
-def run_files(
-    sci: Sequence[Path],
-    cal: Sequence[Path],
-    out: Path,
+def run(
+    sci: Sequence[str | Path],
+    cal: Sequence[str | Path],
+    out: str | Path,
     *,
-    model: Path | None = None,
+    model: str | Path | None = None,
     detector: str | None = None,
     knots: int | None = None,
     knot_spacing: float | None = None,
     rmax_mas: float = 1000.0,
     hmc: bool = True,
-    superbias: Sequence[Path] = (),
+    superbias: Sequence[str | Path] = (),
     first_group: bool = True,
     force: bool = False,
 ) -> RunResult:
-    """Raw ramps to companions; see :func:`amigo.pipeline.run`."""
+    """Raw ramps to companions, as ``amigo run``: :func:`process`, :func:`fit` and
+    :func:`detect` into ``out``, each keeping what an earlier run left complete for the
+    same inputs (``force`` redoes all three). ``superbias``: raw dark ramps, processed
+    with the rest, whose reset levels let the first group's photons into the fit."""
     from amigo.io.calslope import calslope_name
     from amigo.progress import step
 
@@ -62,14 +65,14 @@ def run_files(
         raise InputError(sorted(overlap)[0], "is given both as --sci and --cal")
     inputs = tuple(dict.fromkeys((*sci, *cal, *superbias)))
     step(f"run: processing {len(inputs)} raw exposures")
-    processed = process_files(inputs, out, force=force)
+    processed = process(inputs, out, force=force)
     if processed.failed:  # each named on its own line already
         raise InputError(
             None, f"{len(processed.failed)} of {len(inputs)} raw file(s) could not be processed"
         )
     slopes = {path: out / calslope_name(path) for path in inputs}
     step("run: fitting")
-    fitted = fit_files(
+    fitted = fit(
         [slopes[p] for p in sci],
         [slopes[p] for p in cal],
         out,
@@ -89,5 +92,5 @@ def run_files(
             return RunResult(processed, fitted, None)  # the warnings say why
         raise InputError(out, "amigo fit wrote no calvis file (no science exposure?)")
     step(f"run: searching {len(calvis)} calvis file(s) for companions")
-    found = detect_files(calvis, out, rmax_mas=rmax_mas, hmc=hmc, force=force)
+    found = detect(calvis, out, rmax_mas=rmax_mas, hmc=hmc, force=force)
     return RunResult(processed, fitted, found)
