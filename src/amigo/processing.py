@@ -83,6 +83,16 @@ import numpy as np
 
 from amigo import instrument
 from amigo.errors import InputError
+from amigo.io.calslope import (
+    BAD_DQ,
+    BAD_LOW_SUPPORT,
+    BAD_NO_NOISE,
+    BAD_REASONS,
+    BAD_REFERENCE,
+    BAD_SATURATED,
+    calslope_name,
+    write_calslope,
+)
 
 # --------------------------------------------------------------------------------------
 # Constants
@@ -137,21 +147,6 @@ DQ_SATURATED: int = 2
 DQ_DROPOUT: int = 8
 #: GROUPDQ bits that make a group unusable (JUMP_DET is ignored: we find jumps ourselves).
 GROUP_DQ_EXCLUDE: int = DQ_DO_NOT_USE | DQ_SATURATED | DQ_DROPOUT
-
-#: Bits of the bad-pixel reason map (BADPIX_WHY); BADPIX = (BADPIX_WHY != 0).
-BAD_REFERENCE: int = 1  # reference row of SUB80: no light
-BAD_LOW_SUPPORT: int = 2  # some slope kept in fewer integrations than the minimum support
-BAD_DQ: int = 4  # PIXELDQ has DO_NOT_USE
-BAD_SATURATED: int = 8  # saturated in more than max_saturated_fraction of the integrations
-BAD_NO_NOISE: int = 16  # a slope with zero or non-finite variance (dead or stuck pixel)
-
-BAD_REASONS: dict[int, str] = {
-    BAD_REFERENCE: "reference row",
-    BAD_LOW_SUPPORT: "low support",
-    BAD_DQ: "DQ DO_NOT_USE",
-    BAD_SATURATED: "saturated",
-    BAD_NO_NOISE: "no noise",
-}
 
 #: Treatments of 1/f noise (:attr:`ProcessSettings.one_over_f`, ``--one-over-f``):
 #: ``stripes`` removes each column's offset per integration and group difference
@@ -234,6 +229,17 @@ class ProcessSettings:
     covariance_correction: bool = True
     one_over_f: str = "none"
     stripe_max_signal_dn: float = STRIPE_MAX_SIGNAL_DN
+
+    def header_cards(self) -> dict[str, tuple[Any, str]]:
+        """What a calslope file records of these settings (keyword -> (value, comment)):
+        a re-run keeps a product whose header holds the same values
+        (:func:`amigo.io.calslope.is_up_to_date`)."""
+        return {
+            "ADC_CORR": (bool(self.adc_correction), "ADC integral non-linearity corrected"),
+            "NSIGCLIP": (float(self.nsigma), "outlier clipping threshold (robust sigma)"),
+            "SATLEVEL": (float(self.saturation_dn), "[DN] raw saturation level"),
+            "ONEOVERF": (self.one_over_f, "1/f noise: stripes removed, or none"),
+        }
 
     def __post_init__(self) -> None:
         if self.one_over_f not in ONE_OVER_F_METHODS:
@@ -1053,6 +1059,19 @@ class SlopeProduct:
     n_rejected_slope: int
     stripes: StripeModel | None = None
 
+    def header_cards(self) -> dict[str, tuple[Any, str]]:
+        """The calslope file's record of this processing (keyword -> (value, comment)):
+        the settings, the minimum support, the clipping's sample and losses, the number of
+        flagged pixels."""
+        return {
+            **self.settings.header_cards(),
+            "MINSUP": (self.settings.required_support(self.nints), "minimum slope support"),
+            "CLIPSAMP": (self.n_sample, "integrations used to set clipping bands"),
+            "NREJRAMP": (self.n_rejected_ramp, "ramp values dropped by ramp clipping"),
+            "NREJSLOP": (self.n_rejected_slope, "ramp values dropped by slope clipping"),
+            "NBADPIX": (int(np.count_nonzero(self.badpix)), "pixels flagged in BADPIX"),
+        }
+
     def reason_counts(self) -> dict[str, int]:
         """Number of bad pixels per reason (a pixel may count under several)."""
         return {
@@ -1270,7 +1289,6 @@ def process_file(
         pixel survives (e.g. everything saturated). Nothing is written then.
     """
     from amigo.io import jwst
-    from amigo.io.calslope import calslope_name, write_calslope
     from amigo.io.files import fingerprint
 
     source, meta = FileSource.open(uncal_path)

@@ -14,7 +14,7 @@ Layout (the public contract of docs/interfaces; ``ng`` groups, ``(ny, nx)`` = (8
     RAMP_COV   float32 (ng, ng, ny, nx)      covariance of RAMP, DN^2
     RAMP_SUP   float32 (ng, ny, nx)          integrations used for each group
     BADPIX     uint8   (ny, nx)              1 = do not use
-    BADPIX_WHY uint8   (ny, nx)              why (bit mask, see amigo.processing.BAD_REASONS);
+    BADPIX_WHY uint8   (ny, nx)              why (bit mask, see BAD_REASONS);
                                              an amigo extension beyond the contract
 
 Undefined values (no integration kept) are NaN, and their pixels are flagged in BADPIX.
@@ -23,8 +23,10 @@ Undefined values (no integration kept) are NaN, and their pixels are flagged in 
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, Protocol
 
 import numpy as np
 from astropy.io import fits
@@ -34,7 +36,41 @@ from amigo.errors import InputError
 from amigo.io.atomic import atomic_path
 from amigo.io.files import damaged, fingerprint
 from amigo.io.jwst import open_fits
-from amigo.processing import BAD_REASONS, ProcessSettings, SlopeProduct
+
+#: Bits of the bad-pixel reason map (BADPIX_WHY); BADPIX = (BADPIX_WHY != 0).
+BAD_REFERENCE: int = 1  # reference row of SUB80: no light
+BAD_LOW_SUPPORT: int = 2  # some slope kept in fewer integrations than the minimum support
+BAD_DQ: int = 4  # PIXELDQ has DO_NOT_USE
+BAD_SATURATED: int = 8  # saturated in more than max_saturated_fraction of the integrations
+BAD_NO_NOISE: int = 16  # a slope with zero or non-finite variance (dead or stuck pixel)
+
+BAD_REASONS: dict[int, str] = {
+    BAD_REFERENCE: "reference row",
+    BAD_LOW_SUPPORT: "low support",
+    BAD_DQ: "DQ DO_NOT_USE",
+    BAD_SATURATED: "saturated",
+    BAD_NO_NOISE: "no noise",
+}
+
+
+class SlopeArrays(Protocol):
+    """What :func:`write_calslope` writes: :class:`amigo.processing.SlopeProduct` (the
+    file format does not depend on how the arrays were made). Shapes as in the module
+    notes."""
+
+    slope_dn: np.ndarray
+    slope_cov_dn2: np.ndarray
+    slope_support: np.ndarray
+    ramp_dn: np.ndarray
+    ramp_cov_dn2: np.ndarray
+    ramp_support: np.ndarray
+    badpix: np.ndarray
+    badpix_reason: np.ndarray
+
+    def header_cards(self) -> Mapping[str, tuple[Any, str]]:
+        """Keyword -> (value, comment) of the processing, for the primary header."""
+        ...
+
 
 #: Extensions every calslope file has, in order.
 EXTENSIONS: tuple[str, ...] = (
@@ -137,7 +173,7 @@ class CalSlope:
 
 def write_calslope(
     path: str | os.PathLike[str],
-    product: SlopeProduct,
+    product: SlopeArrays,
     primary_header: fits.Header,
     sci_header: fits.Header,
     *,
@@ -161,7 +197,6 @@ def write_calslope(
         skips a file whose product records its input and settings, :func:`is_up_to_date`).
     """
     path = Path(path)
-    settings = product.settings
     primary = _data_header(primary_header)
     # Values that describe this file rather than the exposure: the file name and type, and
     # no stdatamodels class (a RampModel label would make stdatamodels misread it).
@@ -169,15 +204,8 @@ def write_calslope(
     primary["FILETYPE"] = "calslope"
     primary.remove("DATAMODL", ignore_missing=True)
     primary["AMIGOVER"] = (__version__, "amigo version that wrote this file")
-    primary["ADC_CORR"] = (bool(settings.adc_correction), "ADC integral non-linearity corrected")
-    primary["NSIGCLIP"] = (float(settings.nsigma), "outlier clipping threshold (robust sigma)")
-    primary["SATLEVEL"] = (float(settings.saturation_dn), "[DN] raw saturation level")
-    primary["MINSUP"] = (settings.required_support(product.nints), "minimum slope support")
-    primary["CLIPSAMP"] = (product.n_sample, "integrations used to set clipping bands")
-    primary["NREJRAMP"] = (product.n_rejected_ramp, "ramp values dropped by ramp clipping")
-    primary["NREJSLOP"] = (product.n_rejected_slope, "ramp values dropped by slope clipping")
-    primary["NBADPIX"] = (int(np.count_nonzero(product.badpix)), "pixels flagged in BADPIX")
-    primary["ONEOVERF"] = (settings.one_over_f, "1/f noise: stripes removed, or none")
+    for key, card in product.header_cards().items():
+        primary[key] = card
     if uncal_name is not None:
         primary["UNCALFIL"] = (uncal_name, "raw-ramp file processed")
     if uncal_fingerprint is not None:
@@ -219,10 +247,14 @@ def write_calslope(
     return path
 
 
-def is_up_to_date(product_path: Path, uncal_path: Path, settings: ProcessSettings) -> bool:
+def is_up_to_date(
+    product_path: Path, uncal_path: Path, settings_cards: Mapping[str, tuple[Any, str]]
+) -> bool:
     """Whether ``product_path`` is a complete, valid calslope file of ``uncal_path`` (same
-    name and :func:`~amigo.io.files.fingerprint`) processed by this amigo version with
-    ``settings``: ``amigo process`` then skips it (restart after an interruption)."""
+    name and :func:`~amigo.io.files.fingerprint`) processed by this amigo version with the
+    settings whose header cards are ``settings_cards``
+    (:meth:`amigo.processing.ProcessSettings.header_cards`): ``amigo process`` then skips
+    it (restart after an interruption)."""
     if not product_path.is_file():
         return False
     try:
@@ -233,10 +265,7 @@ def is_up_to_date(product_path: Path, uncal_path: Path, settings: ProcessSetting
         "UNCALFIL": uncal_path.name,
         "UNCALSUM": fingerprint(uncal_path),
         "AMIGOVER": __version__,
-        "ADC_CORR": bool(settings.adc_correction),
-        "NSIGCLIP": float(settings.nsigma),
-        "SATLEVEL": float(settings.saturation_dn),
-        "ONEOVERF": settings.one_over_f,
+        **{key: value for key, (value, _) in settings_cards.items()},
     }
     return all(header.get(key) == value for key, value in expected.items())
 

@@ -83,7 +83,11 @@ def process(
             if name in claimed:
                 raise InputError(path, f"writes the same {name} as {claimed[name]}")
             claimed[name] = path
-            if not force and path.is_file() and is_up_to_date(out / name, path, settings):
+            if (
+                not force
+                and path.is_file()
+                and is_up_to_date(out / name, path, settings.header_cards())
+            ):
                 print(f"{out / name}: up to date, skipped (--force processes it again)")
                 result.kept.append(out / name)
                 continue
