@@ -59,7 +59,7 @@ def command(out: Path, no_hmc: bool) -> int:
     if not result.calvis:
         return result.status  # the fit's warnings and fit_summary.json say why
     science_truth = next(t for t in truths.values() if t["exposure"]["role"] == "science")
-    found = json.loads((out / "companions.json").read_text())["companions"]
+    found = result.detect.companions
     click.echo(_comparison(science_truth["scene"]["companions"], found))
     return result.status
 

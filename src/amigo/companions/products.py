@@ -171,12 +171,13 @@ def write_companions_json(
     result: DetectionResult,
     inputs: list[str],
     extra: dict | None = None,
-) -> Path:
-    """Write ``companions.json`` atomically; ``extra`` keys are added at the top level."""
+) -> dict:
+    """Write ``companions.json`` atomically (``extra`` keys are added at the top level);
+    return the document as a reader of the file gets it (JSON types)."""
     document = companions_document(result, inputs) | dict(extra or {})
     text = json.dumps(document, indent=2) + "\n"
     write_text(path, text)
-    return Path(path)
+    return json.loads(text)
 
 
 #: Columns of ``contrast_limits.csv``.

@@ -72,29 +72,28 @@ def detect(
     Returns a :class:`DetectResult` (``.companions``, ``.document``, ``.result``).
     """
     options = dict(locals())  # the parameters, before any other name is bound
-    import json
-
     settings = {k: v for k, v in options.items() if k not in ("files", "out", "force")}
     files = [str(f) for f in files]
     out = Path(out)
     key = _detect_key(files, settings)
-    if not force and _up_to_date(out, key):
+    kept = None if force else _kept_search(out, key)
+    if kept is not None:
         print(
             f"{out / 'companions.json'}: up to date (same inputs and options), "
             "kept (--force searches again)"
         )
-        return DetectResult(out, json.loads((out / "companions.json").read_text()))
+        return DetectResult(out, kept)
     import jax
 
     # Fits, Hessians and HMC need float64. A context rather than the global switch, so a
     # process that calls this (tests, notebooks) keeps its own precision after.
     with jax.enable_x64(True):
-        result = _search(
+        result, document = _search(
             files, out, rmax_mas, threshold, step_mas, max_companions, observables,
             cp_correlation, primary_diameter_mas, hmc, per_filter, warmup, samples,
             chains, seed, key,
         )  # fmt: skip
-    return DetectResult(out, json.loads((out / "companions.json").read_text()), result)
+    return DetectResult(out, document, result)
 
 
 def _detect_key(files, settings: dict) -> str:
@@ -113,20 +112,21 @@ def _detect_key(files, settings: dict) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-def _up_to_date(out: Path, key: str) -> bool:
-    """Whether ``out`` holds a complete search with identity ``key``: companions.json,
-    written last, records it, and contrast_limits.csv is there."""
+def _kept_search(out: Path, key: str) -> dict | None:
+    """The companions.json of a complete search with identity ``key`` in ``out`` (it is
+    written last and records the key; contrast_limits.csv must be there), or ``None``."""
     import json
 
     try:
         document = json.loads((out / "companions.json").read_text(encoding="utf-8"))
     except (OSError, ValueError):
-        return False
-    return (
+        return None
+    complete = (
         isinstance(document, dict)
         and document.get("detect_key") == key
         and (out / "contrast_limits.csv").is_file()
     )
+    return document if complete else None
 
 
 def _search(
@@ -147,6 +147,9 @@ def _search(
     seed,
     key: str = "",
 ):
+    """Load, search, write the products (companions.json last, recording ``key``) and
+    print the findings; return the search's DetectionResult and the companions.json
+    document."""
     from amigo.companions import observables as obs
     from amigo.companions import plots, products
     from amigo.companions.search import SearchSettings, detect
@@ -180,7 +183,7 @@ def _search(
     # companions.json last: a search interrupted before it is not taken for complete.
     products.write_contrast_csv(out / "contrast_limits.csv", result)
     plots.write_all(result, out)
-    products.write_companions_json(
+    document = products.write_companions_json(
         out / "companions.json", result, list(files), {"detect_key": key}
     )
 
@@ -207,4 +210,4 @@ def _search(
     for message in result.warnings:
         print(f"warning: {message}", file=sys.stderr)
     print(f"wrote {out / 'companions.json'}, {out / 'contrast_limits.csv'} and figures")
-    return result
+    return result, document

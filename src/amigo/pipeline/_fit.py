@@ -141,13 +141,7 @@ def fit(
     sci, cal, superbias = tuple(map(Path, sci)), tuple(map(Path, cal)), tuple(map(Path, superbias))
     out = Path(out)
     model = None if model is None else Path(model)
-    overlap = set(sci) & set(cal)
-    if overlap:
-        raise InputError(sorted(overlap)[0], "is given both as --sci and --cal")
-    # A reset level measured on a fitted exposure itself would count its slopes twice.
-    overlap = set(superbias) & (set(sci) | set(cal))
-    if overlap:
-        raise InputError(sorted(overlap)[0], "is given both as --superbias and as --sci/--cal")
+    check_roles(sci, cal, superbias, first_group)
     level = _check_inputs(sci, cal, detector)
     grid = _grid(knots, knot_spacing)
 
@@ -230,6 +224,7 @@ def fit(
     for _, item in excluded:
         warn(f"{item.meta.path}: {item.problem}: left out of the fit")
     filters_summary: dict[str, dict] = {}
+    summary: dict[str, Any] = {}
     products = {}
     names = []
     for filter_name, items in fitted.items():
@@ -250,7 +245,7 @@ def fit(
         filters_summary[filter_name] = record
         summary_exposures.extend(records)
         # After each filter: an interrupted run keeps what it finished (kept_records).
-        _write_summary(
+        summary = _write_summary(
             out,
             "; ".join(dict.fromkeys(names)),
             fit_model.detector,
@@ -261,7 +256,7 @@ def fit(
     _report(filters_summary)
     return FitResult(
         out=out,
-        summary=previous_summary(out),
+        summary=summary,
         status=exit_status(filters_summary, summary_exposures),
         products=products,
     )
@@ -526,12 +521,27 @@ def key_targets(items: list) -> list:
     return keyed
 
 
+def check_roles(
+    sci: tuple[Path, ...], cal: tuple[Path, ...], superbias: tuple[Path, ...], first_group: bool
+) -> None:
+    """Refuse a file given in two roles, and superbias files without the first group
+    (of ``fit`` and of ``run``, before any work)."""
+    overlap = set(sci) & set(cal)
+    if overlap:
+        raise InputError(sorted(overlap)[0], "is given both as --sci and --cal")
+    if superbias and not first_group:
+        raise InputError(None, "--superbias cannot be combined with --no-first-group")
+    # A reset level measured on a fitted exposure itself would count its slopes twice.
+    overlap = set(superbias) & (set(sci) | set(cal))
+    if overlap:
+        raise InputError(sorted(overlap)[0], "is given both as --superbias and as --sci/--cal")
+
+
 def _reset_level(paths: tuple[Path, ...], level: str, fit_model: FitModel, off: bool):
     """The superbias of a fit: from ``--superbias`` files, else the base model's (calslope
-    inputs), else ``None`` (also with ``--no-first-group``)."""
+    inputs), else ``None`` (always with ``--no-first-group``; :func:`check_roles` has
+    refused superbias files then)."""
     if off:
-        if paths:
-            raise InputError(None, "--superbias cannot be combined with --no-first-group")
         return None
     if paths:
         superbias, source = _superbias(paths, level), f"{len(paths)} file(s)"
@@ -866,7 +876,8 @@ def _geometry_record(result) -> dict:
 
 def _write_summary(
     out: Path, model_name: str, detector: str, exposures: list[dict], filters: dict
-) -> None:
+) -> dict[str, Any]:
+    """Write ``out/fit_summary.json`` atomically; return what it holds."""
     from amigo._version import __version__
     from amigo.io.atomic import write_text
 
@@ -878,3 +889,4 @@ def _write_summary(
         "filters": filters,
     }
     write_text(out / "fit_summary.json", json.dumps(summary, indent=2) + "\n")
+    return summary

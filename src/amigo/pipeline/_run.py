@@ -12,7 +12,7 @@ from pathlib import Path
 
 from amigo.errors import InputError
 from amigo.pipeline._detect import DetectResult, detect
-from amigo.pipeline._fit import FitResult, fit
+from amigo.pipeline._fit import FitResult, check_roles, fit
 from amigo.pipeline._process import ProcessResult, process
 
 
@@ -60,9 +60,7 @@ def run(
 
     sci, cal, superbias = tuple(map(Path, sci)), tuple(map(Path, cal)), tuple(map(Path, superbias))
     out = Path(out)
-    overlap = set(sci) & set(cal)
-    if overlap:
-        raise InputError(sorted(overlap)[0], "is given both as --sci and --cal")
+    check_roles(sci, cal, superbias, first_group)
     inputs = tuple(dict.fromkeys((*sci, *cal, *superbias)))
     step(f"run: processing {len(inputs)} raw exposures")
     processed = process(inputs, out, force=force)
