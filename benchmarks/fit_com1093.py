@@ -87,6 +87,9 @@ def main() -> None:
         print(f"{f:7s} {n:8d} {p:12.2f} {b:13.2f} {s:8.0f}")
     print(f"\n{'file':42s} {'role':10s} {'filter':6s} {'chi2/dof':>9s} {'zscore_std':>10s} conv it")
     for e in exposures:
+        if e.get("zscore_std") is None:  # excluded or failed: no fit to report
+            print(f"{e['file']:42s} {e['role']:10s} {e['filter']:6s} {e['status']}: {e['problem']}")
+            continue
         print(
             f"{e['file']:42s} {e['role']:10s} {e['filter']:6s} {e['chi2'] / e['dof']:9.3f} "
             f"{e['zscore_std']:10.3f} {e['converged']!s:5s} {e['iterations']}"

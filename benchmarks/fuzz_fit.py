@@ -167,7 +167,7 @@ def run_case(sci: Path, cal: Path, model: Path, out: Path, timeout: float) -> di
     if summary.is_file():
         document = json.loads(summary.read_text())
         record["statuses"] = "/".join(e.get("status", "?") for e in document["exposures"])
-        z = [e["zscore_std"] for e in document["exposures"] if "zscore_std" in e]
+        z = [e["zscore_std"] for e in document["exposures"] if e.get("zscore_std") is not None]
         record["z"] = max(z) if z else None
     return record
 

@@ -211,14 +211,9 @@ def fit(
     out.mkdir(parents=True, exist_ok=True)
     previous = {} if force else previous_summary(out)
     summary_exposures = [
-        {
-            "file": item.meta.path.name,
-            "role": role,
-            "target": item.meta.target,
-            "filter": item.meta.filter,
-            "status": "excluded",
-            "problem": item.problem,
-        }
+        _unfitted_record(
+            item.meta.path.name, role, item.meta.target, item.meta.filter, "excluded", item.problem
+        )
         for role, item in excluded
     ]
     for _, item in excluded:
@@ -592,18 +587,34 @@ def _fit_filter(
         warn(f"{filter_name}: failed ({failure}); no products for it (fit_summary.json)")
         record = {"status": "failed", "problem": str(failure), "fit_key": key, "products": []}
         records = [
-            {
-                "file": e.name,
-                "role": e.role,
-                "target": e.target,
-                "filter": filter_name,
-                "status": "failed",
-                "problem": str(failure),
-            }
+            _unfitted_record(e.name, e.role, e.target, filter_name, "failed", str(failure))
             for e, _ in items
         ]
         return record, records, None
     return product["filter"], product["exposures"], product["product"]
+
+
+def _unfitted_record(
+    file: str, role: str, target: str, filter_name: str, status: str, problem: str
+) -> dict[str, Any]:
+    """The ``fit_summary.json`` record of an exposure without a fit (``status``
+    ``"excluded"`` or ``"failed"``): every key of the interfaces contract, its numbers
+    null (``converged`` false), and the ``problem``."""
+    return {
+        "file": file,
+        "role": role,
+        "target": target,
+        "filter": filter_name,
+        "npix": None,
+        "chi2": None,
+        "dof": None,
+        "zscore_std": None,
+        "converged": False,
+        "iterations": None,
+        "seconds": None,
+        "status": status,
+        "problem": problem,
+    }
 
 
 def _report(filters: dict[str, dict]) -> None:
