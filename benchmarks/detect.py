@@ -21,7 +21,7 @@ import numpy as np
 
 jax.config.update("jax_enable_x64", True)
 
-from amigo import instrument  # noqa: E402
+from amigo import niriss  # noqa: E402
 from amigo.companions import fit, observables, posterior  # noqa: E402
 from amigo.companions.grid import Grid, contrast_grid  # noqa: E402
 from amigo.io.calvis import nominal_sky_to_uv, write_calvis  # noqa: E402
@@ -34,13 +34,13 @@ def calvis_block(tmp: Path, filter_name: str, n_uv: int, n_obs: int, seed: int =
     """A calvis-like block: the 21 baselines (n_uv=21) or n_uv random points in the OTF."""
     rng = np.random.default_rng(seed)
     if n_uv == 21:
-        uv = instrument.baselines_m()
+        uv = niriss.baselines_m()
     else:
         radius = 6.0 * np.sqrt(rng.uniform(size=n_uv))
         angle = rng.uniform(0, np.pi, size=n_uv)
         uv = np.column_stack([radius * np.cos(angle), radius * np.sin(angle)])
     d = rng.normal(size=(n_obs, 2 * n_uv)) / np.sqrt(2 * n_uv)
-    bins = instrument.filter_bins(filter_name, 9)
+    bins = niriss.filter_bins(filter_name, 9)
     orientation = Orientation(pa_aper_deg=172.3)
     path = write_calvis(
         tmp / f"B{n_uv}_{filter_name}_calvis.fits",

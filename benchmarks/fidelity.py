@@ -20,7 +20,7 @@ ipc        as ``jitter``, with the detector's inter-pixel capacitance (5x5 kerne
 band       as ``ipc``, with the band-shape correction (the taper of ``LinearSpectrum``)
            fitted: what ``amigo fit`` does with level-2 images
 bandpass   as ``band``, with the physical band (filter x detector QE, flat photon
-           spectrum: :func:`amigo.bandpass.effective_bins`) instead of the filter alone
+           spectrum: :func:`amigo.model.bandpass.effective_bins`) instead of the filter alone
 =========  ==================================================================================
 
 Data: (1) real COM 1093 calibrator files (level 2, default the HD 37093 visit, obs 15,
@@ -50,15 +50,15 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from amigo import instrument
-from amigo.bandpass import effective_bins
-from amigo.basis import load_basis
-from amigo.detector.linear import LinearDetector, bin_pixels
-from amigo.fitting import FilterFit, FitConfig, FitExposure
+from amigo import niriss
+from amigo.fitting.filter_fit import FilterFit, FitConfig, FitExposure
+from amigo.fitting.newton import NewtonConfig
 from amigo.io.jwst import read_exposure
-from amigo.likelihood import ImageData
-from amigo.model import FilterSetup, Instrument
-from amigo.newton import NewtonConfig
+from amigo.likelihood.pixels import ImageData
+from amigo.model.bandpass import effective_bins
+from amigo.model.basis import load_basis
+from amigo.model.detector.linear import LinearDetector, bin_pixels
+from amigo.model.image import FilterSetup, Instrument
 
 ROWS = ("before", "siaf", "geometry", "jitter", "ipc", "band", "bandpass")
 #: Prior widths that freeze a parameter at its starting value.
@@ -123,7 +123,7 @@ def simulated_image(filter_name: str, like: ImageData, seed: int = 0) -> ImageDa
 
     state = dataclasses.replace(InstrumentState.perfect(), jitter_mas=SIM_JITTER_MAS)
     k = 3
-    centre = 0.5 * (instrument.SUBARRAY_SIZE - 1)
+    centre = 0.5 * (niriss.SUBARRAY_SIZE - 1)
     scene = DetectorScene((PointSource(centre + 0.3, centre - 0.2, 1.0),))
     rate = OpticalModelIllumination().render(scene, filter_name, state, k)
     unit = np.asarray(bin_pixels(jnp.asarray(rate), k), np.float64)

@@ -74,8 +74,8 @@ def _image(filter_name: str, position_arcsec, companions, flux_e_s: float) -> np
     nominal detector geometry at the header's PA_APER)."""
     import jax.numpy as jnp
 
-    from amigo.detector.linear import sky_to_optical_matrix
-    from amigo.model import (
+    from amigo.model.detector.linear import sky_to_optical_matrix
+    from amigo.model.image import (
         ExposureParams,
         FilterSetup,
         Instrument,
@@ -208,7 +208,7 @@ def main() -> None:
     calslope = {
         k: slopes / v.name.replace("_uncal.fits", "_calslope.fits") for k, v in files.items()
     }
-    from amigo.model import Instrument, save_instrument
+    from amigo.model.image import Instrument, save_instrument
 
     model = out / "nominal.eqx"
     save_instrument(Instrument.nominal(), model)

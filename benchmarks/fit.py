@@ -9,7 +9,7 @@ the whole extraction of a pair (compiled by then). ``benchmarks/fit_com1093.py``
 
     python benchmarks/fit.py [--filter F480M] [--iterations N]
 
-The fit settings are ``amigo fit``'s defaults (:class:`amigo.fitting.FitConfig`) unless
+The fit settings are ``amigo fit``'s defaults (:class:`amigo.fitting.filter_fit.FitConfig`) unless
 ``--iterations`` changes the number of natural-gradient iterations before the
 Levenberg-Marquardt finish.
 """
@@ -27,12 +27,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from amigo.basis import load_basis
-from amigo.extract import extract_filter
-from amigo.fitting import FilterFit, FitConfig, FitExposure, latent_information
-from amigo.likelihood import ImageData
-from amigo.model import FilterSetup, Instrument
-from amigo.optics import LinearSpectrum, NRMOptics
+from amigo.fitting.filter_fit import FilterFit, FitConfig, FitExposure, latent_information
+from amigo.likelihood.pixels import ImageData
+from amigo.model.basis import load_basis
+from amigo.model.image import FilterSetup, Instrument
+from amigo.model.optics import LinearSpectrum, NRMOptics
+from amigo.observables.extract import extract_filter
 
 
 def scene(instrument, filter_name, sources, photons, rng):

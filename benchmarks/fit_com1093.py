@@ -33,8 +33,8 @@ DMAG = {"F380M": 4.313, "F430M": 4.354, "F480M": 4.381}
 
 
 def binary_chi2(calvis, sep_mas: float, pa_deg: float, dmag: float) -> float:
+    from amigo.model.visibility import binary_log_visibility
     from amigo.orientation import offset_from_separation_pa
-    from amigo.visibility import binary_log_visibility
 
     dra, ddec = offset_from_separation_pa(sep_mas, pa_deg)
     theta_rad = calvis.sky_to_uv @ np.array([dra, ddec]) * np.pi / 180 / 3600 / 1000

@@ -178,7 +178,7 @@ def main() -> None:
     parser.add_argument("--only", default="", help="comma-separated case names")
     parser.add_argument("--timeout", type=float, default=600.0, help="seconds per case")
     args = parser.parse_args()
-    from amigo.model import Instrument, save_instrument
+    from amigo.model.image import Instrument, save_instrument
 
     root = args.out or Path(tempfile.mkdtemp(prefix="amigo-fuzz-fit-"))
     model = root / "nominal.eqx"

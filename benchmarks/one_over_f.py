@@ -35,8 +35,8 @@ import time
 
 import numpy as np
 
-from amigo import instrument
-from amigo.processing import ArraySource, ProcessSettings, SlopeProduct, process_ramps
+from amigo import niriss
+from amigo.processing.ramps import ArraySource, ProcessSettings, SlopeProduct, process_ramps
 from amigo.simulation import detector as simulator_detector
 from amigo.simulation.detector import DetectorConfig, RampSimulator, draw_detector
 from amigo.simulation.illumination import AnalyticNRM
@@ -84,7 +84,7 @@ def truth_slopes(rate: np.ndarray, realisation, ngroups: int) -> np.ndarray:
 def scores(product: SlopeProduct, truth: np.ndarray, stripes_left: np.ndarray) -> dict[str, float]:
     sigma = np.sqrt(np.einsum("kkyx->kyx", product.slope_cov_dn2))
     z = (product.slope_dn - truth) / sigma
-    good = ~product.badpix & ~instrument.reference_row_mask()
+    good = ~product.badpix & ~niriss.reference_row_mask()
     faint = good & (truth.mean(axis=0) < FAINT_DN)
     column = np.where(faint, z, 0.0).sum(axis=1) / np.sqrt(faint.sum(axis=0))
     column = column[:, faint.sum(axis=0) >= 10]
@@ -134,10 +134,7 @@ def main() -> None:
     print("-" * len(header))
     for peak in (float(p) for p in args.peaks.split(",")):
         rate = (
-            unit
-            * peak
-            * instrument.GAIN_E_PER_DN
-            / (pixels.max() * args.ngroups * instrument.GROUP_TIME_S)
+            unit * peak * niriss.GAIN_E_PER_DN / (pixels.max() * args.ngroups * niriss.GROUP_TIME_S)
         )
         truth = truth_slopes(rate, realisation, args.ngroups)
         for one_over_f in (True, False):

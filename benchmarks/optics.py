@@ -28,8 +28,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from amigo.detector import LinearDetector
-from amigo.optics import NRMOptics, OpticsConfig, PointSource
+from amigo.model.detector import LinearDetector
+from amigo.model.optics import NRMOptics, OpticsConfig, PointSource
 
 
 def build(filter_name: str, config: OpticsConfig, static: bool):

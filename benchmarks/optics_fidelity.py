@@ -31,9 +31,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from amigo import instrument
-from amigo.basemodel import BaseModel, BaseModelConfig
-from amigo.detector.linear import bin_pixels
+from amigo import niriss
+from amigo.model.base import BaseModel, BaseModelConfig
+from amigo.model.detector.linear import bin_pixels
 from amigo.simulation.optics_illumination import OpticalModelIllumination
 from amigo.simulation.run import REFERENCE_PIXEL_XY
 from amigo.simulation.scenarios import load_scenario
@@ -49,7 +49,7 @@ def reference(spec, state) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]
     scene = DetectorScene((PointSource(*xy, 1.0),))
     image = bin_pixels(OpticalModelIllumination().render(scene, spec.filter, state, 4), 4)
     image = image / image.sum()
-    total = spec.nints_full * spec.peak_dn * instrument.GAIN_E_PER_DN / image.max()
+    total = spec.nints_full * spec.peak_dn * niriss.GAIN_E_PER_DN / image.max()
     data = image * total
     sigma = np.sqrt(data + spec.nints_full * READ_VARIANCE_E2)
     return data, sigma, xy
@@ -63,7 +63,7 @@ def floor(spec, state, pupil_npix: int, method: str) -> tuple[float, int, float]
     with jax.enable_x64(True):
         base = BaseModel.create(config, linear=True)
         cache = base.pupil_cache()
-        centre = 0.5 * (instrument.SUBARRAY_SIZE - 1)
+        centre = 0.5 * (niriss.SUBARRAY_SIZE - 1)
         start = {
             "zernikes": jnp.asarray(state.zernike_nm),
             "defocus": jnp.asarray(state.defocus_nm[f]),
@@ -77,7 +77,7 @@ def floor(spec, state, pupil_npix: int, method: str) -> tuple[float, int, float]
             "log_flux": jnp.log(jnp.asarray(data.sum())),
         }
         vector, unravel = ravel_pytree(start)
-        rows = slice(instrument.N_REFERENCE_ROWS, None)  # the reference rows see no light
+        rows = slice(niriss.N_REFERENCE_ROWS, None)  # the reference rows see no light
 
         def residuals(v):
             p = unravel(v)

@@ -86,7 +86,7 @@ def _render(filter_name: str, orientation, xy, companion, seed: int) -> np.ndarr
     """(80, 80) unit-flux image (sum ~1 of the primary) from amigo's simulator."""
     import jax.numpy as jnp
 
-    from amigo.detector.linear import bin_pixels
+    from amigo.model.detector.linear import bin_pixels
     from amigo.simulation.optics_illumination import OpticalModelIllumination
     from amigo.simulation.scene import DetectorScene, PointSource
     from amigo.simulation.state import InstrumentState
@@ -311,7 +311,7 @@ def main() -> None:
 
 def simulated(args, out: Path) -> list[dict]:
     from amigo.io.jwst import read_exposure
-    from amigo.model import Instrument, save_instrument
+    from amigo.model.image import Instrument, save_instrument
 
     out.mkdir(parents=True, exist_ok=True)
     model = out / "nominal.eqx"

@@ -6,7 +6,7 @@ Usage::
 
 For each size it writes a synthetic uncal file (80x80, Gaussian photon and read noise,
 ADC sinusoid, 1 % cosmic rays), then processes it in a fresh Python process and reports
-the wall time of :func:`amigo.processing.process_file` (reading, both passes, writing) and the
+the wall time of :func:`amigo.processing.ramps.process_file` (reading, both passes, writing) and the
 peak resident memory of that process (imports included). Target (issue 7): 10,000
 integrations x 4 groups in under 20 s and 1 GB.
 """
@@ -78,7 +78,7 @@ def write_synthetic_uncal(path: Path, nints: int, ngroups: int, seed: int = 0) -
 
 def child(uncal: Path, out: Path) -> None:
     """Process one file here and print seconds and peak RSS (MB) as one line."""
-    from amigo.processing import process_file
+    from amigo.processing.ramps import process_file
 
     start = time.perf_counter()
     process_file(uncal, out)

@@ -16,8 +16,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from amigo.detector.ramp import RampModel
-from amigo.detector.read import ReadModel, slopes
+from amigo.model.detector.ramp import RampModel
+from amigo.model.detector.read import ReadModel, slopes
 
 
 def gaussian_illuminance(peak_e: float, dtype) -> jax.Array:

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from amigo import instrument
+from amigo import niriss
 from amigo.orientation import Orientation
 from amigo.simulation.detector import DetectorConfig, RampSimulator, draw_detector
 from amigo.simulation.illumination import AnalyticNRM
@@ -83,10 +83,7 @@ def main() -> None:
         for ngroups in (10, 30):
             # Peak pixel ~30,000 DN at the last group, as in CAL 4481.
             rate = (
-                unit
-                * 30000
-                * instrument.GAIN_E_PER_DN
-                / (pixels.max() * ngroups * instrument.GROUP_TIME_S)
+                unit * 30000 * niriss.GAIN_E_PER_DN / (pixels.max() * ngroups * niriss.GROUP_TIME_S)
             )
             for nints in (args.nints, 4 * args.nints):
                 seconds, peak = run(rate, ngroups, nints, Path(tmp))

@@ -5,7 +5,7 @@
 Fine-tunes the shipped real-data base model (as its second run did, `amigo train --init`)
 on the first ``--files`` COM 1093 calibrator images of ../shared/data/jwst/com1093-
 calibrators (obs 18 in three filters first, then obs 17 and 20 dithers in F480M) with
-HD 37093 obs 15 F480M as validation, through the same :class:`amigo.calibration.Trainer`
+HD 37093 obs 15 F480M as validation, through the same :class:`amigo.training.trainer.Trainer`
 the command uses, and times each epoch (``--batches`` optimisation steps, then the
 validation fit). The first epoch includes the compilation of the step and validation
 programs (JAX's persistent cache shortens it on later runs); the table gives it apart
@@ -50,9 +50,9 @@ def main() -> None:
     jax.config.update("jax_enable_x64", args.float64)
     import jax.numpy as jnp
 
-    from amigo.basemodel import level2_model_path, load_base_model
-    from amigo.calibration import Trainer, TrainingData, TrainSettings, machine_description
-    from amigo.optics import cast
+    from amigo.model.base import level2_model_path, load_base_model
+    from amigo.model.optics import cast
+    from amigo.training.trainer import Trainer, TrainingData, TrainSettings, machine_description
 
     dtype = jnp.float64 if args.float64 else jnp.float32
     start = time.perf_counter()

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 from astropy.io import fits
 
-from amigo import instrument
+from amigo import niriss
 from amigo.io.calvis import nominal_sky_to_uv, write_calvis
 from amigo.orientation import Orientation
 
@@ -38,7 +38,7 @@ def uv_points(splodge_radius_m: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     With ``splodge_radius_m = 0`` the 21 baselines; otherwise each baseline plus six points
     around it, as a forward model samples the extended splodge of two 0.8 m holes.
     """
-    baselines = instrument.baselines_m()
+    baselines = niriss.baselines_m()
     if splodge_radius_m == 0:
         return baselines, np.arange(len(baselines))
     angles = np.deg2rad(np.arange(6) * 60.0 + 15.0)
@@ -55,11 +55,11 @@ def kernel_disco_matrix(rng: np.random.Generator, owner: np.ndarray | None = Non
     hole-piston Jacobian (every point of a splodge inherits its baseline's row); each
     randomly rotated. For the 21 baselines alone: (14 + 15, 42).
     """
-    pairs = np.array(instrument.baseline_pairs())
+    pairs = np.array(niriss.baseline_pairs())
     owner = np.arange(len(pairs)) if owner is None else owner
     n_b = len(owner)
-    gains = np.zeros((n_b, instrument.N_HOLES))
-    pistons = np.zeros((n_b, instrument.N_HOLES))
+    gains = np.zeros((n_b, niriss.N_HOLES))
+    pistons = np.zeros((n_b, niriss.N_HOLES))
     gains[np.arange(n_b), pairs[owner, 0]] = 1.0
     gains[np.arange(n_b), pairs[owner, 1]] = 1.0
     pistons[np.arange(n_b), pairs[owner, 0]] = -1.0
@@ -105,7 +105,7 @@ def write_sim_calvis(
 
     ``splodge_radius_m > 0`` samples each splodge at 7 uv points (see :func:`uv_points`).
     """
-    bins = instrument.filter_bins(filter_name, 5)
+    bins = niriss.filter_bins(filter_name, 5)
     uv, owner = uv_points(splodge_radius_m)
     d = kernel_disco_matrix(rng, owner)
     orientation = Orientation(pa_aper_deg=pa_aper_deg)
@@ -121,7 +121,7 @@ def write_sim_calvis(
     log_vis = np.concatenate([np.log(np.abs(vis)), np.angle(vis)])
     errors = error * rng.uniform(0.7, 1.3, size=d.shape[0])
     values = d @ log_vis + errors * rng.normal(size=d.shape[0])
-    n_amp = len(uv) - instrument.N_HOLES
+    n_amp = len(uv) - niriss.N_HOLES
     kinds = ["amplitude"] * n_amp + ["phase"] * (d.shape[0] - n_amp)
     return write_calvis(
         path,
@@ -144,7 +144,7 @@ def write_sim_calvis(
 
 def oifits_baselines(pa_deg: float = 30.0) -> tuple[np.ndarray, list[tuple[int, int, int]]]:
     """The 21 NIRISS baselines rotated onto the sky (u east, v north) and the 35 triangles."""
-    holes = instrument.HOLE_CENTRES_M
+    holes = niriss.HOLE_CENTRES_M
     theta = np.deg2rad(pa_deg)
     rotation = np.array([[np.cos(theta), -np.sin(theta)], [np.sin(theta), np.cos(theta)]])
     return holes @ rotation.T, list(itertools.combinations(range(7), 3))

@@ -100,7 +100,7 @@ def nominal_star(filter_name: str = "F480M", flux_dn_s: float = 2e5) -> np.ndarr
     with its nominal jitter; no noise."""
     import jax.numpy as jnp
 
-    from amigo.model import (
+    from amigo.model.image import (
         ExposureParams,
         FilterSetup,
         Instrument,

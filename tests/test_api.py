@@ -100,7 +100,7 @@ def test_fit_and_detect_return_what_they_wrote(tmp_path):
     and still draws the residuals (from the saved figures)."""
     from matplotlib.figure import Figure
 
-    from amigo.model import Instrument, save_instrument
+    from amigo.model.image import Instrument, save_instrument
     from jwst_files import nominal_star, write_level2
 
     model = tmp_path / "nominal.eqx"

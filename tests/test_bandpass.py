@@ -1,4 +1,4 @@
-"""The physical bandpass (amigo.bandpass): filter x detector QE x stellar photon spectrum.
+"""The physical bandpass (amigo.model.bandpass): filter x detector QE x stellar photon spectrum.
 
 Validated against synphot (an independent implementation of the same photometric
 definitions and of the Planck function) and against the metadata the SVO Filter Profile
@@ -10,14 +10,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from amigo import bandpass, instrument
+from amigo import niriss
+from amigo.model import bandpass
 
 MEDIUM_BANDS = ("F380M", "F430M", "F480M")
 ANGSTROM = 1e-10
 
 
 def _filter_only(name):
-    return instrument.filter_curve(name)
+    return niriss.filter_curve(name)
 
 
 # --------------------------------------------------------------------------------------
@@ -145,7 +146,7 @@ def test_vega_like_blackbody_close_to_svo_vega_wavelengths(name):
 
 
 # --------------------------------------------------------------------------------------
-# Binning: the throughput-only limit is instrument.filter_bins
+# Binning: the throughput-only limit is niriss.filter_bins
 # --------------------------------------------------------------------------------------
 
 
@@ -153,7 +154,7 @@ def test_vega_like_blackbody_close_to_svo_vega_wavelengths(name):
 @pytest.mark.parametrize("n", [1, 9, 15])
 def test_throughput_only_bins_reproduce_filter_bins(name, n):
     ours = bandpass.effective_bins(name, n, teff_k=None, width_scale=1.0, include_qe=False)
-    reference = instrument.filter_bins(name, n)
+    reference = niriss.filter_bins(name, n)
     assert ours.name == reference.name
     np.testing.assert_allclose(ours.edges_m, reference.edges_m, rtol=1e-14)
     np.testing.assert_allclose(ours.wavelengths_m, reference.wavelengths_m, rtol=1e-13)

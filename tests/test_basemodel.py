@@ -12,7 +12,9 @@ import numpy as np
 import pytest
 from scipy.signal import convolve2d
 
-from amigo.basemodel import (
+from amigo.errors import InputError
+from amigo.likelihood.slopes import predict_slopes
+from amigo.model.base import (
     BaseModel,
     BaseModelConfig,
     default_model_path,
@@ -20,9 +22,7 @@ from amigo.basemodel import (
     read_metadata,
     save_base_model,
 )
-from amigo.detector.read import default_ipc_kernel
-from amigo.errors import InputError
-from amigo.slope_model import predict_slopes
+from amigo.model.detector.read import default_ipc_kernel
 
 SMALL = BaseModelConfig(filters=("F430M",), shape=(24, 24), pupil_npix=64, n_wavelengths=3)
 
@@ -250,7 +250,7 @@ def test_a_format_3_file_loads_with_nominal_hole_sizes(tmp_path):
 def test_shipped_level2_model_is_trained_on_real_calibrators_and_says_which():
     """The real-data model for level-2 images (issue 22, item 3): it stands behind the
     pipeline, and its record names the files, the command and the commit."""
-    from amigo.basemodel import level2_model_path
+    from amigo.model.base import level2_model_path
 
     path = level2_model_path()
     if path is None:
@@ -279,7 +279,7 @@ def test_shipped_level2_model_is_trained_on_real_calibrators_and_says_which():
 
 
 def test_a_superbias_travels_in_the_model_file_and_not_behind_the_pipeline(tmp_path):
-    from amigo.detector.reset import UNKNOWN_VARIANCE_DN2, Superbias
+    from amigo.model.detector.reset import UNKNOWN_VARIANCE_DN2, Superbias
 
     rng = np.random.default_rng(3)
     known = rng.random((80, 80)) > 0.1
@@ -312,7 +312,7 @@ def test_shipped_models_match_their_checksums_and_a_tampered_copy_is_refused(tmp
     import hashlib
     import shutil
 
-    from amigo.basemodel import CHECKSUMS_NAME, verify_checksum
+    from amigo.model.base import CHECKSUMS_NAME, verify_checksum
 
     folder = default_model_path().parent
     sums = folder / CHECKSUMS_NAME

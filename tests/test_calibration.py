@@ -12,9 +12,21 @@ import numpy as np
 import pytest
 from astropy.io import fits
 
-from amigo import instrument
-from amigo.basemodel import BaseModel, BaseModelConfig
-from amigo.calibration import (
+from amigo import niriss
+from amigo.errors import InputError
+from amigo.io.calslope import CalSlope
+from amigo.likelihood.pixels import SlopeNoise, auto_structure
+from amigo.likelihood.slopes import (
+    FlatParams,
+    PointSourceParams,
+    SlopeData,
+    chi2,
+    flat_slopes,
+    point_source_slopes,
+    whiten,
+)
+from amigo.model.base import BaseModel, BaseModelConfig
+from amigo.training.trainer import (
     FisherMomentum,
     Trainer,
     TrainingData,
@@ -26,18 +38,6 @@ from amigo.calibration import (
     pixel_mask,
     pixel_newton,
     split,
-)
-from amigo.errors import InputError
-from amigo.io.calslope import CalSlope
-from amigo.likelihood import SlopeNoise, auto_structure
-from amigo.slope_model import (
-    FlatParams,
-    PointSourceParams,
-    SlopeData,
-    chi2,
-    flat_slopes,
-    point_source_slopes,
-    whiten,
 )
 
 SMALL = BaseModelConfig(
@@ -328,7 +328,7 @@ def test_training_decreases_the_loss_on_a_tiny_synthetic_problem(cache, tmp_path
     assert trainer.history.stage[-1] == 1
     # The holes moved relative to each other, never together (the mask's centroid is
     # not seen by the data, calibration.pin_mask_centroid).
-    shift = np.asarray(trainer.state.base.hole_centres_m) - np.asarray(instrument.HOLE_CENTRES_M)
+    shift = np.asarray(trainer.state.base.hole_centres_m) - np.asarray(niriss.HOLE_CENTRES_M)
     np.testing.assert_allclose(shift.mean(axis=0), 0.0, atol=1e-7)
     assert np.abs(shift).max() > 1e-6
     assert not trainer.result().linear

@@ -8,7 +8,7 @@ from click.testing import CliRunner
 
 from amigo.cli import cli
 from amigo.io.jwst import read_exposure
-from amigo.likelihood import ImageData
+from amigo.likelihood.pixels import ImageData
 from jwst_files import write_level2, write_uncal
 
 
@@ -39,7 +39,7 @@ def test_calslope_mixed_with_level2_or_full_detector_without_base_model_is_refus
         other
     )
     # The full detector needs a trained base model, not an instrument file.
-    from amigo.model import Instrument, save_instrument
+    from amigo.model.image import Instrument, save_instrument
 
     instrument = tmp_path / "nominal.eqx"
     save_instrument(Instrument.nominal(n_wavelengths=3), instrument)
@@ -129,7 +129,7 @@ def test_several_files_after_one_flag_or_the_flag_repeated(tmp_path, capsys):
 def test_the_same_star_as_science_and_calibrator_stays_two_targets(tmp_path):
     """The null test (one visit of a star against another): the calibrator exposures get
     their own target, named with their observation; other calibrators keep their names."""
-    from amigo.fitting import FitExposure
+    from amigo.fitting.filter_fit import FitExposure
     from amigo.pipeline._fit import key_targets
 
     def item(name, role, observation, target="HD-37093"):
@@ -160,8 +160,8 @@ def test_level2_images_default_to_the_shipped_real_data_model(tmp_path, monkeypa
     import equinox as eqx
     import jax.numpy as jnp
 
-    import amigo.basemodel as basemodel
-    from amigo.basemodel import BaseModel, BaseModelConfig, save_base_model
+    import amigo.model.base as basemodel
+    from amigo.model.base import BaseModel, BaseModelConfig, save_base_model
     from amigo.pipeline._fit import _fit_model
 
     config = BaseModelConfig(filters=("F480M",), n_wavelengths=3, pupil_npix=64)

@@ -19,16 +19,16 @@ import numpy as np
 import pytest
 from astropy.io import fits
 
-from amigo.basemodel import (
+from amigo.io.calslope import write_calslope
+from amigo.likelihood.slopes import FlatParams, PointSourceParams, predict_slopes
+from amigo.model.base import (
     BaseModel,
     BaseModelConfig,
     load_base_model,
     read_metadata,
     save_base_model,
 )
-from amigo.io.calslope import write_calslope
-from amigo.processing import ProcessSettings, SlopeProduct
-from amigo.slope_model import FlatParams, PointSourceParams, predict_slopes
+from amigo.processing.ramps import ProcessSettings, SlopeProduct
 
 SRC = str(Path(__file__).resolve().parents[1] / "src")
 SHAPE = (16, 16)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy import special
 
-from amigo import instrument
+from amigo import niriss
 from amigo.companions import observables as obs
 from amigo.companions.models import airy_amplitude, disc_visibility, scene_visibility
 from amigo.io.calvis import read_calvis
@@ -153,4 +153,4 @@ def test_select_kinds_keeps_one_type(tmp_path):
     assert set(phase.kinds) == {1} and phase.n_obs == 15
     amp = obs.load(path, observables="amplitude")
     assert set(amp.kinds) == {0} and amp.n_obs == 14
-    assert instrument.baselines_m().shape == (amp.n_uv, 2)
+    assert niriss.baselines_m().shape == (amp.n_uv, 2)

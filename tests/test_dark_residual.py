@@ -1,4 +1,4 @@
-"""The dark residual of level-2 images (amigo.detector.dark_residual).
+"""The dark residual of level-2 images (amigo.model.detector.dark_residual).
 
 * The offset Jacobian against independent calculations: the ordinary least-squares slope
   of a read offset (analytic) where the pipeline's weights are uniform (faint pixels),
@@ -17,17 +17,17 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from amigo.basemodel import BaseModel, BaseModelConfig, load_base_model, save_base_model
-from amigo.calibration import solve_dark_residual
-from amigo.detector.dark_residual import (
+from amigo.likelihood.slopes import PointSourceParams, SlopeData, point_source_slopes
+from amigo.model.base import BaseModel, BaseModelConfig, load_base_model, save_base_model
+from amigo.model.detector.dark_residual import (
     OffsetSystem,
     level2_offset_response,
     offset_jacobian,
     offset_variance,
 )
-from amigo.detector.pipeline_slope import MODEL_READ_NOISE_CDS_DN
-from amigo.detector.read import ReadModel, group_offsets
-from amigo.slope_model import PointSourceParams, SlopeData, point_source_slopes
+from amigo.model.detector.pipeline_slope import MODEL_READ_NOISE_CDS_DN
+from amigo.model.detector.read import ReadModel, group_offsets
+from amigo.training.trainer import solve_dark_residual
 from test_pipeline_slope import _stcal
 
 TGROUP = 0.07544
@@ -260,8 +260,8 @@ def test_a_fit_adds_the_unknown_offsets_to_level2_images_only(small_level2):
     """``RampDetector`` (what ``amigo fit`` puts in front of a level-2 fit) adds the
     model's ``dark_offset_terms`` variance to the ERR of level-2 images behind a subtracted dark,
     at used pixels, and leaves other images as they are."""
-    from amigo.likelihood import ImageData
-    from amigo.ramp_fit import Level2Input, RampDetector
+    from amigo.fitting.ramp_fit import Level2Input, RampDetector
+    from amigo.likelihood.pixels import ImageData
 
     n = 4
     chol = np.broadcast_to(0.5 * np.eye(n)[:, :, None, None], (n, n, 80, 80))
@@ -320,9 +320,9 @@ def test_a_fit_keeps_the_offsets_only_where_the_image_shows_them(small_level2):
     without the offsets and without their variance."""
     from types import SimpleNamespace
 
-    from amigo.fitting import FitExposure
-    from amigo.likelihood import ImageData
-    from amigo.ramp_fit import Level2Input, RampDetector
+    from amigo.fitting.filter_fit import FitExposure
+    from amigo.fitting.ramp_fit import Level2Input, RampDetector
+    from amigo.likelihood.pixels import ImageData
 
     rng = np.random.default_rng(11)
     n = 6

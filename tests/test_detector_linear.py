@@ -7,8 +7,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from amigo import instrument
-from amigo.detector import (
+from amigo import niriss
+from amigo.model.detector import (
     LinearDetector,
     bin_pixels,
     cubic_resample,
@@ -69,14 +69,14 @@ def test_skew_and_scale_and_their_inverse():
         (-0.444, 1.006, -0.259, 1.00001),
         (3, 0.97, 2, 1.1),
     ]:
-        back = instrument.geometry_parameters(np.asarray(geometry_matrix(*numbers)))
+        back = niriss.geometry_parameters(np.asarray(geometry_matrix(*numbers)))
         got = (back.rotation_deg, back.anisotropy, back.skew_deg, back.scale)
         np.testing.assert_allclose(got, numbers, atol=1e-12)
 
 
 def test_detector_defaults_to_the_siaf_geometry_turning_clockwise():
     detector = LinearDetector.create()
-    np.testing.assert_allclose(detector.matrix(), instrument.nominal_geometry_matrix(), atol=1e-12)
+    np.testing.assert_allclose(detector.matrix(), niriss.nominal_geometry_matrix(), atol=1e-12)
     assert float(detector.rotation_deg) < 0  # clockwise, as the SIAF and real data say
 
 
@@ -142,7 +142,7 @@ def test_jitter_adds_its_variance_and_conserves_flux():
 def test_zero_jitter_is_finite_with_a_finite_gradient():
     """A detector with jitter 0 returns the unblurred image (the old spatial blur divided
     by sigma and returned NaN), and its derivative in the jitter is finite (0 there)."""
-    from amigo.optics import NRMOptics, OpticsConfig, PointSource
+    from amigo.model.optics import NRMOptics, OpticsConfig, PointSource
 
     optics = NRMOptics.create(OpticsConfig(pupil_npix=64))
     source = PointSource.create("F430M", flux=1.0, n_wavelengths=1)
@@ -169,7 +169,7 @@ def test_bin_pixels():
 
 
 def test_detector_conserves_flux_of_a_psf():
-    from amigo.optics import NRMOptics, OpticsConfig, PointSource
+    from amigo.model.optics import NRMOptics, OpticsConfig, PointSource
 
     optics = NRMOptics.create(OpticsConfig(pupil_npix=128))
     source = PointSource.create("F430M", flux=1e6, n_wavelengths=3)
@@ -200,7 +200,7 @@ def test_detector_conserves_flux_of_a_psf():
     no_ipc = LinearDetector.create(ipc=False)
     plain = np.asarray(no_ipc(illum, source.flux))
     np.testing.assert_allclose(plain.sum(), 1e6 * float(resampled.sum()), rtol=1e-12)
-    from amigo.detector.read import convolve_ipc, default_ipc_kernel
+    from amigo.model.detector.read import convolve_ipc, default_ipc_kernel
 
     np.testing.assert_allclose(
         image, np.asarray(convolve_ipc(jnp.asarray(plain), jnp.asarray(default_ipc_kernel())))
@@ -215,7 +215,7 @@ def test_offsets_round_trip_and_sky_chain():
     )
     # Arcsec along detector axes use the SIAF per-axis scales.
     pix = jnp.array([2.0, -3.0])
-    arcsec = pix * jnp.array([instrument.PIXEL_SCALE_X_ARCSEC, instrument.PIXEL_SCALE_Y_ARCSEC])
+    arcsec = pix * jnp.array([niriss.PIXEL_SCALE_X_ARCSEC, niriss.PIXEL_SCALE_Y_ARCSEC])
     np.testing.assert_allclose(
         detector.detector_arcsec_to_optical(arcsec), detector.detector_to_optical(pix), atol=1e-12
     )
@@ -237,7 +237,7 @@ def test_offsets_round_trip_and_sky_chain():
 def test_companion_lands_where_the_matrix_says():
     # A source at the optical offset p = G^-1 d appears moved by exactly d pixels on the
     # detector: with d whole pixels, its image is the on-axis image rolled by d.
-    from amigo.optics import NRMOptics, OpticsConfig, PointSource
+    from amigo.model.optics import NRMOptics, OpticsConfig, PointSource
 
     optics = NRMOptics.create(OpticsConfig(pupil_npix=128))
     detector = LinearDetector.create(rotation_deg=5.0, anisotropy=1.05)  # exaggerated

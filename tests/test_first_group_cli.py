@@ -22,9 +22,9 @@ NINTS, TGROUP = 60, 0.07544
 def test_fit_with_superbias_uses_every_group(tmp_path, capsys, ngroups, source):
     """``source``: the superbias comes from ``--superbias`` files, or from a base model
     that ``amigo train --darks`` stored it in."""
-    from amigo.basemodel import BaseModel, BaseModelConfig, save_base_model
     from amigo.cli import main
-    from amigo.model import Instrument, save_instrument
+    from amigo.model.base import BaseModel, BaseModelConfig, save_base_model
+    from amigo.model.image import Instrument, save_instrument
 
     rng = np.random.default_rng(11)
     bias = 11000.0 + 200.0 * rng.standard_normal((80, 80))

@@ -37,7 +37,7 @@ FILTERS = ("F430M", "F480M")  # fitted in this order (sorted)
 def inputs(tmp_path_factory) -> dict[str, Path]:
     """Level-2 images of a point source through amigo's nominal instrument (3
     wavelengths), with photon and read noise; and a calibrator with every pixel flagged."""
-    from amigo.model import Instrument, save_instrument
+    from amigo.model.image import Instrument, save_instrument
 
     folder = tmp_path_factory.mktemp("in")
     instrument = Instrument.nominal(n_wavelengths=3)
@@ -105,10 +105,10 @@ def _products(out: Path) -> dict[str, bytes]:
 
 
 def test_failures_are_reported_per_filter_and_runs_resume(inputs, tmp_path, monkeypatch, capsys):
-    import amigo.extract
+    import amigo.observables.extract
 
     out = tmp_path / "out"
-    real = amigo.extract.latent_information
+    real = amigo.observables.extract.latent_information
 
     def singular_in_f430m(fit, *args, **kwargs):
         if fit.setup.name == "F430M":
@@ -116,7 +116,7 @@ def test_failures_are_reported_per_filter_and_runs_resume(inputs, tmp_path, monk
         return real(fit, *args, **kwargs)
 
     # 1. F430M fails, F480M is fitted without its calibrator that has no usable pixel
-    monkeypatch.setattr(amigo.extract, "latent_information", singular_in_f430m)
+    monkeypatch.setattr(amigo.observables.extract, "latent_information", singular_in_f430m)
     assert _main(_args(inputs, out, flagged=True)) == 3
     err = capsys.readouterr().err
     assert "flagged_F480M_cal.fits: only 0 usable pixels" in err
@@ -140,7 +140,7 @@ def test_failures_are_reported_per_filter_and_runs_resume(inputs, tmp_path, monk
     first = _products(out)
 
     # 2. the same command: F480M kept as it is, F430M fitted
-    monkeypatch.setattr(amigo.extract, "latent_information", real)
+    monkeypatch.setattr(amigo.observables.extract, "latent_information", real)
     assert _main(_args(inputs, out, flagged=True)) == 3  # the flagged calibrator is still out
     err = capsys.readouterr().err
     assert "F480M: products up to date" in err and "F430M: products up to date" not in err

@@ -21,12 +21,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from amigo.extract import extract_filter
-from amigo.fitting import FitConfig, FitExposure
-from amigo.likelihood import ImageData
-from amigo.model import Instrument, float64
-from amigo.optics import LinearSpectrum, NRMOptics
-from amigo.visibility import UVGrid, binary_log_visibility
+from amigo.fitting.filter_fit import FitConfig, FitExposure
+from amigo.likelihood.pixels import ImageData
+from amigo.model.image import Instrument, float64
+from amigo.model.optics import LinearSpectrum, NRMOptics
+from amigo.model.visibility import UVGrid, binary_log_visibility
+from amigo.observables.extract import extract_filter
 
 ARCSEC = np.pi / 180 / 3600
 FILTER = "F480M"

@@ -44,8 +44,8 @@ def _star(shape=(80, 80), peak=3.0e4) -> np.ndarray:
 
 def make_seeds(folder: Path) -> dict[str, Path]:
     """One small valid file of every kind amigo reads."""
-    from amigo.basemodel import BaseModel, BaseModelConfig, save_base_model
-    from amigo.processing import process_file
+    from amigo.model.base import BaseModel, BaseModelConfig, save_base_model
+    from amigo.processing.ramps import process_file
     from detect_helpers import write_sim_calvis, write_sim_oifits
 
     folder.mkdir(parents=True, exist_ok=True)
@@ -75,7 +75,7 @@ def make_seeds(folder: Path) -> dict[str, Path]:
 
 def _read_uncal(path: Path, out: Path) -> None:
     from amigo.io.identify import summarise
-    from amigo.processing import process_file
+    from amigo.processing.ramps import process_file
 
     summarise(path)
     try:
@@ -108,7 +108,7 @@ def _read_observables(path: Path, out: Path) -> None:
 
 
 def _read_model(path: Path, out: Path) -> None:
-    from amigo.basemodel import load_base_model, read_metadata
+    from amigo.model.base import load_base_model, read_metadata
 
     del out
     read_metadata(path)

@@ -1,4 +1,4 @@
-"""The detector geometry derived in amigo (instrument.nominal_geometry_matrix) against the
+"""The detector geometry derived in amigo (niriss.nominal_geometry_matrix) against the
 JWST SIAF as pysiaf computes it: an independent implementation of the same chain
 (V2/V3 -> ideal -> science pixels, with the full distortion polynomial)."""
 
@@ -9,7 +9,7 @@ import warnings
 import numpy as np
 import pytest
 
-from amigo import instrument
+from amigo import niriss
 
 
 @pytest.fixture(scope="module")
@@ -22,11 +22,11 @@ def aperture():
 
 def test_siaf_numbers_are_those_pysiaf_ships(aperture):
     a = aperture
-    assert a.XSciSize == a.YSciSize == instrument.SUBARRAY_SIZE
-    assert a.V3IdlYAngle == pytest.approx(instrument.V3_IDL_Y_ANGLE_DEG, abs=1e-9)
-    assert a.VIdlParity == instrument.VIDL_PARITY
+    assert a.XSciSize == a.YSciSize == niriss.SUBARRAY_SIZE
+    assert a.V3IdlYAngle == pytest.approx(niriss.V3_IDL_Y_ANGLE_DEG, abs=1e-9)
+    assert a.VIdlParity == niriss.VIDL_PARITY
     linear = np.array([[a.Sci2IdlX10, a.Sci2IdlX11], [a.Sci2IdlY10, a.Sci2IdlY11]])
-    np.testing.assert_allclose(instrument.SIAF_SCI_TO_IDEAL_ARCSEC_PER_PIX, linear, rtol=1e-12)
+    np.testing.assert_allclose(niriss.SIAF_SCI_TO_IDEAL_ARCSEC_PER_PIX, linear, rtol=1e-12)
 
 
 def test_geometry_chain_matches_pysiaf_at_the_reference_pixel(aperture):
@@ -37,7 +37,7 @@ def test_geometry_chain_matches_pysiaf_at_the_reference_pixel(aperture):
     pysiaf's separately fitted inverse polynomial (tel_to_sci, V2/V3 steps of +-0.5
     arcsec) agrees to 1e-4 (its fit's accuracy: 1e-4 of 8 pixels is 0.05 mas)."""
     a = aperture
-    to_optical = np.linalg.inv(instrument.pupil_to_v2v3_matrix())
+    to_optical = np.linalg.inv(niriss.pupil_to_v2v3_matrix())
     columns = []
     for step in np.eye(2):
         ends = []
@@ -46,18 +46,18 @@ def test_geometry_chain_matches_pysiaf_at_the_reference_pixel(aperture):
             ends.append(to_optical @ np.array([v2 - a.V2Ref, v3 - a.V3Ref]))
         columns.append((ends[0] - ends[1]) / 2.0)
     arcsec_per_pixel = np.array(columns).T
-    g_siaf = np.linalg.inv(arcsec_per_pixel) * instrument.PIXEL_SCALE_ARCSEC
-    g = instrument.nominal_geometry_matrix()
+    g_siaf = np.linalg.inv(arcsec_per_pixel) * niriss.PIXEL_SCALE_ARCSEC
+    g = niriss.nominal_geometry_matrix()
     # The same chain through pysiaf's inverse polynomial, V2/V3 -> science.
     h = 0.5
     columns = []
     for step in np.eye(2) * h:
         ends = []
         for sign in (1.0, -1.0):
-            v2v3 = instrument.pupil_to_v2v3_matrix() @ (sign * step)
+            v2v3 = niriss.pupil_to_v2v3_matrix() @ (sign * step)
             ends.append(np.array(a.tel_to_sci(a.V2Ref + v2v3[0], a.V3Ref + v2v3[1])))
         columns.append((ends[0] - ends[1]) / (2 * h))
-    g_inverse_polynomial = np.array(columns).T * instrument.PIXEL_SCALE_ARCSEC
+    g_inverse_polynomial = np.array(columns).T * niriss.PIXEL_SCALE_ARCSEC
     print(
         f"\namigo G:\n{g}\nmax |G - pysiaf sci_to_tel| {np.abs(g_siaf - g).max():.1e}, "
         f"max |G - pysiaf tel_to_sci| {np.abs(g_inverse_polynomial - g).max():.1e}"
@@ -69,12 +69,12 @@ def test_geometry_chain_matches_pysiaf_at_the_reference_pixel(aperture):
 def test_nominal_geometry_turns_clockwise_with_a_skew():
     """The numbers docs/geometry.md quotes; the rotation is negative (clockwise), the sense
     the SIAF and real data share (the research code's +0.561 deg turned it the other way)."""
-    g = instrument.nominal_geometry()
+    g = niriss.nominal_geometry()
     assert g.rotation_deg == pytest.approx(-0.4437, abs=1e-4)
     assert g.skew_deg == pytest.approx(-0.2591, abs=1e-4)
     assert g.anisotropy == pytest.approx(1.00601, abs=1e-5)
     assert g.scale == pytest.approx(1.0, abs=2e-5)
     # V3IdlYAngle alone turns the optical frame by -0.561 deg in the ideal frame.
-    ideal = instrument.v2v3_to_ideal_matrix() @ instrument.pupil_to_v2v3_matrix()
+    ideal = niriss.v2v3_to_ideal_matrix() @ niriss.pupil_to_v2v3_matrix()
     turn = np.rad2deg(np.arctan2(ideal[1, 0], ideal[0, 0]))
-    assert turn == pytest.approx(-instrument.V3_IDL_Y_ANGLE_DEG, abs=1e-9)
+    assert turn == pytest.approx(-niriss.V3_IDL_Y_ANGLE_DEG, abs=1e-9)

@@ -9,7 +9,7 @@ from astropy.io import fits
 from amigo import __version__
 from amigo.errors import InputError
 from amigo.io.calslope import EXTENSIONS, calslope_name, read_calslope, write_calslope
-from amigo.processing import ArraySource, ProcessSettings, process_ramps
+from amigo.processing.ramps import ArraySource, ProcessSettings, process_ramps
 from ramp_sim import PRIMARY_KEYWORDS, SCI_KEYWORDS, simulate, write_uncal
 
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from astropy.io import fits
 
-from amigo import instrument
+from amigo import niriss
 from amigo.errors import InputError
 from amigo.io import jwst
 from jwst_files import write_level2, write_uncal
@@ -213,7 +213,7 @@ def test_oifits_is_not_an_exposure(oifits_dir):
 def test_reference_rows_consistent_across_kinds(tmp_path, com1093_dir):
     level2 = jwst.read_exposure(com1093_dir / "jw01093015001_03104_00001_nis_cal.fits")
     raw = jwst.read_exposure(write_uncal(tmp_path / "r_uncal.fits", ramps()))
-    reference = instrument.reference_row_mask()
+    reference = niriss.reference_row_mask()
     assert not level2.usable[reference].any() and not raw.usable[reference].any()
     # The pipeline flags the same rows as reference pixels.
     assert np.all(level2.dq[reference] & jwst.DQ_REFERENCE_PIXEL)

@@ -6,7 +6,7 @@ import warnings
 
 import numpy as np
 
-from amigo import instrument
+from amigo import niriss
 from amigo.io.oifits import read_oifits
 from amigo.io.oifits_write import closure_matrix, write_oifits
 from amigo.orientation import Orientation
@@ -20,8 +20,8 @@ def _binary_log_vis(uv_m, wavelength_m, offset_rad, contrast):
 def test_closure_matrix_cancels_hole_phases():
     """Closure phases are immune to per-hole pistons: T applied to (p_j - p_i) is zero."""
     rng = np.random.default_rng(0)
-    pistons = rng.normal(size=instrument.N_HOLES)
-    i, j = np.array(instrument.baseline_pairs()).T
+    pistons = rng.normal(size=niriss.N_HOLES)
+    i, j = np.array(niriss.baseline_pairs()).T
     np.testing.assert_allclose(closure_matrix() @ (pistons[j] - pistons[i]), 0.0, atol=1e-12)
     assert closure_matrix().shape == (35, 21)
 
@@ -38,7 +38,7 @@ def test_oifits_round_trip(tmp_path):
     mas = np.pi / 180 / 3600 / 1000
     offset_sky = np.array([-120.0, 60.0])  # dRA, dDec (mas)
     offset_uv = sky_to_uv @ offset_sky * mas
-    log_amp, phase = _binary_log_vis(instrument.baselines_m(), wavelength, offset_uv, 0.05)
+    log_amp, phase = _binary_log_vis(niriss.baselines_m(), wavelength, offset_uv, 0.05)
     rng = np.random.default_rng(1)
     a = rng.normal(size=(42, 42)) * 1e-3
     cov = a @ a.T + 1e-6 * np.eye(42)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.stats import multivariate_normal, norm
 
-from amigo.likelihood import ImageData, PixelData, SlopeNoise, chi2, residuals
+from amigo.likelihood.pixels import ImageData, PixelData, SlopeNoise, chi2, residuals
 
 pytestmark = pytest.mark.usefixtures("x64")
 

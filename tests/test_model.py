@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from amigo.model import (
+from amigo.model.image import (
     ExposureParams,
     FilterSetup,
     Instrument,

@@ -1,4 +1,4 @@
-"""The Levenberg-Marquardt pieces of amigo.newton against direct linear algebra."""
+"""The Levenberg-Marquardt pieces of amigo.fitting.newton against direct linear algebra."""
 
 from __future__ import annotations
 
@@ -6,9 +6,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from amigo.fitting import FitParams
-from amigo.model import ExposureParams, OpticsParams, SourceParams
-from amigo.newton import Layout, _Solver
+from amigo.fitting.newton import Layout
+from amigo.fitting.params import FitParams
+from amigo.model.image import ExposureParams, OpticsParams, SourceParams
+from amigo.solvers.levenberg_marquardt import FisherSolve
 
 
 def _params(rng, n_exposures=3, n_targets=2, n_amp=4, n_phase=5):
@@ -58,17 +59,19 @@ def test_undamped_step_is_the_newton_step_and_degeneracies_get_none():
     rng = np.random.default_rng(1)
     a = rng.normal(size=(30, 6)) * np.array([1e3, 1, 1e-2, 5, 1, 1])  # mixed units
     fisher, grad = a.T @ a, rng.normal(size=6)
-    np.testing.assert_allclose(_Solver(fisher)(grad, 0.0), np.linalg.solve(fisher, grad), rtol=1e-8)
+    np.testing.assert_allclose(
+        FisherSolve(fisher)(grad, 0.0), np.linalg.solve(fisher, grad), rtol=1e-8
+    )
     # Two exactly degenerate parameters (one column duplicated): no step along the
     # degenerate direction, and the step solves the system on the rest.
     b = np.column_stack([a, a[:, 1]])
     fisher = b.T @ b
     grad = b.T @ rng.normal(size=30)
-    d = _Solver(fisher)(grad, 0.0)
+    d = FisherSolve(fisher)(grad, 0.0)
     np.testing.assert_allclose(fisher @ d, grad, rtol=1e-6, atol=1e-8 * np.abs(grad).max())
     assert d[1] * np.sqrt(fisher[1, 1]) == pytest.approx(d[6] * np.sqrt(fisher[6, 6]), rel=1e-6)
     # Damping shortens the step.
-    assert np.linalg.norm(_Solver(fisher)(grad, 10.0)) < np.linalg.norm(d)
+    assert np.linalg.norm(FisherSolve(fisher)(grad, 10.0)) < np.linalg.norm(d)
 
 
 @pytest.mark.slow
@@ -79,12 +82,12 @@ def test_wavefront_prior_adds_exactly_its_gaussian_term(tmp_path, monkeypatch):
     the diagonal of the wavefront's Fisher block, and nothing to a science-only stage."""
     import equinox as eqx
 
-    from amigo.basis import load_basis
-    from amigo.fitting import FilterFit, FitExposure
-    from amigo.likelihood import ImageData
-    from amigo.model import FilterSetup, Instrument
-    from amigo.newton import _Problem
-    from amigo.visibility import UVGrid
+    from amigo.fitting.filter_fit import FilterFit, FitExposure
+    from amigo.fitting.newton import _Problem
+    from amigo.likelihood.pixels import ImageData
+    from amigo.model.basis import load_basis
+    from amigo.model.image import FilterSetup, Instrument
+    from amigo.model.visibility import UVGrid
 
     monkeypatch.setenv("AMIGO_CACHE_DIR", str(tmp_path))
     rng = np.random.default_rng(3)

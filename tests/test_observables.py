@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from amigo import observables as obs
+from amigo.observables import kernel as obs
 
 
 def _orthonormal(rng, n, m):
@@ -97,8 +97,8 @@ def test_envelope_knots_are_where_the_fringes_do_not_reach():
     pupil (2 cm pixels, FFT) less the seven holes' own autocorrelations is the fringes'
     part; at the envelope knots it is below 1 % of a splodge's peak, at every other knot
     within 1 m of the origin above 4 %."""
-    from amigo import instrument as nis
-    from amigo.visibility import UVGrid
+    from amigo import niriss as nis
+    from amigo.model.visibility import UVGrid
 
     step, n = 0.02, 512
     axis = (np.arange(n) - n // 2) * step

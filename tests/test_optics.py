@@ -12,8 +12,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from amigo import instrument
-from amigo.optics import (
+from amigo import niriss
+from amigo.model.optics import (
     ARCSEC_TO_RAD,
     Aperture,
     LinearSpectrum,
@@ -27,7 +27,7 @@ from amigo.optics import (
     mft_symmetric,
     pixel_transfer,
 )
-from amigo.optics.aperture import zernike_basis
+from amigo.model.optics.aperture import zernike_basis
 
 
 @pytest.fixture(autouse=True)
@@ -72,12 +72,12 @@ def polygon_ft(vertices: np.ndarray, qx: np.ndarray, qy: np.ndarray) -> np.ndarr
 def analytic_psf(theta_x: np.ndarray, theta_y: np.ndarray, wavelength: float) -> np.ndarray:
     """Intensity density (per rad^2, unit total power) of the ideal 7-hole mask."""
     qx, qy = 2 * np.pi * theta_x / wavelength, 2 * np.pi * theta_y / wavelength
-    verts = hexagon_vertices(instrument.HOLE_FLAT_TO_FLAT_M)
+    verts = hexagon_vertices(niriss.HOLE_FLAT_TO_FLAT_M)
     field = sum(
         polygon_ft(verts, qx, qy) * np.exp(-1j * (qx * cx + qy * cy))
-        for cx, cy in instrument.HOLE_CENTRES_M
+        for cx, cy in niriss.HOLE_CENTRES_M
     )
-    area = 7 * np.sqrt(3) / 2 * instrument.HOLE_FLAT_TO_FLAT_M**2
+    area = 7 * np.sqrt(3) / 2 * niriss.HOLE_FLAT_TO_FLAT_M**2
     return np.abs(field) ** 2 / (wavelength**2 * area)
 
 
@@ -201,7 +201,7 @@ def test_power_spectrum_has_21_splodges_at_the_baselines(ideal_mono):
     pitch = OpticsConfig().psf_pixel_rad
     u = (np.arange(pad * m) - pad * m // 2) * WAVELENGTH / (pad * m * pitch)  # metres
     uu, vv = np.meshgrid(u, u)
-    baselines = instrument.baselines_m()
+    baselines = niriss.baselines_m()
     assert baselines.shape == (21, 2)
     splodges = np.concatenate([baselines, -baselines, [[0.0, 0.0]]])
     near_any = np.zeros_like(otf, bool)
@@ -293,7 +293,7 @@ def _psf(optics, position=(0.0, 0.0), wavelength=WAVELENGTH):
 
 def test_zernike_basis_is_orthonormal_on_its_disc():
     # Independent check on a fine grid (numerical integration over the disc).
-    from amigo.optics.aperture import PupilGrid
+    from amigo.model.optics.aperture import PupilGrid
 
     n = 400
     axis = (np.arange(n) - (n - 1) / 2) * (2.0 / n)
@@ -313,12 +313,12 @@ def test_tilt_zernikes_move_the_image_like_the_source_position():
     # t r_z / 2 (Noll 2 = 2 (x - c_x) / r_z, r_z the Zernike disc radius) plus the piston
     # t . c_h: the same image as a source at +t.
     optics = NRMOptics.create(SMALL)
-    r_z = SMALL.zernike_radius_factor * instrument.HOLE_FLAT_TO_FLAT_M / np.sqrt(3)
+    r_z = SMALL.zernike_radius_factor * niriss.HOLE_FLAT_TO_FLAT_M / np.sqrt(3)
     c_nm = 40.0
     tilt_arcsec = 2 * c_nm * 1e-9 / r_z / ARCSEC_TO_RAD
     slope = np.array([1.0, -0.5]) * 2 * c_nm / r_z  # nm per metre
     z = jnp.zeros((7, 10)).at[:, 1].set(c_nm).at[:, 2].set(-0.5 * c_nm)
-    z = z.at[:, 0].set(jnp.asarray(instrument.HOLE_CENTRES_M @ slope))
+    z = z.at[:, 0].set(jnp.asarray(niriss.HOLE_CENTRES_M @ slope))
     tilted = _psf(eqx.tree_at(lambda o: o.zernikes_nm, optics, z))
     moved = _psf(optics, (tilt_arcsec, -0.5 * tilt_arcsec))
     np.testing.assert_allclose(tilted, moved, atol=1e-9 * moved.max())
@@ -404,8 +404,8 @@ def test_defocus_equals_per_hole_zernikes():
     config = dataclasses.replace(SMALL, fresnel=True, defocus_method="pupil")
     optics = NRMOptics.create(config)
     k = 2 * np.sqrt(3) * DEFOCUS_NM / (0.5 * config.pupil_diameter_m) ** 2  # nm / m^2
-    r = config.zernike_radius_factor * instrument.HOLE_FLAT_TO_FLAT_M / np.sqrt(3)
-    c = instrument.HOLE_CENTRES_M
+    r = config.zernike_radius_factor * niriss.HOLE_FLAT_TO_FLAT_M / np.sqrt(3)
+    c = niriss.HOLE_CENTRES_M
     z = np.zeros((7, 10))
     z[:, 0] = k * ((c**2).sum(1) + r**2 / 2)
     z[:, 1], z[:, 2] = k * r * c[:, 0], k * r * c[:, 1]
@@ -437,7 +437,7 @@ def test_global_distortion_moves_holes_without_shift_freedom():
     amp, _ = optics.pupil()
     x = np.asarray(optics.grid.x_m)
     amp = np.asarray(amp)
-    for h, (cx, _cy) in enumerate(instrument.HOLE_CENTRES_M):
+    for h, (cx, _cy) in enumerate(niriss.HOLE_CENTRES_M):
         hole = np.asarray(optics.aperture.hole_transmissions(optics.grid))[h]
         centroid_x = (hole.sum(0) * x).sum() / hole.sum()
         assert abs(centroid_x - cx / (1 + a)) < 2e-3, h
@@ -472,7 +472,7 @@ GRAD = OpticsConfig(npix_detector=16, pupil_npix=128, fresnel=True)
 
 def _image_with(params):
     """Pipeline (dynamic mask, Fresnel, 3 wavelengths) as a function of a flat dict."""
-    from amigo.detector import LinearDetector
+    from amigo.model.detector import LinearDetector
 
     optics = NRMOptics.create(GRAD, static=False)
     aperture = optics.aperture
@@ -558,7 +558,7 @@ def test_gradients_match_finite_differences():
 def test_band_taper_narrows_the_band_and_keeps_it_normalised():
     """The band-shape correction of LinearSpectrum: tau > 0 narrows the rms width by the
     documented ~0.43 tau s^2, tau < 0 widens it, tau = 0 is the plain filter weights."""
-    from amigo.optics import LinearSpectrum
+    from amigo.model.optics import LinearSpectrum
 
     plain = LinearSpectrum.from_filter("F430M", 9)
     wl = np.asarray(plain.wavelengths_m) * 1e6
@@ -587,7 +587,7 @@ def test_zernike_orders_and_radial_polynomials_against_independent_forms():
     import dLux.utils as dlu
     from scipy.special import eval_jacobi
 
-    from amigo.optics.aperture import _zernike_factors, noll_indices
+    from amigo.model.optics.aperture import _zernike_factors, noll_indices
 
     rho = np.linspace(0.0, 1.0, 21)
     for j in range(1, 67):

@@ -11,7 +11,7 @@ by the four central samples.
   pupil, soft edges, pupil sharpening; Zernikes at zero), the fraction of the power
   entering the mask per sample.
 * poppy: its own ``HexagonAperture`` (flat-to-flat 0.80 m) placed at each of
-  ``instrument.HOLE_CENTRES_M``, sampled by poppy on a pupil grid of pitch 1/150 m
+  ``niriss.HOLE_CENTRES_M``, sampled by poppy on a pupil grid of pitch 1/150 m
   (1024 pixels), each pixel the mean of 2 x 2 of poppy's point samples of the hexagon
   (poppy's "gray pixel" approach, done per hole on a small poppy ``Wavefront`` because
   ``poppy.fixed_sampling_optic`` on the full grid takes minutes), propagated by poppy's
@@ -74,8 +74,8 @@ poppy = pytest.importorskip(
 )
 u = pytest.importorskip("astropy.units")
 
-from amigo import instrument  # noqa: E402
-from amigo.optics import NRMOptics, OpticsConfig  # noqa: E402
+from amigo import niriss  # noqa: E402
+from amigo.model.optics import NRMOptics, OpticsConfig  # noqa: E402
 
 WAVELENGTHS_M = (3.8e-6, 4.8e-6)
 #: The shipped optics settings. The Zernike basis is cut to one mode only to compile
@@ -105,10 +105,10 @@ def poppy_pupil(npix: int, pitch_m: float, subsample: int) -> np.ndarray:
     ``Wavefront`` covering it (a patch of whole pixels of the big grid, so the
     sub-samples of each pixel are exactly those of the full-grid gray pixel).
     """
-    flat = instrument.HOLE_FLAT_TO_FLAT_M
+    flat = niriss.HOLE_FLAT_TO_FLAT_M
     n = int(np.ceil(2.0 * flat / np.sqrt(3.0) / pitch_m)) + 4  # patch size in pixels
     pupil = np.zeros((npix, npix))
-    for cx, cy in instrument.HOLE_CENTRES_M:
+    for cx, cy in niriss.HOLE_CENTRES_M:
         # First pixel of the patch along x and y, and the patch centre (metres).
         kx, ky = (round(float(c) / pitch_m + 0.5 * (npix - 1) - 0.5 * (n - 1)) for c in (cx, cy))
         px, py = ((k + 0.5 * (n - 1) - 0.5 * (npix - 1)) * pitch_m for k in (kx, ky))
@@ -174,13 +174,13 @@ def poppy_psfs(pupil) -> np.ndarray:
 
 def test_poppy_pupil_is_the_published_mask(pupil):
     # Area: seven regular hexagons of flat-to-flat 0.80 m.
-    flat = instrument.HOLE_FLAT_TO_FLAT_M
-    area = instrument.N_HOLES * np.sqrt(3.0) / 2.0 * flat**2
+    flat = niriss.HOLE_FLAT_TO_FLAT_M
+    area = niriss.N_HOLES * np.sqrt(3.0) / 2.0 * flat**2
     assert abs(np.sum(pupil) * POPPY_PITCH_M**2 / area - 1.0) < 2e-5
     # Orientation: poppy's hexagon is flat-top like amigo's, i.e. the row through a
     # centre spans two circumradii (vertex to vertex) and the column one flat-to-flat.
     axis = (np.arange(POPPY_NPIX) - 0.5 * (POPPY_NPIX - 1)) * POPPY_PITCH_M
-    for cx, cy in instrument.HOLE_CENTRES_M:
+    for cx, cy in niriss.HOLE_CENTRES_M:
         row, col = np.argmin(np.abs(axis - cy)), np.argmin(np.abs(axis - cx))
         in_hole = np.abs(axis - cx) < 0.6  # this hole only, not its neighbours
         width_x = np.sum(pupil[row, in_hole]) * POPPY_PITCH_M

@@ -11,7 +11,7 @@ from astropy.wcs import WCS
 from hypothesis import given
 from hypothesis import strategies as st
 
-from amigo import instrument
+from amigo import niriss
 from amigo.orientation import Orientation, offset_from_separation_pa, separation_pa
 
 angles = st.floats(0, 360, allow_nan=False)
@@ -115,5 +115,5 @@ def test_mean_pixel_scale_used_by_matrix():
     o = Orientation(pa_aper_deg=0.0)
     m = o.detector_to_sky_matrix()
     assert np.abs(np.linalg.det(m)) == pytest.approx(
-        instrument.PIXEL_SCALE_X_ARCSEC * instrument.PIXEL_SCALE_Y_ARCSEC * 1e6, rel=1e-3
+        niriss.PIXEL_SCALE_X_ARCSEC * niriss.PIXEL_SCALE_Y_ARCSEC * 1e6, rel=1e-3
     )

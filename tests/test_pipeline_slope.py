@@ -1,4 +1,4 @@
-"""amigo.detector.pipeline_slope against the JWST pipeline's own ramp fitting (stcal).
+"""amigo.model.detector.pipeline_slope against the JWST pipeline's own ramp fitting (stcal).
 
 Every test simulates ramps with numpy, fits them with stcal's ``ramp_fit_data`` (algorithm
 ``OLS_C``, weighting ``optimal``: what the jwst ``ramp_fit`` step runs) and with
@@ -24,7 +24,7 @@ import jax.numpy as jnp
 from stcal.ramp_fitting.ramp_fit import ramp_fit_data
 from stcal.ramp_fitting.ramp_fit_class import RampData
 
-from amigo.detector.pipeline_slope import (
+from amigo.model.detector.pipeline_slope import (
     SNR_POWERS,
     fixsen_weights,
     pipeline_slopes,

@@ -5,8 +5,8 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from amigo import instrument
-from amigo.optics import NRMOptics, OpticsConfig, PointSource
+from amigo import niriss
+from amigo.model.optics import NRMOptics, OpticsConfig, PointSource
 from amigo.plots import optics as plots
 
 
@@ -28,4 +28,4 @@ def test_optics_figures_are_written(tmp_path):
     # The power spectrum figure overlays all 21 baselines (and their mirrors).
     ax = figures["power.png"].axes[0]
     offsets = np.concatenate([c.get_offsets() for c in ax.collections])
-    assert len(offsets) == 2 * len(instrument.baseline_pairs()) == 42
+    assert len(offsets) == 2 * len(niriss.baseline_pairs()) == 42

@@ -1,4 +1,4 @@
-"""Physics and algorithm tests of amigo.processing, on ramps from an independent generator."""
+"""Physics and algorithm tests of amigo.processing.ramps, on ramps from an independent generator."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from astropy.io import fits
 
-from amigo import instrument
-from amigo.processing import (
+from amigo import niriss
+from amigo.processing.ramps import (
     BAD_DQ,
     BAD_LOW_SUPPORT,
     BAD_NO_NOISE,
@@ -56,7 +56,7 @@ def test_slope_means_agree_with_truth_within_their_errors():
     )
     product = process_ramps(ArraySource(ramps.raw))
     good = ~product.badpix
-    assert good.sum() >= 0.95 * (~instrument.reference_row_mask(40, 40)).sum()
+    assert good.sum() >= 0.95 * (~niriss.reference_row_mask(40, 40)).sum()
     resid = (product.slope_dn - ramps.flux_dn)[:, good]  # (G-1, npix)
     cov = product.slope_cov_dn2[:, :, good]
     z = resid / np.sqrt(_cov_diag(cov))
@@ -89,7 +89,7 @@ def test_cosmic_rays_are_rejected_with_the_rest_of_their_ramp():
     # Without clipping the slope means are biased by the steps; with it they are not.
     clipped = process_ramps(ArraySource(ramps.raw))
     unclipped = process_ramps(ArraySource(ramps.raw), ProcessSettings(nsigma=1e9))
-    rows = ~instrument.reference_row_mask(24, 24)
+    rows = ~niriss.reference_row_mask(24, 24)
     sigma = np.sqrt(_cov_diag(clipped.slope_cov_dn2))[:, rows]
     assert abs(((clipped.slope_dn[:, rows] - flux_dn) / sigma).mean()) < 0.1
     assert ((unclipped.slope_dn[:, rows] - flux_dn) / sigma).mean() > 3.0
@@ -149,7 +149,7 @@ def test_reported_covariance_matches_the_scatter_of_the_means(nints, side):
     # Read noise anti-correlates adjacent slopes: -sigma_read^2 / N (clipping adds ~5-10 %).
     empirical, mean_reported, _ = _scatter_vs_reported(product.slope_dn, product.slope_cov_dn2)
     analytic_adjacent = -(read**2) / nints
-    analytic_diag = (flux / instrument.GAIN_E_PER_DN + 2 * read**2) / nints
+    analytic_diag = (flux / niriss.GAIN_E_PER_DN + 2 * read**2) / nints
     for k in range(ngroups - 2):
         assert 0.95 < mean_reported[k, k + 1] / analytic_adjacent < 1.2
         assert 0.95 < empirical[k, k + 1] / analytic_adjacent < 1.25
@@ -397,7 +397,7 @@ def test_streaming_equals_in_memory_reference():
 
 def test_one_group_keeps_its_read_and_no_slope(tmp_path):
     """NGROUPS = 1: no group difference exists; the read's mean and its covariance are the
-    exposure's measurement (fitted less a superbias, amigo.detector.reset) and survive the
+    exposure's measurement (fitted less a superbias, amigo.model.detector.reset) and survive the
     calslope file as zero-length SLOPE arrays."""
     from amigo.io.calslope import read_calslope, write_calslope
     from ramp_sim import PRIMARY_KEYWORDS, SCI_KEYWORDS
@@ -409,13 +409,13 @@ def test_one_group_keeps_its_read_and_no_slope(tmp_path):
     assert product.slope_dn.shape == (0, side, side)
     assert product.slope_cov_dn2.shape == (0, 0, side, side)
     assert product.ramp_dn.shape == (1, side, side)
-    light = ~instrument.reference_row_mask(side, side)
+    light = ~niriss.reference_row_mask(side, side)
     assert not product.badpix[light].any()  # support and noise judged on the read
     # Pixels of equal flux are realisations: the reported variance of the mean read is
     # the scatter of the means, and both are (photons + read noise) / N.
     means = product.ramp_dn[0][light]
     reported = product.ramp_cov_dn2[0, 0][light]
-    analytic = (flux / instrument.GAIN_E_PER_DN + read**2) / nints
+    analytic = (flux / niriss.GAIN_E_PER_DN + read**2) / nints
     assert np.mean(means) == pytest.approx(bias + flux, abs=3 * np.sqrt(analytic / means.size))
     assert np.var(means, ddof=1) / analytic == pytest.approx(1.0, abs=0.1)
     assert np.median(reported) / analytic == pytest.approx(1.0, abs=0.1)

@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 from astropy.io import fits
 
-from amigo import instrument
+from amigo import niriss
 from amigo.cli import main
 from amigo.io.calslope import read_calslope
-from amigo.processing import (
+from amigo.processing.ramps import (
     ArraySource,
     ProcessSettings,
     SlopeProduct,
@@ -35,7 +35,7 @@ def scene() -> np.ndarray:
     y, x = np.indices((80, 80))
     r = np.hypot(x - 45.3, y - 40.6)
     flux = 2.0 + 3000.0 * np.exp(-(r**2) / (2 * 2.0**2)) + 30.0 * np.exp(-r / 12.0)
-    flux[: instrument.N_REFERENCE_ROWS] = 0.0
+    flux[: niriss.N_REFERENCE_ROWS] = 0.0
     return flux
 
 

@@ -16,7 +16,7 @@ import json
 import numpy as np
 import pytest
 
-from amigo import instrument
+from amigo import niriss
 from amigo.cli import main
 from amigo.io.calslope import read_calslope
 
@@ -63,9 +63,9 @@ def test_slopes_of_simulated_flat_agree_with_truth(tmp_path):
     ngroups = truth["exposure"]["ngroups"]
     group_time = truth["exposure"]["group_time_s"]
     electrons = truth["photons"]["expected_per_integration"] * flat / flat.sum()
-    expected_dn = (electrons / ngroups + dark_e_per_s * group_time) / instrument.GAIN_E_PER_DN
+    expected_dn = (electrons / ngroups + dark_e_per_s * group_time) / niriss.GAIN_E_PER_DN
 
-    use = ~product.badpix.astype(bool) & ~instrument.reference_row_mask()
+    use = ~product.badpix.astype(bool) & ~niriss.reference_row_mask()
     assert use.sum() > 0.9 * 76 * 80
     residual = product.slope_dn - expected_dn[None]
     sigma = np.sqrt(np.einsum("iiyx->iyx", product.slope_cov_dn2))

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from amigo.detector.ramp import (
+from amigo.model.detector.ramp import (
     ChargeMigrationNetwork,
     IntraPixelResponse,
     RampModel,
@@ -16,7 +16,7 @@ from amigo.detector.ramp import (
     to_subpixels,
     transport,
 )
-from amigo.detector.read import ReadModel, convolve_ipc, default_ipc_kernel, slopes
+from amigo.model.detector.read import ReadModel, convolve_ipc, default_ipc_kernel, slopes
 
 pytestmark = pytest.mark.usefixtures("x64")
 
@@ -128,7 +128,7 @@ def test_read_weights_are_the_not_a_knot_spline_through_the_substeps(n_substeps)
     interpax's special case, a parabola; 4 and 9: the general system)."""
     import interpax
 
-    from amigo.detector.ramp import read_weights
+    from amigo.model.detector.ramp import read_weights
 
     rng = np.random.default_rng(n_substeps)
     states = np.cumsum(rng.uniform(0, 100, (n_substeps + 1, 50)), axis=0)

@@ -1,4 +1,4 @@
-"""Science fits through the base model's detector (amigo.ramp_fit).
+"""Science fits through the base model's detector (amigo.fitting.ramp_fit).
 
 * Units and the correction, against direct calculations: with a detector that is linear,
   flat (between and within pixels), free of IPC and non-linearity the base model's slopes equal the fit's image times
@@ -23,18 +23,18 @@ import numpy as np
 import pytest
 from astropy.io import fits
 
-from amigo.basemodel import load_base_model
-from amigo.basis import load_basis
-from amigo.detector.ramp import IntraPixelResponse
-from amigo.detector.read import default_ipc_kernel
-from amigo.extract import extract_filter
-from amigo.fitting import FilterFit, FitConfig, FitExposure
+from amigo.fitting.filter_fit import FilterFit, FitConfig, FitExposure
+from amigo.fitting.newton import psfs_of
+from amigo.fitting.ramp_fit import RampDetector, RampInput, _slopes_and_image
 from amigo.io.calslope import CalSlope
-from amigo.likelihood import ImageData
-from amigo.model import FilterSetup, Instrument, OpticsParams
-from amigo.newton import psfs_of
-from amigo.ramp_fit import RampDetector, RampInput, _slopes_and_image
-from amigo.visibility import UVGrid
+from amigo.likelihood.pixels import ImageData
+from amigo.model.base import load_base_model
+from amigo.model.basis import load_basis
+from amigo.model.detector.ramp import IntraPixelResponse
+from amigo.model.detector.read import default_ipc_kernel
+from amigo.model.image import FilterSetup, Instrument, OpticsParams
+from amigo.model.visibility import UVGrid
+from amigo.observables.extract import extract_filter
 
 FILTER = "F480M"
 GROUP_TIME_S = 0.07544
@@ -190,7 +190,7 @@ def test_level2_correction_is_the_pipeline_slope_of_the_model_ramp(setting):
       the stcal-equivalent estimator and the plain mean of group differences.
     * A flat in the base model does not reach a level-2 correction.
     """
-    from amigo.ramp_fit import Level2Input
+    from amigo.fitting.ramp_fit import Level2Input
 
     base, instrument, setup = setting
     data = ImageData(np.zeros((80, 80)), np.ones((80, 80)), np.ones((80, 80), bool))
@@ -227,8 +227,8 @@ def test_detector_rounds_take_level2_and_first_group_inputs(setting):
     first group: the level-2 correction is an image (DN/s), the calslope one has NGROUPS
     values per pixel, the first read's among them (a route that once broke for level-2
     inputs, which have no first group)."""
-    from amigo.detector.reset import Superbias, with_first_group
-    from amigo.ramp_fit import Level2Input
+    from amigo.fitting.ramp_fit import Level2Input
+    from amigo.model.detector.reset import Superbias, with_first_group
 
     base, instrument, setup = setting
     slopes, image, _ = _truth(base, instrument, setup, (0.02, -0.01))

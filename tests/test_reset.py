@@ -1,4 +1,4 @@
-"""The first group in the likelihood (amigo.detector.reset), checked against a brute-force
+"""The first group in the likelihood (amigo.model.detector.reset), checked against a brute-force
 marginal likelihood of the whole ramp and against the count of photons it uses.
 
 The ramps here come from a few lines of NumPy written for these tests (Poisson
@@ -14,15 +14,15 @@ import numpy as np
 import pytest
 from astropy.io import fits
 
-from amigo.detector.reset import (
+from amigo.io.calslope import CalSlope
+from amigo.likelihood.pixels import ImageData
+from amigo.model.detector.reset import (
     UNKNOWN_VARIANCE_DN2,
     Superbias,
     estimate_superbias,
     superbias_of,
     with_first_group,
 )
-from amigo.io.calslope import CalSlope
-from amigo.likelihood import ImageData
 
 GAIN = 1.61  # e-/DN
 GROUP_TIME = 0.07544  # s, NISRAPID SUB80

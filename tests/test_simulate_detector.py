@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from amigo import instrument
+from amigo import niriss
 from amigo.simulation.detector import (
     DetectorConfig,
     EdgeStrips,
@@ -24,8 +24,8 @@ from amigo.simulation.illumination import AnalyticNRM
 from amigo.simulation.scene import DetectorScene, PointSource
 from amigo.simulation.state import InstrumentState
 
-TG = instrument.GROUP_TIME_S
-GAIN = instrument.GAIN_E_PER_DN
+TG = niriss.GROUP_TIME_S
+GAIN = niriss.GAIN_E_PER_DN
 
 
 def _realisation(shape=(80, 80), seed=0):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from amigo import instrument
+from amigo import niriss
 from amigo.simulation.illumination import (
     AnalyticNRM,
     UniformIllumination,
@@ -41,7 +41,7 @@ def test_hexagon_fourier_transform_matches_brute_force_integral():
 
 def test_on_axis_intensity_and_piston_phases():
     """Peak = N A / lambda^2 for unit flux; a half-wave piston on one hole gives (N-2)^2."""
-    centres = np.asarray(instrument.HOLE_CENTRES_M)
+    centres = np.asarray(niriss.HOLE_CENTRES_M)
     wavelength = 4.3e-6
     zero = np.zeros(7)
     peak = nrm_intensity(np.array(0.0), np.array(0.0), wavelength, centres, zero, np.zeros((7, 2)))
@@ -74,8 +74,8 @@ def test_defocus_maps_to_hole_piston_and_tilt():
     state = InstrumentState.perfect()
     state = InstrumentState(state.zernike_nm, {"F430M": 50.0})
     piston, gradient = hole_phases_and_tilts(state, "F430M")
-    radius = instrument.PUPIL_DIAMETER_M / 2
-    c = np.asarray(instrument.HOLE_CENTRES_M)
+    radius = niriss.PUPIL_DIAMETER_M / 2
+    c = np.asarray(niriss.HOLE_CENTRES_M)
     # Independent: finite differences of sqrt(3) d (2 r^2 / R^2 - 1) at the hole centres.
     opd = lambda xy: np.sqrt(3) * 50e-9 * (2 * np.sum(xy**2, -1) / radius**2 - 1)  # noqa: E731
     np.testing.assert_allclose(piston, opd(c), rtol=1e-12)

@@ -20,11 +20,11 @@ import numpy as np
 import pytest
 from astropy.io import fits
 
-from amigo import instrument
-from amigo.basemodel import BaseModel, BaseModelConfig, load_base_model, read_metadata
-from amigo.detector.pipeline_slope import MODEL_READ_NOISE_CDS_DN
+from amigo import niriss
 from amigo.errors import InputError
-from amigo.slope_model import PointSourceParams, SlopeData, point_source_slopes
+from amigo.likelihood.slopes import PointSourceParams, SlopeData, point_source_slopes
+from amigo.model.base import BaseModel, BaseModelConfig, load_base_model, read_metadata
+from amigo.model.detector.pipeline_slope import MODEL_READ_NOISE_CDS_DN
 from jwst_files import write_level2
 from test_cli_train import _write, amigo_here, run_amigo
 from test_pipeline_slope import _stcal
@@ -55,7 +55,7 @@ def test_a_level2_file_becomes_one_slope_per_pixel(tmp_path):
     assert data.name == "jw_star" and data.filter == "F480M"
     assert data.slopes_dn.shape == (1, 80, 80)
     used = np.asarray(data.used) > 0
-    expected = ~instrument.reference_row_mask(80, 80)
+    expected = ~niriss.reference_row_mask(80, 80)
     expected[40, 40] = expected[10, 12] = False
     np.testing.assert_array_equal(used, expected)
     assert data.n_values == int(expected.sum())

@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 import scipy.special
 
-from amigo import instrument
-from amigo.visibility import Injector, UVGrid, binary_log_visibility, keys_kernel
+from amigo import niriss
+from amigo.model.visibility import Injector, UVGrid, binary_log_visibility, keys_kernel
 
 MAS = np.pi / 180 / 3600 / 1000
-PIXEL_RAD = instrument.PIXEL_SCALE_ARCSEC * 1000 / 3 * MAS
+PIXEL_RAD = niriss.PIXEL_SCALE_ARCSEC * 1000 / 3 * MAS
 
 
 def analytic_nrm_psf(n: int, wavelength_m: float, offset_rad=(0.0, 0.0), d_m: float = 0.8):
@@ -23,8 +23,7 @@ def analytic_nrm_psf(n: int, wavelength_m: float, offset_rad=(0.0, 0.0), d_m: fl
     safe = np.maximum(arg, 1e-12)
     envelope = np.where(arg > 1e-12, 2 * scipy.special.j1(safe) / safe, 1.0)
     field = sum(
-        np.exp(-2j * np.pi * (hx * x + hy * y) / wavelength_m)
-        for hx, hy in instrument.HOLE_CENTRES_M
+        np.exp(-2j * np.pi * (hx * x + hy * y) / wavelength_m) for hx, hy in niriss.HOLE_CENTRES_M
     )
     return envelope**2 * np.abs(field) ** 2
 

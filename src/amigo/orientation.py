@@ -12,7 +12,7 @@ files' own FITS WCS (see docs/orientation.md)::
 The mapping is linear and exact to first order in the offset (offsets of an AMI field are
 < 3 arcsec): a detector offset ``(dx, dy)`` in pixels is first mapped to the ideal frame
 with the NIS_AMI1 linear distortion (per-axis scales and a small skew,
-:data:`amigo.instrument.SCI_TO_IDEAL_ARCSEC_PER_PIX`), then rotated onto the sky::
+:data:`amigo.niriss.SCI_TO_IDEAL_ARCSEC_PER_PIX`), then rotated onto the sky::
 
     [dRA, dDec] = R(PA_APER, VPARITY) @ M_sci->ideal @ [dx, dy]
 
@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from amigo import instrument
+from amigo import niriss
 
 MAS_PER_ARCSEC = 1000.0
 
@@ -55,8 +55,8 @@ class Orientation:
     """
 
     pa_aper_deg: float
-    vparity: int = instrument.VIDL_PARITY
-    v3_idl_y_angle_deg: float = instrument.V3_IDL_Y_ANGLE_DEG
+    vparity: int = niriss.VIDL_PARITY
+    v3_idl_y_angle_deg: float = niriss.V3_IDL_Y_ANGLE_DEG
     roll_ref_deg: float | None = None
 
     @classmethod
@@ -67,8 +67,8 @@ class Orientation:
         vparity: int | None = None,
     ) -> Orientation:
         """Orientation from the V3 roll angle, as JWST computes ``PA_APER``."""
-        yang = instrument.V3_IDL_Y_ANGLE_DEG if v3_idl_y_angle_deg is None else v3_idl_y_angle_deg
-        parity = instrument.VIDL_PARITY if vparity is None else int(vparity)
+        yang = niriss.V3_IDL_Y_ANGLE_DEG if v3_idl_y_angle_deg is None else v3_idl_y_angle_deg
+        parity = niriss.VIDL_PARITY if vparity is None else int(vparity)
         return cls(
             pa_aper_deg=float((roll_ref_deg + yang) % 360.0),
             vparity=parity,
@@ -97,8 +97,8 @@ class Orientation:
         if pa is not None:
             return cls(
                 pa_aper_deg=float(pa) % 360.0,
-                vparity=instrument.VIDL_PARITY if parity is None else int(parity),
-                v3_idl_y_angle_deg=instrument.V3_IDL_Y_ANGLE_DEG if yang is None else float(yang),
+                vparity=niriss.VIDL_PARITY if parity is None else int(parity),
+                v3_idl_y_angle_deg=niriss.V3_IDL_Y_ANGLE_DEG if yang is None else float(yang),
                 roll_ref_deg=None if roll is None else float(roll),
             )
         if roll is None:
@@ -131,7 +131,7 @@ class Orientation:
         """2x2 matrix: detector offset (pixels, ``[dx, dy]``) -> sky offset (mas)."""
         return (
             self.ideal_to_sky_matrix()
-            @ np.asarray(instrument.SCI_TO_IDEAL_ARCSEC_PER_PIX)
+            @ np.asarray(niriss.SCI_TO_IDEAL_ARCSEC_PER_PIX)
             * MAS_PER_ARCSEC
         )
 
@@ -156,15 +156,15 @@ class Orientation:
         "Arcsec along x" is pixels times the SIAF x scale (likewise for y).
         """
         dx, dy = self.sky_to_detector(dra_mas, ddec_mas)
-        return dx * instrument.PIXEL_SCALE_X_ARCSEC, dy * instrument.PIXEL_SCALE_Y_ARCSEC
+        return dx * niriss.PIXEL_SCALE_X_ARCSEC, dy * niriss.PIXEL_SCALE_Y_ARCSEC
 
     def detector_arcsec_to_sky(
         self, dx_arcsec: Any, dy_arcsec: Any
     ) -> tuple[np.ndarray, np.ndarray]:
         """Inverse of :meth:`sky_to_detector_arcsec`."""
         return self.detector_to_sky(
-            np.asarray(dx_arcsec) / instrument.PIXEL_SCALE_X_ARCSEC,
-            np.asarray(dy_arcsec) / instrument.PIXEL_SCALE_Y_ARCSEC,
+            np.asarray(dx_arcsec) / niriss.PIXEL_SCALE_X_ARCSEC,
+            np.asarray(dy_arcsec) / niriss.PIXEL_SCALE_Y_ARCSEC,
         )
 
     def pa_of_detector_y_deg(self) -> float:

@@ -36,18 +36,12 @@ def command(filters: tuple[str, ...], model: Path | None, plots: Path | None) ->
     does not rebuild them.
     """
     os.environ.setdefault("JAX_PLATFORMS", "cpu")
-    from amigo import instrument as nis
-    from amigo.basis import cache_dir, load_basis, spectrum_figure
-    from amigo.model import Instrument, load_instrument
-    from amigo.plots.fit import save_figure
+    from amigo.pipeline import bases
 
-    instrument = Instrument.nominal() if model is None else load_instrument(model)
-    folder = cache_dir() if plots is None else plots
-    for name in [f.upper() for f in filters] or list(nis.CALIBRATED_FILTERS):
-        _, info = load_basis(instrument, name)
-        path = save_figure(spectrum_figure(info), folder / f"basis_{name}.png")
+    for report in bases(filters, model=model, plots=plots):
+        info = report.info
         click.echo(
-            f"{name}: {info.n_amp} amplitude + {info.n_phase} phase modes "
+            f"{report.filter_name}: {info.n_amp} amplitude + {info.n_phase} phase modes "
             f"({info.n_knots_support} knots inside the OTF support; key {info.key}); "
-            f"spectrum: {path}"
+            f"spectrum: {report.figure}"
         )

@@ -34,7 +34,6 @@ DEMO_KNOTS, DEMO_KNOT_SPACING_M = 27, 0.5
 @click.option("--no-hmc", is_flag=True, help="Skip the NUTS posterior (faster).")
 def command(out: Path, no_hmc: bool) -> int:
     """Simulate a binary and a calibrator, and take them from raw ramps to a companion."""
-    from amigo.basemodel import default_model_path
     from amigo.pipeline import run, simulate
 
     raw = out / "raw"
@@ -50,7 +49,7 @@ def command(out: Path, no_hmc: bool) -> int:
         sci,
         cal,
         out,
-        model=default_model_path(),
+        model=None,  # raw ramps: the shipped base model
         detector=None,  # the default: the base model's full detector (network on)
         knots=DEMO_KNOTS,
         knot_spacing=DEMO_KNOT_SPACING_M,

@@ -6,7 +6,7 @@ exposures only; the validation exposures are fitted (their own positions and flu
 never calibrate anything (docs/detector.md, "Training"). The calibration and validation
 exposures are calslope files (from raw ramps) or, all of them, the pipeline's level-2
 images: then the model stands behind the pipeline and learns each pixel's residual
-sensitivity from the calibrators (:mod:`amigo.calibration`). The loss curve is drawn
+sensitivity from the calibrators (:mod:`amigo.training.trainer`). The loss curve is drawn
 into ``MODEL_loss.png``.
 """
 
@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import json
 import shlex
-import zipfile
 from pathlib import Path
 
 import click
@@ -187,10 +186,9 @@ def command(
 ) -> None:
     """Train the base model (instrument state and BFE network) on calibration data."""
     from amigo.cli import fail_input
+    from amigo.pipeline import train
 
     stage_steps: tuple[int, ...] = ()
-    if steps == 0 and init is None:
-        raise click.BadParameter("0 needs --init (a model to keep)", param_hint="--steps")
     if stages:
         try:
             stage_steps = tuple(int(x) for x in stages.split(","))
@@ -198,90 +196,41 @@ def command(
             raise click.BadParameter(
                 "a comma-separated list of integers", param_hint="--stages"
             ) from None
-        if sum(stage_steps) != steps or min(stage_steps) < 1:
-            raise click.BadParameter(
-                f"positive steps summing to --steps ({steps})", param_hint="--stages"
-            )
     # The command exactly as given (file paths included): the record says what made the model.
     root = click.get_current_context().find_root().obj
     argv = root["argv"] if isinstance(root, dict) and "argv" in root else ["train"]
-    from amigo._version import source_commit
-
-    # Taken now: the code that trains is the code imported at the start.
-    provenance = {
-        "command": "amigo " + shlex.join(argv),
-        "source_commit": source_commit(),
-        "float": "float64" if float64 else "float32",
-    }
-    if provenance_file is not None:
-        try:
-            extra = json.loads(provenance_file.read_text(encoding="utf-8"))
-        except (OSError, ValueError) as error:
-            fail_input(InputError(provenance_file, f"not a JSON file ({error})"))
-            return
-        if not isinstance(extra, dict):
-            fail_input(InputError(provenance_file, "must hold a JSON object"))
-            return
-        provenance.update(extra)
-    # Unusable inputs fail here, in seconds, before the model's modules are imported
-    # (tens of seconds on a small machine).
-    _check_inputs((*cal, *flats, *val), init)
-    superbias = _superbias(darks, cal[0])
-    _warn_about_memory_maps()
-    import jax
-
-    with jax.enable_x64(float64):
-        import jax.numpy as jnp
-
-        from amigo.basemodel import BaseModelConfig, load_base_model, read_metadata
-        from amigo.calibration import TrainingData, TrainSettings, train
-        from amigo.optics import cast
-
-        dtype = jnp.float64 if float64 else jnp.float32
-        optics = {
-            k: v
-            for k, v in (("pupil_npix", pupil_npix), ("defocus_method", defocus_method))
-            if v is not None
-        }
-        initial = config = None
-        try:
-            data = TrainingData.read(cal, flats, val, diagonal=diagonal, dtype=dtype)
-            if init is not None:
-                initial = cast(load_base_model(init), dtype).with_config(**optics)
-                provenance["initial_model"] = _summary(init, read_metadata(init))
-            elif optics:
-                config = BaseModelConfig(filters=data.filters, shape=data.cal[0].shape, **optics)
-        except InputError as error:
-            fail_input(error)
-            return
-        settings = TrainSettings(
+    provenance = {"command": "amigo " + shlex.join(argv)}
+    try:
+        if provenance_file is not None:
+            provenance.update(_provenance(provenance_file))
+        result = train(
+            cal,
+            out,
+            flats=flats,
+            val=val,
+            darks=darks,
             steps=steps,
-            n_batches=batches,
+            batches=batches,
             stage_steps=stage_steps,
             network_lr=network_lr,
             seed=seed,
             diagonal=diagonal,
-            init=None if init is None else str(init),
+            time_limit_min=time_limit,
+            resume=resume,
+            init=init,
+            pupil_npix=pupil_npix,
+            defocus_method=defocus_method,
             sensitivity_prior=sensitivity_prior,
-            **({} if dark_prior is None else {"dark_prior_dn": dark_prior}),
+            dark_prior=dark_prior,
+            float64=float64,
+            provenance=provenance,
         )
-        try:
-            _, metadata = train(
-                data,
-                out,
-                settings,
-                config=config,
-                resume=resume,
-                time_limit_s=None if time_limit is None else 60.0 * time_limit,
-                provenance=provenance,
-                initial=initial,
-                superbias=superbias,
-            )
-        except InputError as error:
-            fail_input(error)
-            return
-    from amigo.calibration import loss_curve_path
-
+    except InputError as error:
+        if error.path in ("--steps", "--stages"):
+            raise click.BadParameter(error.problem, param_hint=str(error.path)) from None
+        fail_input(error)
+        return
+    metadata = result.metadata
     final = metadata["history"]
     if final["cal_loss"]:
         losses = (
@@ -293,98 +242,16 @@ def command(
         losses = f"model kept; calibrators' pixel z-score std {min(z):.3f}-{max(z):.3f}"
     click.echo(
         f"{out}: {metadata['steps_done']} steps in {metadata['training_seconds']:.0f} s; "
-        f"{losses}; loss curve {loss_curve_path(out)}"
+        f"{losses}; loss curve {result.loss_curve}"
     )
 
 
-def _check_inputs(slope_files: tuple[Path, ...], init: Path | None) -> None:
-    """Exit with the one-line error if a calslope file or level-2 image cannot be read
-    or ``--init`` is not a model archive (reads the files fully: the same checks as
-    training's reader)."""
-    from amigo.cli import fail_input
-    from amigo.io.calslope import read_calslope
-    from amigo.io.jwst import is_level2, read_exposure
-
+def _provenance(path: Path) -> dict:
+    """The JSON object of ``--provenance``; :class:`InputError` for anything else."""
     try:
-        kinds = {}
-        for path in slope_files:
-            kinds[path] = is_level2(path)
-            if kinds[path]:
-                read_exposure(path)
-            else:
-                read_calslope(path)
-        # One model stands either in front of the pipeline (ramps) or behind it (level 2).
-        odd = [p for p in slope_files if kinds[p] != kinds[slope_files[0]]]
-        if odd:
-            first = "a level-2 image" if kinds[odd[0]] else "a calslope file"
-            raise InputError(
-                odd[0],
-                f"is {first}; level-2 images and calslope files cannot be mixed in one training",
-            )
-        if init is not None and not zipfile.is_zipfile(init):
-            raise InputError(init, "not a base-model file (the .npz archive amigo train writes)")
-    except InputError as error:
-        fail_input(error)
-
-
-def _superbias(darks: tuple[Path, ...], first_cal: Path):
-    """The superbias measured on ``darks`` (``None`` without); exits with the one-line
-    error for a file that cannot give one, or when the training data are level-2 images
-    (the pipeline has subtracted the bias: a level-2 model has no first read to use it)."""
-    if not darks:
-        return None
-    from amigo.cli import fail_input
-    from amigo.detector.reset import estimate_superbias
-    from amigo.io.calslope import read_calslope
-    from amigo.io.jwst import is_level2
-
-    try:
-        if is_level2(first_cal):
-            raise InputError(
-                darks[0], "--darks needs calslope training data (level-2 images have no bias)"
-            )
-        superbias = estimate_superbias([read_calslope(path) for path in darks])
-        shape = read_calslope(first_cal).badpix.shape
-        if superbias.level_dn.shape != shape:
-            raise InputError(
-                darks[0],
-                f"frames of {superbias.level_dn.shape} differ from the training files' {shape}",
-            )
-        return superbias
-    except InputError as error:
-        fail_input(error)
-        return None
-
-
-def _summary(path: Path, metadata: dict) -> dict:
-    """What the fine-tuned model's metadata records of the model it started from."""
-    from amigo.basemodel import OPTICS_SETTINGS
-
-    keys = ("date", "command", "trained_on", "steps_done", "amigo_version", "dtype")
-    config = metadata.get("config", {})
-    optics = {k: config[k] for k in OPTICS_SETTINGS if k in config}
-    return {"path": str(path), **{k: metadata[k] for k in keys if k in metadata}, "optics": optics}
-
-
-#: Memory mappings that training on full-size calibration data has been seen to need.
-#: XLA's CPU backend maps every compiled kernel separately, and the steps with the
-#: network compile into tens of thousands of kernels: on 2026-11-23 one run held 32,000
-#: mappings after its first network-on compilation and crashed (LLVM "Cannot allocate
-#: memory", then a segfault) at the Linux default limit of 65,530.
-MAP_COUNT_NEEDED = 262_144
-
-
-def _warn_about_memory_maps() -> None:
-    """Tell the user, before hours of training, if the kernel's mapping limit is low."""
-    path = Path("/proc/sys/vm/max_map_count")
-    try:
-        limit = int(path.read_text().strip())
-    except (OSError, ValueError):
-        return  # not Linux, or not readable: nothing to say
-    if limit < MAP_COUNT_NEEDED:
-        click.echo(
-            f"note: vm.max_map_count is {limit}; training can exhaust it (XLA maps each "
-            f"compiled kernel separately) and crash. Raise it first, as root: "
-            f"sysctl -w vm.max_map_count={MAP_COUNT_NEEDED}",
-            err=True,
-        )
+        extra = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as error:
+        raise InputError(path, f"not a JSON file ({error})") from None
+    if not isinstance(extra, dict):
+        raise InputError(path, "must hold a JSON object")
+    return extra

@@ -9,5 +9,5 @@ Modules, in the order of the analysis:
 * :mod:`~amigo.companions.posterior` - numpyro NUTS posteriors;
 * :mod:`~amigo.companions.limits` - Ruffio (2018) and Absil contrast limits;
 * :mod:`~amigo.companions.search` - the whole search, as ``amigo detect`` runs it;
-* :mod:`~amigo.companions.plots` and :mod:`~amigo.companions.products` - outputs.
+* :mod:`~amigo.plots.companions` and :mod:`~amigo.companions.products` - outputs.
 """

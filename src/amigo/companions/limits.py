@@ -28,7 +28,7 @@ averaged with inverse-variance weights. Its photon rule counts the photons of al
 
 Separations are also given in units of ``lambda / D``: ``lambda`` the mean wavelength of
 the filter's observables (of all filters for the combined curve), ``D`` the circumscribed
-pupil diameter :data:`amigo.instrument.PUPIL_DIAMETER_M` (6.603 m; 1.6 % more ``lambda/D``
+pupil diameter :data:`amigo.niriss.PUPIL_DIAMETER_M` (6.603 m; 1.6 % more ``lambda/D``
 per mas than with the 6.5 m often quoted).
 """
 
@@ -42,7 +42,7 @@ from scipy import special, stats
 
 from amigo.companions.grid import ContrastMap, GridResult
 from amigo.companions.models import MAS_TO_RAD
-from amigo.instrument import PUPIL_DIAMETER_M
+from amigo.niriss import PUPIL_DIAMETER_M
 
 #: Confidence of a "3-sigma" upper limit, Phi(3) (one-sided).
 THREE_SIGMA = float(stats.norm.cdf(3.0))

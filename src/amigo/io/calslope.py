@@ -54,7 +54,7 @@ BAD_REASONS: dict[int, str] = {
 
 
 class SlopeArrays(Protocol):
-    """What :func:`write_calslope` writes: :class:`amigo.processing.SlopeProduct` (the
+    """What :func:`write_calslope` writes: :class:`amigo.processing.ramps.SlopeProduct` (the
     file format does not depend on how the arrays were made). Shapes as in the module
     notes."""
 
@@ -187,7 +187,7 @@ def write_calslope(
     path
         Output file (``<stem>_calslope.fits``).
     product
-        The result of :func:`amigo.processing.process_ramps`.
+        The result of :func:`amigo.processing.ramps.process_ramps`.
     primary_header, sci_header
         The uncal file's PRIMARY and SCI headers (copied, never modified).
     uncal_name
@@ -253,7 +253,7 @@ def is_up_to_date(
     """Whether ``product_path`` is a complete, valid calslope file of ``uncal_path`` (same
     name and :func:`~amigo.io.files.fingerprint`) processed by this amigo version with the
     settings whose header cards are ``settings_cards``
-    (:meth:`amigo.processing.ProcessSettings.header_cards`): ``amigo process`` then skips
+    (:meth:`amigo.processing.ramps.ProcessSettings.header_cards`): ``amigo process`` then skips
     it (restart after an interruption)."""
     if not product_path.is_file():
         return False

@@ -13,7 +13,7 @@ sky brightness model. It holds
 
   (log-amplitudes first, then phases in radians);
 * the uv points ``b`` (metres) in the *calvis uv frame*: the pupil frame of
-  :mod:`amigo.instrument` (axes along detector x and y); a point source at angular offset
+  :mod:`amigo.niriss` (axes along detector x and y); a point source at angular offset
   ``theta = (theta_x, theta_y)`` (radians, in that frame) has ``V(b) = exp(-2 pi i b.theta
   / lambda)``;
 * the filter's wavelengths and weights (the visibility of a scene is the weighted sum of its

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 from astropy.io import fits
 
-from amigo import instrument
+from amigo import niriss
 from amigo.errors import InputError
 from amigo.io import jwst
 from amigo.io.files import damaged
@@ -63,7 +63,7 @@ def _ramp_peak(path: Path) -> float:
             count += block.shape[0]
     assert total is not None
     mean = total / count
-    return float(mean[~instrument.reference_row_mask(*mean.shape)].max())
+    return float(mean[~niriss.reference_row_mask(*mean.shape)].max())
 
 
 def _summarise_exposure(path: Path) -> FileSummary:
@@ -104,7 +104,7 @@ def _summarise_calslope(path: Path, hdul: fits.HDUList) -> FileSummary:
     data = np.asarray(slope.data, dtype=float)
     if data.ndim != 3:
         raise InputError(path, f"SLOPE has {data.ndim} dimensions, expected 3")
-    peak = float(np.nanmax(data.mean(axis=0)[~instrument.reference_row_mask(*data.shape[-2:])]))
+    peak = float(np.nanmax(data.mean(axis=0)[~niriss.reference_row_mask(*data.shape[-2:])]))
     return FileSummary(
         path=path,
         kind="calslope",
@@ -136,8 +136,8 @@ def _summarise_calvis(path: Path, hdul: fits.HDUList) -> FileSummary:
 def _nearest_filter(wavelengths_m: np.ndarray) -> str:
     """The AMI filter whose half-power band holds the mean wavelength, else ``""``."""
     mean = float(np.mean(wavelengths_m))
-    for name in instrument.CALIBRATED_FILTERS:
-        blue, red = instrument.half_power_limits(name)
+    for name in niriss.CALIBRATED_FILTERS:
+        blue, red = niriss.half_power_limits(name)
         if blue <= mean <= red:
             return f"{name}?"  # inferred from the wavelengths, not read from a keyword
     return ""

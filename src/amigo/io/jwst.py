@@ -11,7 +11,7 @@ One entry point per need:
   model predicts all 80x80 pixels); reference rows are *flagged*, never trimmed, so that
   pixel indices mean the same thing in every product.
 * :func:`iter_ramps` streams the integrations of a raw-ramp file in chunks (memory bounded
-  whatever NINTS is), for :mod:`amigo.processing`.
+  whatever NINTS is), for :mod:`amigo.processing.ramps`.
 
 Kinds: ``uncal`` (SCI uint16, (nints, ngroups, ny, nx)), ``rateints`` / ``calints``
 (SCI float DN/s, (nints, ny, nx)), ``rate`` / ``cal`` (SCI float DN/s, (ny, nx)).
@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 from astropy.io import fits
 
-from amigo import instrument
+from amigo import niriss
 from amigo.errors import InputError
 from amigo.io.files import damaged, is_number, require_file
 from amigo.orientation import Orientation
@@ -147,7 +147,7 @@ class ExposureMeta:
 
     def photon_time_s(self, first_group: bool = False) -> float:
         """Seconds of photon collection a fit uses: :attr:`slope_time_s`, or with the
-        first group in the likelihood (a known superbias, :mod:`amigo.detector.reset`)
+        first group in the likelihood (a known superbias, :mod:`amigo.model.detector.reset`)
         every group time, ``NINTS * NGROUPS * TGROUP`` (the first read comes one group
         time after the reset)."""
         used = self.ngroups if first_group or self.ngroups < 2 else self.ngroups - 1
@@ -451,19 +451,19 @@ def meta_from_headers(
             raise InputError(path, f"EXP_TYPE is {exp_type!r}: not an AMI exposure")
 
     subarray = str(_get(headers, "SUBARRAY")).strip().upper()
-    if subarray != instrument.SUBARRAY:
+    if subarray != niriss.SUBARRAY:
         raise InputError(path, f"SUBARRAY is {subarray!r}: only SUB80 is supported")
 
     try:
-        filter_name = instrument.check_filter(str(_get(headers, "FILTER")))
+        filter_name = niriss.check_filter(str(_get(headers, "FILTER")))
     except ValueError as error:
         raise InputError(path, str(error)) from None
-    if filter_name not in instrument.CALIBRATED_FILTERS:
+    if filter_name not in niriss.CALIBRATED_FILTERS:
         notes.append(f"{filter_name} is not calibrated (the paper and the base model exclude it)")
 
     kind = kind() if callable(kind) else kind
     shape = tuple(int(sci_header[f"NAXIS{i}"]) for i in range(sci_header["NAXIS"], 0, -1))
-    if shape[-2:] != (instrument.SUBARRAY_SIZE, instrument.SUBARRAY_SIZE):
+    if shape[-2:] != (niriss.SUBARRAY_SIZE, niriss.SUBARRAY_SIZE):
         raise InputError(path, f"SCI frames are {shape[-2]}x{shape[-1]}, expected 80x80 (SUB80)")
 
     ngroups = _count(path, headers, "NGROUPS", None)
@@ -492,7 +492,7 @@ def meta_from_headers(
     if group_time is None:
         if kind == "uncal":
             raise InputError(path, "missing required keyword TGROUP")
-        group_time = instrument.GROUP_TIME_S
+        group_time = niriss.GROUP_TIME_S
     target = _get(headers, "TARGPROP") or _get(headers, "TARGNAME") or "UNKNOWN"
     date = " ".join(str(v) for v in (_get(headers, "DATE-OBS"), _get(headers, "TIME-OBS")) if v)
     bunit = str(sci_header.get("BUNIT", "DN" if kind == "uncal" else "DN/s"))
@@ -573,7 +573,7 @@ def _read_exposure(path: Path, hdul: fits.HDUList, need_slopes: bool) -> Exposur
         except Exception as error:
             raise InputError(path, f"SCI data cannot be read ({error})") from None
     frame_shape = data.shape[-2:]
-    usable = ~instrument.reference_row_mask(*frame_shape)
+    usable = ~niriss.reference_row_mask(*frame_shape)
     if meta.kind == "uncal":
         dq_hdu = _ext(hdul, "PIXELDQ")
         dq = None if dq_hdu is None else np.asarray(dq_hdu.data, dtype=np.uint32)
@@ -588,7 +588,7 @@ def _read_exposure(path: Path, hdul: fits.HDUList, need_slopes: bool) -> Exposur
     if dq is not None:
         flagged |= np.broadcast_to((dq & DQ_DO_NOT_USE) != 0, data.shape)
     nonfinite = ~np.isfinite(data)
-    bad_nonfinite = nonfinite & ~flagged & ~instrument.reference_row_mask(*frame_shape)
+    bad_nonfinite = nonfinite & ~flagged & ~niriss.reference_row_mask(*frame_shape)
     if bad_nonfinite.any():
         raise InputError(
             path,

@@ -1,7 +1,7 @@
 """Write calibrated visibilities at the 21 mask baselines as an OIFITS2 file (astropy only).
 
 The calibrated log-visibility ``log V_sci - log V_cal`` of amigo's latent model is
-evaluated at the 21 baselines of the mask (:func:`amigo.instrument.baselines_m`), giving
+evaluated at the 21 baselines of the mask (:func:`amigo.niriss.baselines_m`), giving
 squared visibilities ``V2 = exp(2 log|V|)`` and the 35 closure phases
 ``phi_ij + phi_jk - phi_ik`` (``i < j < k``), with their full covariance (propagated
 linearly from the latent covariance) written as correlations in ``OI_CORR``.
@@ -23,19 +23,19 @@ from pathlib import Path
 import numpy as np
 from astropy.io import fits
 
-from amigo import instrument
+from amigo import niriss
 from amigo._version import __version__
 from amigo.io.atomic import atomic_path
 
 
-def closure_triangles(n_holes: int = instrument.N_HOLES) -> list[tuple[int, int, int]]:
+def closure_triangles(n_holes: int = niriss.N_HOLES) -> list[tuple[int, int, int]]:
     """The 35 hole triples ``i < j < k``."""
     return list(itertools.combinations(range(n_holes), 3))
 
 
 def closure_matrix() -> np.ndarray:
     """(35, 21) matrix ``T``: baseline phases -> closure phases ``phi_ij + phi_jk - phi_ik``."""
-    pairs = {p: n for n, p in enumerate(instrument.baseline_pairs())}
+    pairs = {p: n for n, p in enumerate(niriss.baseline_pairs())}
     triangles = closure_triangles()
     t = np.zeros((len(triangles), len(pairs)))
     for row, (i, j, k) in enumerate(triangles):
@@ -73,14 +73,14 @@ def write_oifits(
     Parameters
     ----------
     log_amp, phase_rad
-        (21,) calibrated ``log|V|`` and ``arg V`` at :func:`amigo.instrument.baselines_m`.
+        (21,) calibrated ``log|V|`` and ``arg V`` at :func:`amigo.niriss.baselines_m`.
     covariance
         (42, 42) covariance of ``[log_amp, phase_rad]``.
     sky_to_uv
         (2, 2) sky (mas) -> pupil-frame (mas) matrix (as in the calvis file).
     """
-    baselines = instrument.baselines_m()
-    pairs = np.array(instrument.baseline_pairs())
+    baselines = niriss.baselines_m()
+    pairs = np.array(niriss.baseline_pairs())
     n_b = len(baselines)
     uv_sky = baselines @ np.asarray(sky_to_uv)  # rows: (S^T b)^T
     v2 = np.exp(2.0 * np.asarray(log_amp))
@@ -149,7 +149,7 @@ def write_oifits(
         "OI_TARGET",
         {},
     )
-    holes = np.asarray(instrument.HOLE_CENTRES_M)
+    holes = np.asarray(niriss.HOLE_CENTRES_M)
     array_hdu = table(
         [
             fits.Column("TEL_NAME", "16A", array=[f"H{k}" for k in range(len(holes))]),
@@ -202,7 +202,7 @@ def write_oifits(
         common,
     )
     tri = np.array(closure_triangles())
-    pair_index = {p: n for n, p in enumerate(instrument.baseline_pairs())}
+    pair_index = {p: n for n, p in enumerate(niriss.baseline_pairs())}
     uv1 = np.array([uv_sky[pair_index[(a, b)]] for a, b, _ in tri])
     uv2 = np.array([uv_sky[pair_index[(b, c)]] for _, b, c in tri])
     n_t = len(tri)

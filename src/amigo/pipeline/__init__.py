@@ -25,7 +25,8 @@ stderr, raise :class:`~amigo.errors.InputError` for a bad input, and return what
 
 From raw ramps: ``amigo.simulate("demo", "raw")`` writes simulated ones,
 ``amigo.process(uncal_files, "out")`` reduces them to calslope files, and
-``amigo.run(sci, cal, "out")`` does process, fit and detect in one go.
+``amigo.run(sci, cal, "out")`` does process, fit and detect in one go;
+``amigo.train(cal_files, "model.npz")`` trains a base model on calibration exposures.
 """
 
 from __future__ import annotations
@@ -34,24 +35,30 @@ import os
 from collections.abc import Sequence
 from typing import Any
 
+from amigo.pipeline._basis import BasisReport, bases
 from amigo.pipeline._detect import DetectResult, detect
 from amigo.pipeline._fit import FitResult, fit
 from amigo.pipeline._process import ProcessResult, process
 from amigo.pipeline._run import RunResult, run
+from amigo.pipeline._train import TrainResult, train
 
 PathLike = str | os.PathLike[str]
 
 __all__ = [
+    "BasisReport",
     "DetectResult",
     "FitResult",
     "ProcessResult",
     "RunResult",
+    "TrainResult",
+    "bases",
     "detect",
     "fit",
     "open",
     "process",
     "run",
     "simulate",
+    "train",
 ]
 
 

@@ -151,8 +151,9 @@ def _search(
     print the findings; return the search's DetectionResult and the companions.json
     document."""
     from amigo.companions import observables as obs
-    from amigo.companions import plots, products
+    from amigo.companions import products
     from amigo.companions.search import SearchSettings, detect
+    from amigo.plots import companions as plots
     from amigo.progress import step
 
     blocks = [obs.load(f, cp_correlation=cp_correlation, observables=observables) for f in files]

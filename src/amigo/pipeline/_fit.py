@@ -1,7 +1,7 @@
 """The work of ``amigo fit`` (:func:`amigo.pipeline.fit`): files -> calibrated observables.
 
 Reads the science and calibrator files, leaves out exposures without a star, groups the
-exposures by filter, fits each filter jointly (:func:`amigo.extract.extract_filter`),
+exposures by filter, fits each filter jointly (:func:`amigo.observables.extract.extract_filter`),
 writes per science target and filter a calvis and an OIFITS file, the plots and
 ``fit_summary.json`` (rewritten after each filter), and keeps the filters whose products
 a previous run left complete for the same inputs (:mod:`amigo.pipeline.outcome`).
@@ -36,7 +36,7 @@ class FitResult:
         0 every filter has products; 3 some filters failed or exposures were left out;
         4 no filter has products (:mod:`amigo.pipeline.outcome`).
     products
-        Filter -> :class:`~amigo.extract.FilterProduct` of the filters fitted in this call
+        Filter -> :class:`~amigo.observables.extract.FilterProduct` of the filters fitted in this call
         (the fit, its images and models, the DISCOs); filters kept from an earlier run
         are not in it (``force=True`` fits them again).
     """
@@ -148,7 +148,7 @@ def fit(
     import dataclasses
 
     from amigo._version import __version__
-    from amigo.fitting import FitConfig
+    from amigo.fitting.filter_fit import FitConfig
     from amigo.io.files import fingerprint
     from amigo.pipeline.outcome import exit_status, fit_key, kept_records, previous_summary
     from amigo.progress import step
@@ -194,7 +194,7 @@ def fit(
         config = dataclasses.replace(config, max_iterations=max_iterations)
     detector_model = None
     if fit_model.base is not None:
-        from amigo.ramp_fit import RampDetector
+        from amigo.fitting.ramp_fit import RampDetector
 
         detector_model = RampDetector(fit_model.base, ramps)
     settings = {
@@ -258,13 +258,13 @@ def fit(
 
 
 def _superbias(paths: tuple[Path, ...], level: str):
-    """The :class:`~amigo.detector.reset.Superbias` of the ``--superbias`` files."""
+    """The :class:`~amigo.model.detector.reset.Superbias` of the ``--superbias`` files."""
     if level != "calslope":
         raise InputError(
             paths[0], "--superbias needs calslope inputs (level-2 images have no first group)"
         )
-    from amigo.detector.reset import estimate_superbias
     from amigo.io.calslope import read_calslope
+    from amigo.model.detector.reset import estimate_superbias
 
     return estimate_superbias([read_calslope(p) for p in paths])
 
@@ -290,7 +290,7 @@ class FitModel:
     Attributes
     ----------
     instrument
-        Filter -> image-level :class:`~amigo.model.Instrument`.
+        Filter -> image-level :class:`~amigo.model.image.Instrument`.
     base
         The base model whose ramp and read models sit in front of calslope fits (with
         its network for ``full``, without for ``linear``), or ``None`` (images fitted as
@@ -311,19 +311,19 @@ class FitModel:
 def _fit_model(model: Path | None, detector: str | None, level: str) -> FitModel:
     """Resolve the options: calslope files default to the shipped base model with its
     network; level-2 images to the shipped model trained on real level-2 calibrators
-    (:func:`amigo.basemodel.level2_model_path`; the nominal instrument where none is
+    (:func:`amigo.model.base.level2_model_path`; the nominal instrument where none is
     shipped) with its ramp seen through the pipeline's slope estimator
-    (:class:`amigo.ramp_fit.Level2Input`; a model trained on ramps, or the nominal
+    (:class:`amigo.fitting.ramp_fit.Level2Input`; a model trained on ramps, or the nominal
     instrument, fits level-2 images with the linear detector unless ``--detector
     full``)."""
-    from amigo.model import Instrument, load_instrument
+    from amigo.model.image import Instrument, load_instrument
 
     if model is None and level == "level2":
-        from amigo.basemodel import level2_model_path
+        from amigo.model.base import level2_model_path
 
         model = level2_model_path()
     if model is None and (level == "calslope" or detector == "full"):
-        from amigo.basemodel import default_model_path
+        from amigo.model.base import default_model_path
 
         model = default_model_path()
     if model is None:
@@ -339,7 +339,7 @@ def _fit_model(model: Path | None, detector: str | None, level: str) -> FitModel
             )
         instrument = load_instrument(model)
         return FitModel(lambda filter_name: instrument, None, "linear", source)
-    from amigo.basemodel import load_base_model, read_metadata
+    from amigo.model.base import load_base_model, read_metadata
 
     base = load_base_model(model)
     if level == "calslope" and base.config.data_level == "level2":
@@ -382,7 +382,7 @@ class ReadExposure:
     Attributes
     ----------
     exposure
-        The :class:`~amigo.fitting.FitExposure` (``None`` where ``problem`` is set).
+        The :class:`~amigo.fitting.filter_fit.FitExposure` (``None`` where ``problem`` is set).
     meta
         Its :class:`~amigo.io.jwst.ExposureMeta`.
     ramp
@@ -403,14 +403,14 @@ def _read_fit_exposure(path: Path, role: str, level: str, superbias=None) -> Rea
     first group in the likelihood when ``superbias`` is given. A damaged or foreign file
     raises :class:`InputError`; an image without a star is returned with its problem."""
     from amigo.errors import TooFewPixels
-    from amigo.fitting import FitExposure
-    from amigo.likelihood import ImageData
+    from amigo.fitting.filter_fit import FitExposure
+    from amigo.likelihood.pixels import ImageData
 
     ramp = None
     if level == "calslope":
+        from amigo.fitting.ramp_fit import RampInput
         from amigo.io.calslope import read_calslope
         from amigo.io.jwst import meta_from_headers
-        from amigo.ramp_fit import RampInput
 
         product = read_calslope(path)
         if product.slope_dn.shape[0] == 0 and superbias is None:
@@ -429,8 +429,8 @@ def _read_fit_exposure(path: Path, role: str, level: str, superbias=None) -> Rea
         except TooFewPixels as error:
             return ReadExposure(None, meta, problem=error.problem)
     else:
+        from amigo.fitting.ramp_fit import Level2Input
         from amigo.io.jwst import read_exposure
-        from amigo.ramp_fit import Level2Input
 
         exposure = read_exposure(path)
         meta = exposure.meta
@@ -572,7 +572,7 @@ def _fit_filter(
     """Fit one filter and write its products; a numerical failure, or no science or
     calibrator exposure left, becomes a ``"failed"`` record (no products) instead of an
     exception. Returns the filter's record, its exposures' records and its
-    :class:`~amigo.extract.FilterProduct` (``None`` where it failed)."""
+    :class:`~amigo.observables.extract.FilterProduct` (``None`` where it failed)."""
     from amigo.errors import NumericalFailure
 
     roles = {e.role for e, _ in items}
@@ -638,7 +638,7 @@ def _grid(knots: int | None, spacing: float | None):
     """The uv knot grid from the options (``None``: the defaults)."""
     if knots is None and spacing is None:
         return None
-    from amigo.visibility import DEFAULT_KNOT_SPACING_M, DEFAULT_N_KNOTS, UVGrid
+    from amigo.model.visibility import DEFAULT_KNOT_SPACING_M, DEFAULT_N_KNOTS, UVGrid
 
     try:
         return UVGrid(
@@ -702,12 +702,12 @@ def _run_filter(
     the products so that a re-run can keep them."""
     import numpy as np
 
-    from amigo import instrument as nis
-    from amigo.basis import spectrum_figure
-    from amigo.detector.linear import sky_to_optical_matrix
-    from amigo.extract import extract_filter
+    from amigo import niriss as nis
     from amigo.io.calvis import calvis_filename, write_calvis
     from amigo.io.oifits_write import write_oifits
+    from amigo.model.detector.linear import sky_to_optical_matrix
+    from amigo.observables.extract import extract_filter
+    from amigo.plots.basis import spectrum_figure
     from amigo.plots.fit import exposure_figure, save_figure
     from amigo.progress import step
 
@@ -862,8 +862,9 @@ def _geometry_record(result) -> dict:
     the fit did not confirm its optimum in float64)."""
     import numpy as np
 
-    from amigo.detector.linear import GEOMETRY_NAMES
-    from amigo.newton import Layout, marginal_errors
+    from amigo.fitting.newton import Layout
+    from amigo.model.detector.linear import GEOMETRY_NAMES
+    from amigo.solvers.levenberg_marquardt import marginal_errors
 
     params = result.params
     layout = Layout.of(params)

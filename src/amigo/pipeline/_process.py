@@ -59,7 +59,7 @@ def process(
     complete. A bad file is reported (``ProcessResult.failed``) and the others go on.
     """
     from amigo.io.calslope import calslope_name, is_up_to_date
-    from amigo.processing import SATURATION_DN, ProcessSettings, process_file
+    from amigo.processing.ramps import SATURATION_DN, ProcessSettings, process_file
     from amigo.progress import track
 
     out = Path(out)

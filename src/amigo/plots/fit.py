@@ -17,11 +17,11 @@ def exposure_figure(image, model: np.ndarray, stats) -> Figure:
     Parameters
     ----------
     image
-        :class:`amigo.likelihood.ImageData` (data, error, mask).
+        :class:`amigo.likelihood.pixels.ImageData` (data, error, mask).
     model
         (80, 80) model image, same unit as the data (DN/s).
     stats
-        :class:`amigo.extract.ExposureStats` (for the title).
+        :class:`amigo.observables.extract.ExposureStats` (for the title).
     """
     fig = Figure(figsize=(16, 4.2), layout="constrained")
     FigureCanvasAgg(fig)

@@ -12,7 +12,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from amigo import instrument
+from amigo import niriss
 from amigo.io.atomic import atomic_path
 
 
@@ -31,7 +31,7 @@ def pupil_figure(optics) -> Figure:
     fig, (ax_a, ax_o) = _figure(2)
     im = ax_a.imshow(amplitude, origin="lower", extent=extent, cmap="gray", vmin=0, vmax=1)
     fig.colorbar(im, ax=ax_a, shrink=0.8, label="amplitude")
-    for k, (cx, cy) in enumerate(np.asarray(instrument.HOLE_CENTRES_M)):
+    for k, (cx, cy) in enumerate(np.asarray(niriss.HOLE_CENTRES_M)):
         ax_a.annotate(str(k), (cx, cy), color="tab:red", ha="center", va="center")
     opd_nm = np.where(amplitude > 0.5, opd_m * 1e9, np.nan)
     lim = np.nanmax(np.abs(opd_nm)) or 1.0
@@ -76,7 +76,7 @@ def power_spectrum_figure(
     pad: int = 2,
 ) -> Figure:
     """Power spectrum (log) in metres of baseline (``u = f lambda``), with the 21
-    baselines of :func:`amigo.instrument.baselines_m` (and their mirrors) overlaid.
+    baselines of :func:`amigo.niriss.baselines_m` (and their mirrors) overlaid.
     """
     p = power_spectrum(image, pad)
     n, m = np.asarray(image).shape
@@ -86,7 +86,7 @@ def power_spectrum_figure(
     extent = (-pad * m / 2 * du, (pad * m / 2 - 1) * du, -pad * n / 2 * dv, (pad * n / 2 - 1) * dv)
     fig, (ax,) = _figure(1, 4.8)
     ax.imshow(np.log10(p + 1e-12), origin="lower", extent=extent, cmap="viridis", vmin=-7, vmax=0)
-    b = instrument.baselines_m()
+    b = niriss.baselines_m()
     ax.scatter(b[:, 0], b[:, 1], s=60, facecolors="none", edgecolors="w", label="baselines")
     ax.scatter(-b[:, 0], -b[:, 1], s=60, facecolors="none", edgecolors="w", linestyles=":")
     lim = 7.0

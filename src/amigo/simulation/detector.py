@@ -1,7 +1,7 @@
 """Physical truth model of the NIRISS H2RG detector for SUB80 ramps.
 
 This is the simulator's *own* detector physics. It is deliberately independent of the
-fitting model's detector (``amigo.detector``): the fitting model's neural network has to
+fitting model's detector (``amigo.model.detector``): the fitting model's neural network has to
 learn the brighter-fatter effect from data made by different physics, so nothing here is
 shared with it.
 
@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from amigo import instrument
+from amigo import niriss
 
 #: Pixel pitch of the NIRISS H2RG (cm). Source: NIRISS detector overview (18 micron pixels).
 PIXEL_PITCH_CM: float = 18.0e-4
@@ -83,7 +83,7 @@ class DetectorConfig:
     expected values), ``flat_field``, ``intra_pixel``, ``bfe``, ``ipc``, ``nonlinearity``,
     ``dark_current``, ``bias``, ``reset_noise``, ``read_noise``, ``one_over_f``,
     ``cosmic_rays``, ``adc_inl``, ``saturation``, ``reference_pixels`` (the bottom
-    :data:`amigo.instrument.N_REFERENCE_ROWS` rows of SUB80 collect no charge: bias and
+    :data:`amigo.niriss.N_REFERENCE_ROWS` rows of SUB80 collect no charge: bias and
     read noise only), ``quantize`` (round to integer counts and clip to 0..65535; off
     returns floating-point counts).
 
@@ -109,7 +109,7 @@ class DetectorConfig:
     reference_pixels: bool = True
     quantize: bool = True
 
-    gain_e_per_dn: float = instrument.GAIN_E_PER_DN
+    gain_e_per_dn: float = niriss.GAIN_E_PER_DN
     substeps_per_group: int = 4
     flat_rms: float = 0.02
     intra_pixel_edge_loss: float = 0.05
@@ -118,7 +118,7 @@ class DetectorConfig:
     bfe_radius_pix: int = 2
     nonlinearity_c2_per_e: float = -6.0e-7
     nonlinearity_c2_rms_per_e: float = 5.0e-8
-    dark_e_per_s: float = 0.45 / instrument.GROUP_TIME_S
+    dark_e_per_s: float = 0.45 / niriss.GROUP_TIME_S
     dark_log_scatter: float = 0.3
     bias_dn: float = 12000.0
     bias_rms_dn: float = 300.0
@@ -244,7 +244,7 @@ def draw_detector(
 ) -> DetectorRealisation:
     """Draw the per-pixel truth. All maps are drawn whatever the switches (fixed order),
     so turning one effect off never changes the others."""
-    shape = shape or (instrument.SUBARRAY_SIZE, instrument.SUBARRAY_SIZE)
+    shape = shape or (niriss.SUBARRAY_SIZE, niriss.SUBARRAY_SIZE)
     flat = 1.0 + config.flat_rms * rng.standard_normal(shape)
     c2 = config.nonlinearity_c2_per_e + config.nonlinearity_c2_rms_per_e * rng.standard_normal(
         shape
@@ -449,7 +449,7 @@ def one_over_f_columns(
     nx: int,
     ny: int,
     rms_dn: float,
-    frame_time_s: float = instrument.FRAME_TIME_S,
+    frame_time_s: float = niriss.FRAME_TIME_S,
 ) -> np.ndarray:
     """1/f noise of the read-out amplifier as a per-group column offset, (ngroups, nx).
 
@@ -523,7 +523,7 @@ class RampSimulator:
         realisation: DetectorRealisation,
         config: DetectorConfig,
         ngroups: int,
-        group_time_s: float = instrument.GROUP_TIME_S,
+        group_time_s: float = niriss.GROUP_TIME_S,
     ) -> None:
         config.check()
         k = int(oversample)
@@ -548,8 +548,8 @@ class RampSimulator:
         self.efficiency = realisation.flat if config.flat_field else np.ones(self.shape)
         # Reference pixels have no photodiode: no photo-charge, dark current or cosmic rays.
         self.active = np.ones(self.shape)
-        if config.reference_pixels and self.shape[0] > instrument.N_REFERENCE_ROWS:
-            self.active[: instrument.N_REFERENCE_ROWS] = 0.0
+        if config.reference_pixels and self.shape[0] > niriss.N_REFERENCE_ROWS:
+            self.active[: niriss.N_REFERENCE_ROWS] = 0.0
         self.ipc = ipc_kernel()
 
     # ---------------------------------------------------------------- physics pieces

@@ -15,12 +15,12 @@ This module provides:
 
 * :class:`AnalyticNRM`: the Fraunhofer image of the 7 hexagonal holes in closed form
   (sum over holes of the analytic Fourier transform of a hexagon times the hole's phase
-  ramp), polychromatic over :func:`amigo.instrument.filter_bins`, point-sampled on a grid
+  ramp), polychromatic over :func:`amigo.niriss.filter_bins`, point-sampled on a grid
   finer than the output and averaged into sub-pixels, then blurred by the Gaussian
   jitter. It includes per-hole piston (fringe phases), per-hole tip/tilt (envelope
   shifts), the defocus's effect on each hole (the piston and tilt of the pupil's
   quadratic phase at the hole), the hole-position distortion and the detector's
-  rotation and anisotropy (the geometry of :mod:`amigo.detector.linear`). It ignores the higher-order (Noll >= 4) shape of
+  rotation and anisotropy (the geometry of :mod:`amigo.model.detector.linear`). It ignores the higher-order (Noll >= 4) shape of
   the wavefront *within* each hole; an optical model that propagates a sampled pupil is
   needed for those: :mod:`amigo.simulation.optics_illumination`, the default.
 * :class:`UniformIllumination`: a flat field (uniformly illuminated detector).
@@ -33,7 +33,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from amigo import instrument
+from amigo import niriss
 from amigo.simulation.scene import DetectorScene, pixel_grid
 from amigo.simulation.state import HOLE_ZERNIKE_RADIUS_M, InstrumentState
 
@@ -59,7 +59,7 @@ class Illumination(Protocol):
 # --------------------------------------------------------------------------------------
 
 
-def hexagon_vertices_m(flat_to_flat_m: float = instrument.HOLE_FLAT_TO_FLAT_M) -> np.ndarray:
+def hexagon_vertices_m(flat_to_flat_m: float = niriss.HOLE_FLAT_TO_FLAT_M) -> np.ndarray:
     """(6, 2) vertices of a hole, counter-clockwise, with flat top and bottom edges.
 
     Flats are horizontal because vertically adjacent holes of the mask sit on segment
@@ -139,12 +139,12 @@ def _hexagon_transform_real(qx: np.ndarray, qy: np.ndarray, vertices_m: np.ndarr
 def detector_to_optical_matrix_rad() -> np.ndarray:
     """2x2 matrix mapping a detector offset (pixels, [dx, dy]) to an optical angle (rad).
 
-    The inverse of the SIAF-derived geometry ``G`` of :mod:`amigo.detector.linear`
-    (:func:`amigo.instrument.nominal_geometry_matrix`; NumPy, so the analytic model
+    The inverse of the SIAF-derived geometry ``G`` of :mod:`amigo.model.detector.linear`
+    (:func:`amigo.niriss.nominal_geometry_matrix`; NumPy, so the analytic model
     needs no JAX), times the mean pixel scale.
     """
-    geometry = instrument.nominal_geometry_matrix()
-    return np.linalg.inv(geometry) * instrument.PIXEL_SCALE_ARCSEC * RAD_PER_ARCSEC
+    geometry = niriss.nominal_geometry_matrix()
+    return np.linalg.inv(geometry) * niriss.PIXEL_SCALE_ARCSEC * RAD_PER_ARCSEC
 
 
 def hole_phases_and_tilts(
@@ -162,7 +162,7 @@ def hole_phases_and_tilts(
     # Noll 2 = 2 rho cos(theta), Noll 3 = 2 rho sin(theta): gradient 2 a / R.
     gradient = 2.0 * z[:, 1:3] / HOLE_ZERNIKE_RADIUS_M
     defocus = state.defocus_nm.get(filter_name, 0.0) * 1e-9
-    radius = 0.5 * instrument.PUPIL_DIAMETER_M
+    radius = 0.5 * niriss.PUPIL_DIAMETER_M
     r2 = np.sum(centres**2, axis=-1)
     piston = piston + np.sqrt(3.0) * defocus * (2.0 * r2 / radius**2 - 1.0)
     gradient = gradient + 4.0 * np.sqrt(3.0) * defocus * centres / radius**2
@@ -242,7 +242,7 @@ class AnalyticNRM:
     Attributes
     ----------
     n_wavelengths
-        Wavelength bins across the filter (:func:`amigo.instrument.filter_bins`).
+        Wavelength bins across the filter (:func:`amigo.niriss.filter_bins`).
     pad_pix
         Extra pixels computed around SUB80 so the Fourier-space integration does not wrap
         the PSF wings around.
@@ -269,12 +269,12 @@ class AnalyticNRM:
         if k < 2:
             raise ValueError("oversample must be >= 2 to sample the image above Nyquist")
         pad = int(self.pad_pix)
-        bins = instrument.filter_bins(filter_name, self.n_wavelengths)
+        bins = niriss.filter_bins(filter_name, self.n_wavelengths)
         to_optical = detector_to_optical_matrix_rad()
         solid_angle = abs(np.linalg.det(to_optical)) / k**2  # sr per sub-pixel
         centres = state.hole_centres_m()
         piston_m, gradient = hole_phases_and_tilts(state, filter_name)
-        axis = pixel_grid(k, instrument.SUBARRAY_SIZE + 2 * pad) - pad
+        axis = pixel_grid(k, niriss.SUBARRAY_SIZE + 2 * pad) - pad
         samples = np.zeros((axis.size, axis.size))
         for source in scene.sources:
             if source.photons_per_s == 0:
@@ -286,9 +286,9 @@ class AnalyticNRM:
             for wavelength, weight in zip(bins.wavelengths_m, bins.weights, strict=True):
                 intensity = nrm_intensity(theta_x, theta_y, wavelength, centres, piston_m, gradient)
                 samples += (source.photons_per_s * weight * solid_angle) * intensity
-        sigma_sub = state.jitter_mas / (instrument.PIXEL_SCALE_ARCSEC * 1000.0) * k
+        sigma_sub = state.jitter_mas / (niriss.PIXEL_SCALE_ARCSEC * 1000.0) * k
         image = integrate_subpixels(samples, sigma_sub)
-        n = instrument.SUBARRAY_SIZE * k
+        n = niriss.SUBARRAY_SIZE * k
         return image[pad * k : pad * k + n, pad * k : pad * k + n]
 
 
@@ -306,6 +306,6 @@ class UniformIllumination:
     def render(
         self, scene: DetectorScene, filter_name: str, state: InstrumentState, oversample: int
     ) -> np.ndarray:
-        n = instrument.SUBARRAY_SIZE * int(oversample)
+        n = niriss.SUBARRAY_SIZE * int(oversample)
         total = sum(s.photons_per_s for s in scene.sources)
         return np.full((n, n), total / n**2)

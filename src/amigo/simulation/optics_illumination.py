@@ -1,8 +1,8 @@
 """The project's differentiable optical model as the simulator's illumination.
 
-:class:`OpticalModelIllumination` renders a scene with :class:`amigo.optics.NRMOptics`
+:class:`OpticalModelIllumination` renders a scene with :class:`amigo.model.optics.NRMOptics`
 (sampled pupil with soft hexagonal holes, 10 Zernikes per hole, MFT, Fresnel defocus,
-pixel integration) and :class:`amigo.detector.linear.LinearDetector` (jitter, detector
+pixel integration) and :class:`amigo.model.detector.linear.LinearDetector` (jitter, detector
 rotation and anisotropy), at a higher fidelity than the fitting model uses by default:
 more wavelengths (15 instead of 9), a finer sub-pixel grid (the detector's 4x instead of
 3x) and a finer pupil (512 pixels across instead of 256). Every element of the drawn
@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from amigo import instrument
+from amigo import niriss
 from amigo.simulation.scene import DetectorScene
 from amigo.simulation.state import InstrumentState
 
@@ -48,7 +48,7 @@ def _compiled_render() -> Any:
 
 @dataclass(frozen=True)
 class OpticalModelIllumination:
-    """:mod:`amigo.optics` at simulation fidelity (see the module doc).
+    """:mod:`amigo.model.optics` at simulation fidelity (see the module doc).
 
     Attributes
     ----------
@@ -57,7 +57,7 @@ class OpticalModelIllumination:
     pupil_npix
         Pupil samples across the JWST pupil diameter.
     pixel_integration
-        Sub-pixel integration scheme of :func:`amigo.optics.integrate_pixels`.
+        Sub-pixel integration scheme of :func:`amigo.model.optics.integrate_pixels`.
     """
 
     n_wavelengths: int = 15
@@ -66,10 +66,10 @@ class OpticalModelIllumination:
 
     def describe(self) -> dict[str, Any]:
         return {
-            "model": "amigo.optics",
+            "model": "amigo.model.optics",
             "description": "NRMOptics (sampled soft-edged pupil, 10 Zernikes per hole, MFT, "
             "Fresnel defocus, pixel integration) + LinearDetector (jitter; SIAF-derived "
-            f"geometry {instrument.nominal_geometry()})",
+            f"geometry {niriss.nominal_geometry()})",
             "n_wavelengths": self.n_wavelengths,
             "pupil_npix": self.pupil_npix,
             "pixel_integration": self.pixel_integration,
@@ -82,12 +82,12 @@ class OpticalModelIllumination:
         import jax
         import jax.numpy as jnp
 
-        from amigo.detector.linear import LinearDetector
-        from amigo.optics import LinearSpectrum, NRMOptics, OpticsConfig
-        from amigo.optics.aperture import Aperture
+        from amigo.model.detector.linear import LinearDetector
+        from amigo.model.optics import LinearSpectrum, NRMOptics, OpticsConfig
+        from amigo.model.optics.aperture import Aperture
 
         k = int(oversample)
-        n = instrument.SUBARRAY_SIZE
+        n = niriss.SUBARRAY_SIZE
         with jax.enable_x64(True):
             config = OpticsConfig(
                 oversample=k,

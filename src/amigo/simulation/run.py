@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 from astropy.time import TimeDelta
 
-from amigo import instrument
+from amigo import niriss
 from amigo._version import __version__
 from amigo.orientation import Orientation
 from amigo.progress import step, track
@@ -67,7 +67,7 @@ def _photon_scale(spec: ExposureSpec, unit_rate: np.ndarray, oversample: int, ga
     k = oversample
     n = unit_rate.shape[0] // k
     pixels = unit_rate.reshape(n, k, n, k).sum(axis=(1, 3))
-    integration_s = spec.ngroups * instrument.GROUP_TIME_S
+    integration_s = spec.ngroups * niriss.GROUP_TIME_S
     if spec.photons_full is not None:
         target_rate = spec.photons_full / (spec.nints_full * integration_s)
         return target_rate / float(pixels.sum())
@@ -76,7 +76,7 @@ def _photon_scale(spec: ExposureSpec, unit_rate: np.ndarray, oversample: int, ga
 
 
 def _orientation(spec: ExposureSpec) -> Orientation:
-    return Orientation.from_roll((spec.pa_aper_deg - instrument.V3_IDL_Y_ANGLE_DEG) % 360.0)
+    return Orientation.from_roll((spec.pa_aper_deg - niriss.V3_IDL_Y_ANGLE_DEG) % 360.0)
 
 
 def simulate_exposure(
@@ -119,7 +119,7 @@ def simulate_exposure(
         start_mjd_offset_s, format="sec"
     )
     # XOFFSET/YOFFSET: the dither offset in the ideal frame (arcsec), to first order.
-    ideal = np.asarray(instrument.SCI_TO_IDEAL_ARCSEC_PER_PIX) @ np.asarray(spec.dither_offset_pix)
+    ideal = np.asarray(niriss.SCI_TO_IDEAL_ARCSEC_PER_PIX) @ np.asarray(spec.dither_offset_pix)
     dither_arcsec = (float(ideal[0]), float(ideal[1]))
     target = spec.target
     cards = uncal_primary_cards(
@@ -180,7 +180,7 @@ def simulate_exposure(
             peak_signal_dn = max(peak_signal_dn, float(last.max()))
 
     truth_path = out_dir / f"{stem}_truth.json"
-    integration_s = spec.ngroups * instrument.GROUP_TIME_S
+    integration_s = spec.ngroups * niriss.GROUP_TIME_S
     in_fov_rate = float(rate.sum())
     truth_doc = {
         "amigo_version": __version__,
@@ -198,7 +198,7 @@ def simulate_exposure(
             "ngroups": spec.ngroups,
             "nints": nints,
             "nints_full": spec.nints_full,
-            "group_time_s": instrument.GROUP_TIME_S,
+            "group_time_s": niriss.GROUP_TIME_S,
             "dither_pattern": spec.dither_pattern,
             "dither_position": spec.dither_position,
             "dither_total": spec.dither_total,

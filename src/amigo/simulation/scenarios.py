@@ -16,7 +16,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from amigo import instrument
+from amigo import niriss
 from amigo.errors import InputError
 from amigo.simulation.detector import DetectorConfig
 from amigo.simulation.scene import Companion, Target, dither_offsets
@@ -86,9 +86,9 @@ class Scenario:
 
     @property
     def filters(self) -> tuple[str, ...]:
-        """Filters used, in the order of :data:`amigo.instrument.FILTERS`."""
+        """Filters used, in the order of :data:`amigo.niriss.FILTERS`."""
         used = {e.filter for e in self.exposures}
-        return tuple(f for f in instrument.FILTERS if f in used)
+        return tuple(f for f in niriss.FILTERS if f in used)
 
 
 def builtin_names() -> list[str]:
@@ -155,7 +155,7 @@ def _check_keys(table: Mapping[str, Any], allowed: set[str], where: str) -> None
 
 def _companion(table: Mapping[str, Any], where: str) -> Companion:
     _check_keys(table, _COMPANION_KEYS, where)
-    dmag = {instrument.check_filter(k): float(v) for k, v in dict(table["dmag"]).items()}
+    dmag = {niriss.check_filter(k): float(v) for k, v in dict(table["dmag"]).items()}
     return Companion(sep_mas=float(table["sep_mas"]), pa_deg=float(table["pa_deg"]), dmag=dmag)
 
 
@@ -203,7 +203,7 @@ def _exposures(
         if name not in targets:
             raise ValueError(f"{where} names target {name!r}, not defined in [[targets]]")
         target = targets[name]
-    filter_name = instrument.check_filter(str(table["filter"]))
+    filter_name = niriss.check_filter(str(table["filter"]))
     if target is not None:
         for companion in target.companions:
             if filter_name not in companion.dmag:

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from amigo import instrument
+from amigo import niriss
 from amigo.orientation import Orientation, offset_from_separation_pa
 
 #: Aperture reference pixel of NIS_AMI1 in SUB80, 0-based (x, y): the FITS keywords of
@@ -171,12 +171,12 @@ def dither_offsets(pattern: str | Sequence[Sequence[float]]) -> tuple[tuple[floa
 
 def inside_subarray(x_pix: float, y_pix: float, margin_pix: float = 0.0) -> bool:
     """Whether a position lies on SUB80 (at least ``margin_pix`` from its edges)."""
-    n = instrument.SUBARRAY_SIZE
+    n = niriss.SUBARRAY_SIZE
     lo, hi = -0.5 + margin_pix, n - 0.5 - margin_pix
     return bool(lo <= x_pix <= hi and lo <= y_pix <= hi)
 
 
-def pixel_grid(oversample: int, n_pix: int = instrument.SUBARRAY_SIZE) -> np.ndarray:
+def pixel_grid(oversample: int, n_pix: int = niriss.SUBARRAY_SIZE) -> np.ndarray:
     """Centres (pixels) of the ``n_pix * oversample`` sub-pixels along one axis.
 
     Pixel ``i`` spans ``[i - 0.5, i + 0.5]``; its sub-pixels are ``1/oversample`` wide.

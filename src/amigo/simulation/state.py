@@ -13,7 +13,7 @@ Conventions
   hole's circumradius, as in the AMIGO paper's aperture model). Zernikes are normalised to
   unit RMS over their disc, so a coefficient is the RMS OPD of that mode.
 * Defocus is the Noll-4 coefficient (RMS OPD, nm) over the circumscribed pupil of
-  diameter :data:`amigo.instrument.PUPIL_DIAMETER_M`, one value per filter (the paper
+  diameter :data:`amigo.niriss.PUPIL_DIAMETER_M`, one value per filter (the paper
   recovers a different defocus in each filter).
 * The pupil distortion is a small linear map ``D`` (dimensionless, 2x2) acting on the hole
   centres, ``c -> (I + D) c``, plus an independent shift of each hole (m).
@@ -27,13 +27,13 @@ from typing import Any
 
 import numpy as np
 
-from amigo import instrument
+from amigo import niriss
 
 #: Number of Noll Zernike modes per hole (Noll 1..10).
 N_ZERNIKES: int = 10
 #: Radius (m) of the disc on which each hole's Zernikes are defined: 1.2 x the hexagon's
 #: circumradius (0.80 m flat-to-flat). Source: AMIGO paper / research code aperture model.
-HOLE_ZERNIKE_RADIUS_M: float = 1.2 * instrument.HOLE_FLAT_TO_FLAT_M / np.sqrt(3.0)
+HOLE_ZERNIKE_RADIUS_M: float = 1.2 * niriss.HOLE_FLAT_TO_FLAT_M / np.sqrt(3.0)
 
 
 @dataclass(frozen=True)
@@ -62,7 +62,7 @@ class StateSpread:
     defocus_rms_nm: float = 30.0
     pupil_distortion_rms: float = 2.0e-3
     hole_shift_rms_m: float = 3.0e-3
-    jitter_mas: float = instrument.JITTER_SIGMA_ARCSEC * 1000.0
+    jitter_mas: float = niriss.JITTER_SIGMA_ARCSEC * 1000.0
     jitter_scatter: float = 0.1
 
     @classmethod
@@ -96,20 +96,20 @@ class InstrumentState:
     zernike_nm: np.ndarray
     defocus_nm: dict[str, float]
     pupil_distortion: np.ndarray = field(default_factory=lambda: np.zeros((2, 2)))
-    hole_shift_m: np.ndarray = field(default_factory=lambda: np.zeros((instrument.N_HOLES, 2)))
+    hole_shift_m: np.ndarray = field(default_factory=lambda: np.zeros((niriss.N_HOLES, 2)))
     jitter_mas: float = 0.0
 
     @classmethod
-    def perfect(cls, filters: tuple[str, ...] = instrument.FILTERS) -> InstrumentState:
+    def perfect(cls, filters: tuple[str, ...] = niriss.FILTERS) -> InstrumentState:
         """An aberration-free, undistorted, jitter-free state (for tests and null checks)."""
         return cls(
-            zernike_nm=np.zeros((instrument.N_HOLES, N_ZERNIKES)),
+            zernike_nm=np.zeros((niriss.N_HOLES, N_ZERNIKES)),
             defocus_nm={f: 0.0 for f in filters},
         )
 
     def hole_centres_m(self) -> np.ndarray:
         """(7, 2) hole centres after distortion and shifts (m, pupil frame)."""
-        nominal = np.asarray(instrument.HOLE_CENTRES_M)
+        nominal = np.asarray(niriss.HOLE_CENTRES_M)
         return nominal @ (np.eye(2) + self.pupil_distortion).T + self.hole_shift_m
 
     def to_json(self) -> dict[str, Any]:
@@ -119,7 +119,7 @@ class InstrumentState:
             f"{HOLE_ZERNIKE_RADIUS_M:.6f} m centred on each hole",
             "zernike_nm": self.zernike_nm.tolist(),
             "defocus_convention": "Noll 4 RMS OPD nm over the circumscribed pupil "
-            f"(diameter {instrument.PUPIL_DIAMETER_M} m)",
+            f"(diameter {niriss.PUPIL_DIAMETER_M} m)",
             "defocus_nm": dict(self.defocus_nm),
             "pupil_distortion": self.pupil_distortion.tolist(),
             "hole_shift_m": self.hole_shift_m.tolist(),
@@ -131,24 +131,24 @@ class InstrumentState:
 def draw_instrument_state(
     rng: np.random.Generator,
     spread: StateSpread,
-    filters: tuple[str, ...] = instrument.FILTERS,
+    filters: tuple[str, ...] = niriss.FILTERS,
 ) -> InstrumentState:
     """Draw a random :class:`InstrumentState`.
 
     The draws happen in a fixed order (Zernikes, defocus per filter in the order of
-    :data:`amigo.instrument.FILTERS`, distortion, shifts, jitter), so a seed always gives
+    :data:`amigo.niriss.FILTERS`, distortion, shifts, jitter), so a seed always gives
     the same state whatever subset of filters a scenario uses.
     """
-    zernike = rng.normal(0.0, spread.zernike_rms_nm, (instrument.N_HOLES, N_ZERNIKES))
+    zernike = rng.normal(0.0, spread.zernike_rms_nm, (niriss.N_HOLES, N_ZERNIKES))
     zernike[0, 0] = 0.0  # global piston is unobservable: pin hole 0's piston
-    defocus_all = rng.normal(0.0, spread.defocus_rms_nm, len(instrument.FILTERS))
+    defocus_all = rng.normal(0.0, spread.defocus_rms_nm, len(niriss.FILTERS))
     defocus = {
         name: float(value)
-        for name, value in zip(instrument.FILTERS, defocus_all, strict=True)
+        for name, value in zip(niriss.FILTERS, defocus_all, strict=True)
         if name in filters
     }
     distortion = rng.normal(0.0, spread.pupil_distortion_rms, (2, 2))
-    shifts = rng.normal(0.0, spread.hole_shift_rms_m, (instrument.N_HOLES, 2))
+    shifts = rng.normal(0.0, spread.hole_shift_rms_m, (niriss.N_HOLES, 2))
     jitter = spread.jitter_mas * (1.0 + spread.jitter_scatter * rng.normal())
     return InstrumentState(
         zernike_nm=zernike,

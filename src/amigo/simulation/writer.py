@@ -29,7 +29,7 @@ import numpy as np
 from astropy.io import fits
 from astropy.time import Time, TimeDelta
 
-from amigo import instrument
+from amigo import niriss
 from amigo._version import __version__
 from amigo.io.atomic import atomic_path, write_text
 from amigo.orientation import Orientation
@@ -49,7 +49,7 @@ def start_time(date_obs: str, time_obs: str) -> Time:
 
 def exposure_duration_s(nints: int, ngroups: int) -> float:
     """Elapsed time of an exposure: one reset frame per integration plus its groups."""
-    return nints * (ngroups + 1) * instrument.FRAME_TIME_S
+    return nints * (ngroups + 1) * niriss.FRAME_TIME_S
 
 
 def primary_header(cards: dict[str, Any]) -> fits.Header:
@@ -91,7 +91,7 @@ def uncal_primary_cards(
     end = start + TimeDelta(duration, format="sec")
     mid = start + TimeDelta(0.5 * duration, format="sec")
     visit_id = f"{program:05d}{observation:03d}{visit:03d}"
-    effective_int = ngroups * instrument.GROUP_TIME_S
+    effective_int = ngroups * niriss.GROUP_TIME_S
     cards: dict[str, Any] = {
         "DATE": (start.isot[:10], "[yyyy-mm-dd] simulated file: the obs. date"),
         "ORIGIN": ("amigo", "organization responsible for creating file"),
@@ -131,8 +131,8 @@ def uncal_primary_cards(
         "NRESETS": (1, "number of resets between integrations"),
         "ZEROFRAM": (False, "T if a zero frame was read separately"),
         "TSAMPLE": (SAMPLE_TIME_US, "[us] time between samples"),
-        "TFRAME": (instrument.FRAME_TIME_S, "[s] time between frames"),
-        "TGROUP": (instrument.GROUP_TIME_S, "[s] time between groups"),
+        "TFRAME": (niriss.FRAME_TIME_S, "[s] time between frames"),
+        "TGROUP": (niriss.GROUP_TIME_S, "[s] time between groups"),
         "EFFINTTM": (effective_int, "[s] effective integration time"),
         "EFFEXPTM": (nints * effective_int, "[s] effective exposure time"),
         "DURATION": (duration, "[s] total duration of exposure"),
@@ -143,11 +143,11 @@ def uncal_primary_cards(
         "EXPEND": (end.mjd, "[d] exposure end time in MJD"),
         "INTSTART": (1, "starting integration number in this segment"),
         "INTEND": (nints, "ending integration number in this segment"),
-        "SUBARRAY": (instrument.SUBARRAY, "subarray used"),
-        "SUBSTRT1": (instrument.SUBARRAY_START_X, "starting pixel in axis 1 direction"),
-        "SUBSTRT2": (instrument.SUBARRAY_START_Y, "starting pixel in axis 2 direction"),
-        "SUBSIZE1": (instrument.SUBARRAY_SIZE, "number of pixels in axis 1 direction"),
-        "SUBSIZE2": (instrument.SUBARRAY_SIZE, "number of pixels in axis 2 direction"),
+        "SUBARRAY": (niriss.SUBARRAY, "subarray used"),
+        "SUBSTRT1": (niriss.SUBARRAY_START_X, "starting pixel in axis 1 direction"),
+        "SUBSTRT2": (niriss.SUBARRAY_START_Y, "starting pixel in axis 2 direction"),
+        "SUBSIZE1": (niriss.SUBARRAY_SIZE, "number of pixels in axis 1 direction"),
+        "SUBSIZE2": (niriss.SUBARRAY_SIZE, "number of pixels in axis 2 direction"),
         "FASTAXIS": (-2, "fast readout axis direction"),
         "SLOWAXIS": (-1, "slow readout axis direction"),
         "APERNAME": ("NIS_AMI1", "PRD science aperture used"),
@@ -182,7 +182,7 @@ def sci_header(
     ``primary_xy_pix`` and ``reference_xy_pix`` are 0-based (x, y) pixel positions of the
     primary star and of the aperture reference point.
     """
-    n = instrument.SUBARRAY_SIZE
+    n = niriss.SUBARRAY_SIZE
     header = fits.Header()
     header["XTENSION"] = "IMAGE"
     header["BITPIX"] = 16

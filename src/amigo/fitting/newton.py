@@ -1,0 +1,687 @@
+"""Levenberg-Marquardt (damped Gauss-Newton) steps with the full Fisher matrix of a fit.
+
+The natural-gradient descent of :mod:`amigo.fitting.filter_fit` preconditions with a *block-diagonal*
+Fisher matrix. That is cheap per iteration but slow where blocks are strongly coupled:
+on a calibrator the wavefront and the latent visibilities are nearly degenerate (the
+kernel projection exists because of it), and momentum then circles the shallow valley
+for hundreds of iterations. An unconverged fit is not a statistical nuisance but a bias:
+starting from ``V = 1``, latent visibilities stopped early are shrunk towards zero and
+their scatter is smaller than their Hessian errors say.
+
+Here every exposure's image is differentiated exactly (forward mode) with respect to all
+the parameters it depends on, and the Fisher matrix ``F = sum_e J_e^T W_e J_e`` and the
+gradient ``g = sum_e J_e^T W_e r_e`` (``r = data - model``) are assembled in float64 over
+one global parameter vector: the least-squares problem that
+:func:`amigo.solvers.levenberg_marquardt.minimise` solves (damped Gauss-Newton with chord
+steps; the natural gradient with the *full* Fisher matrix, taken with a unit step, is
+exactly its Gauss-Newton step).
+
+Global parameter vector
+-----------------------
+``[positions (E, 2), log fluxes (E), SED slopes (S), jitters (E), Zernikes (7 x nz),
+defocus, detector geometry (4), band taper, latent visibilities (S, m_a + m_p)]``,
+float64. The Zernikes, defocus, geometry and the band-shape correction (the taper of
+:class:`~amigo.model.optics.LinearSpectrum`) form the filter's *instrument block*: science exposures
+see it as fixed (it is fitted on calibrators only), so their Jacobians have no columns
+for it. The geometry has a Gaussian prior centred on the instrument's (the SIAF-derived
+nominal, or the base model's) with the widths :data:`GEOMETRY_PRIOR_SIGMA`: wide enough
+that a calibrator's data overrule it, narrow enough to keep a fit of few pixels sane; the
+band taper one of width :data:`BAND_TAPER_PRIOR_SIGMA` centred on 0.
+
+Convergence is the Newton decrement ``g^T F^+ g`` per exposure, below
+:attr:`NewtonConfig.tolerance`.
+
+Cost
+----
+A set of Jacobians (~1100 forward-mode columns per exposure) costs seconds; a gradient
+(one reverse-mode pass over all exposures) a fraction of a second: hence the solver's
+chord steps. When they converge, the float64 Fisher matrix at the final point comes back
+with the result, and the Hessians of the latent visibilities are read from it instead of
+being computed again (:func:`amigo.fitting.filter_fit.latent_information`).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from amigo.fitting.params import FitParams
+from amigo.likelihood.pixels import PixelData
+from amigo.model.image import (
+    FilterSetup,
+    Instrument,
+    OpticsParams,
+    filter_psfs,
+    illuminance_from_psfs,
+)
+from amigo.model.image import float64 as _float64
+from amigo.progress import step
+from amigo.solvers.levenberg_marquardt import minimise
+
+#: Columns differentiated together (memory: each holds the visibility FFTs of one image).
+JVP_BATCH = 16
+#: Standard deviations of the Gaussian prior on ``[rotation_deg, anisotropy, skew_deg,
+#: scale]`` around the instrument's geometry: 1 deg, 1 %, 1 deg, 1 % (the real data and
+#: an independent simulation move them by < 0.5 deg and < 0.5 %; one calibrator exposure
+#: measures them to ~0.01 deg and ~1e-4).
+GEOMETRY_PRIOR_SIGMA = (1.0, 0.01, 1.0, 0.01)
+#: Size of the detector geometry vector.
+N_GEOMETRY = 4
+#: Standard deviation of the prior on the band taper (per um^2): 50 lets the band's rms
+#: width move by ~10-20 % in the medium-band filters (optics.LinearSpectrum).
+BAND_TAPER_PRIOR_SIGMA = 50.0
+
+
+class JointFit(Protocol):
+    """What the problem reads of a joint fit (:class:`amigo.fitting.filter_fit.FilterFit`)."""
+
+    instrument: Instrument
+    setup: FilterSetup
+    #: The exposures (each with a ``name``), and whether each is a calibrator, (E,).
+    exposures: list[Any]
+    is_calibrator: np.ndarray
+    #: Index of each exposure's target, (E,).
+    source_index: np.ndarray
+    #: The exposures' pixels, stacked over E.
+    pixels: PixelData
+    #: Offset (x, y, arcsec) at which the PSFs are computed.
+    anchor: Any
+
+    @property
+    def n_exposures(self) -> int: ...
+
+
+@dataclass(frozen=True)
+class NewtonConfig:
+    """Settings of :func:`levenberg_marquardt`.
+
+    Attributes
+    ----------
+    max_iterations
+        Jacobian evaluations (each is the cost of one Fisher matrix).
+    tolerance
+        Converged when the Newton decrement ``g^T F^+ g`` per exposure is below this
+        times ``max(1, chi2 / n)`` (``n`` values in the likelihood). It is in units of
+        chi2: the Mahalanobis distance squared to the optimum, in all the exposure's few
+        hundred parameters together; 1 leaves each parameter within a small fraction of
+        its error (0.06 sigma rms for 300 parameters). When the model does not fit to
+        the noise (reduced chi2 above 1) the parameter errors grow by that factor, and
+        so does the tolerance.
+    damping
+        Initial Levenberg-Marquardt damping ``mu`` (relative to unit diagonal).
+    chord_steps
+        Most steps taken with the Fisher matrix of the last Jacobians and fresh gradients
+        before new Jacobians are computed (0: plain Levenberg-Marquardt).
+    float64_check
+        Evaluate the Jacobians that are expected to confirm convergence in float64 (and
+        return their Fisher matrix, see :class:`NewtonResult`).
+    wavefront_prior_nm
+        Standard deviation (nm) of an independent Gaussian prior on every Zernike
+        coefficient and the defocus, centred on the instrument's own wavefront (the base
+        model's calibrated one); ``None``: no prior (the calibrators alone decide).
+    geometry_prior_sigma
+        Standard deviations of the Gaussian prior on the detector geometry ``[rotation_deg,
+        anisotropy, skew_deg, scale]`` around the instrument's (tiny values freeze it).
+    jitter_prior_mas
+        Standard deviation (mas) of a Gaussian prior holding every exposure's jitter at the
+        instrument's; ``None`` (default): free (a tiny value freezes it).
+    band_taper_prior
+        Standard deviation (per um^2) of the Gaussian prior on the band taper around 0
+        (a tiny value freezes it).
+    """
+
+    max_iterations: int = 12
+    tolerance: float = 1.0
+    damping: float = 1e-3
+    chord_steps: int = 20
+    float64_check: bool = True
+    wavefront_prior_nm: float | None = None
+    geometry_prior_sigma: tuple[float, float, float, float] = GEOMETRY_PRIOR_SIGMA
+    jitter_prior_mas: float | None = None
+    band_taper_prior: float = BAND_TAPER_PRIOR_SIGMA
+
+
+@dataclass
+class NewtonResult:
+    """Outcome of :func:`levenberg_marquardt` (``loss`` is ``L = chi2 / 2``).
+
+    ``iterations`` counts Jacobian evaluations, ``chord_steps`` the steps taken with a
+    reused Fisher matrix. ``loss`` is ``L`` of all exposures at the end, ``loss_change``
+    the fall of ``L`` per exposure over the last iteration of the last stage.
+
+    ``fisher`` is the float64 Fisher matrix ``F`` of the global vector (:class:`Layout`)
+    evaluated exactly at ``params``, summed over the exposures ``exact_exposures``: those
+    of the stages whose convergence float64 Jacobians confirmed (``None`` if none).
+    """
+
+    params: FitParams
+    converged: bool
+    iterations: int
+    loss_history: list[float]
+    decrement: float
+    seconds: float
+    chord_steps: int = 0
+    fisher: np.ndarray | None = None
+    exact_exposures: tuple[int, ...] = ()
+    loss: float = float("nan")
+    loss_change: float = float("nan")
+
+
+# ------------------------------------------------------------------------------ layout
+@dataclass(frozen=True)
+class Layout:
+    """Positions of the parameter groups in the global vector (see module notes)."""
+
+    n_exposures: int
+    n_targets: int
+    zernike_shape: tuple[int, int]
+    n_latent: int
+
+    @property
+    def n_zernike(self) -> int:
+        return self.zernike_shape[0] * self.zernike_shape[1]
+
+    @property
+    def jitters(self) -> np.ndarray:
+        start = 3 * self.n_exposures + self.n_targets
+        return np.arange(start, start + self.n_exposures)
+
+    @property
+    def optics(self) -> np.ndarray:
+        """The instrument block ``[Zernikes, defocus, geometry, band taper]``."""
+        start = 4 * self.n_exposures + self.n_targets
+        return np.arange(start, start + self.n_zernike + 1 + N_GEOMETRY + 1)
+
+    @property
+    def wavefront(self) -> np.ndarray:
+        """``[Zernikes, defocus]`` (the first part of :attr:`optics`)."""
+        return self.optics[: self.n_zernike + 1]
+
+    @property
+    def geometry(self) -> np.ndarray:
+        """``[rotation_deg, anisotropy, skew_deg, scale]`` (after :attr:`wavefront`)."""
+        return self.optics[self.n_zernike + 1 : self.n_zernike + 1 + N_GEOMETRY]
+
+    @property
+    def band(self) -> np.ndarray:
+        """The band taper (the last entry of :attr:`optics`)."""
+        return self.optics[-1:]
+
+    @property
+    def size(self) -> int:
+        return int(self.optics[-1]) + 1 + self.n_targets * self.n_latent
+
+    def local(self, e: int, s: int) -> np.ndarray:
+        """Indices of ``[x, y, log_flux, slope, jitter, latents]`` of exposure ``e``
+        (target ``s``)."""
+        E = self.n_exposures
+        latent0 = int(self.optics[-1]) + 1 + s * self.n_latent
+        scalars = [2 * e, 2 * e + 1, 2 * E + e, 3 * E + s, int(self.jitters[e])]
+        return np.concatenate([scalars, np.arange(latent0, latent0 + self.n_latent)])
+
+    def pack(self, params: FitParams) -> np.ndarray:
+        p = params
+        return np.concatenate(
+            [
+                np.ravel(p.exposures.position_arcsec),
+                np.ravel(p.exposures.log_flux),
+                np.ravel(p.sources.slope_per_um),
+                np.ravel(p.exposures.jitter_mas),
+                np.ravel(p.optics.zernikes_nm),
+                np.ravel(p.optics.defocus_nm),
+                np.ravel(p.optics.geometry),
+                np.ravel(p.optics.band_taper_per_um2),
+                np.ravel(np.concatenate([p.sources.amp, p.sources.phase], axis=1)),
+            ]
+        ).astype(np.float64)
+
+    def unpack(self, params: FitParams, vector: np.ndarray) -> FitParams:
+        E, S = self.n_exposures, self.n_targets
+        dtype = params.sources.amp.dtype
+        n_amp = params.sources.amp.shape[1]
+        latent = vector[self.optics[-1] + 1 :].reshape(S, self.n_latent)
+        wavefront = self.wavefront
+
+        def as_(x):
+            return jnp.asarray(x, dtype)
+
+        return eqx.tree_at(
+            lambda q: (
+                q.exposures.position_arcsec,
+                q.exposures.log_flux,
+                q.sources.slope_per_um,
+                q.exposures.jitter_mas,
+                q.optics.zernikes_nm,
+                q.optics.defocus_nm,
+                q.optics.geometry,
+                q.optics.band_taper_per_um2,
+                q.sources.amp,
+                q.sources.phase,
+            ),
+            params,
+            (
+                as_(vector[: 2 * E].reshape(E, 2)),
+                as_(vector[2 * E : 3 * E]),
+                as_(vector[3 * E : 3 * E + S]),
+                as_(vector[self.jitters]),
+                as_(vector[wavefront[:-1]].reshape(self.zernike_shape)),
+                as_(vector[wavefront[-1]]),
+                as_(vector[self.geometry]),
+                as_(vector[self.band[0]]),
+                as_(latent[:, :n_amp]),
+                as_(latent[:, n_amp:]),
+            ),
+        )
+
+    @classmethod
+    def of(cls, params: FitParams) -> Layout:
+        return cls(
+            n_exposures=int(params.exposures.log_flux.shape[0]),
+            n_targets=int(params.sources.slope_per_um.shape[0]),
+            zernike_shape=tuple(params.optics.zernikes_nm.shape),
+            n_latent=int(params.sources.amp.shape[1] + params.sources.phase.shape[1]),
+        )
+
+
+# ------------------------------------------------------------------------------ images
+#: Scalars before the latent visibilities in an exposure's local vector
+#: ``[x, y, log_flux, slope, jitter_mas, latents]``.
+N_LOCAL_SCALARS = 5
+#: Index of the jitter (mas) in the local vector.
+JITTER_INDEX = 4
+
+
+def local_vector(params: FitParams, e: int, s: int) -> Float[Array, " n"]:
+    """Local vector ``[x, y, log_flux, slope, jitter_mas, amp..., phase...]`` of exposure
+    ``e`` of target ``s`` (dtype of ``params``)."""
+    return jnp.concatenate(
+        [
+            params.exposures.position_arcsec[e],
+            params.exposures.log_flux[e][None],
+            params.sources.slope_per_um[s][None],
+            params.exposures.jitter_mas[e][None],
+            params.sources.amp[s],
+            params.sources.phase[s],
+        ]
+    )
+
+
+def wavefront_vector(optics) -> Float[Array, " n"]:
+    """``[Zernikes (flattened), defocus]`` of anything holding ``zernikes_nm`` and
+    ``defocus_nm`` (an :class:`~amigo.model.image.OpticsParams` or the instrument's optics)."""
+    return jnp.concatenate([jnp.ravel(optics.zernikes_nm), jnp.atleast_1d(optics.defocus_nm)])
+
+
+def optics_vector(params: FitParams) -> Float[Array, " n"]:
+    """The instrument block ``[Zernikes (flattened), defocus, geometry, band taper]`` of
+    ``params``."""
+    o = params.optics
+    return jnp.concatenate([wavefront_vector(o), o.geometry, jnp.atleast_1d(o.band_taper_per_um2)])
+
+
+def _split_block(block: Array, shape: tuple[int, int]) -> OpticsParams:
+    """Instrument block -> :class:`OpticsParams`."""
+    n = shape[0] * shape[1]
+    return OpticsParams(block[:n].reshape(shape), block[n], block[n + 1 : -1], block[-1])
+
+
+def _at(instrument, setup, optics: OpticsParams):
+    """The instrument and setup with the block's geometry and band taper."""
+    return (
+        instrument.with_geometry(optics.geometry),
+        setup.with_band_taper(optics.band_taper_per_um2),
+    )
+
+
+def local_illuminance(theta, instrument, setup, psfs, anchor) -> Float[Array, "240 240"]:
+    """Unit-flux optical illuminance (:func:`amigo.model.image.illuminance_from_psfs`) of one
+    exposure from its local vector ``[x, y, log_flux, slope, jitter, latents]`` (the
+    flux, ``theta[2]``, and the jitter are applied by the detector)."""
+    n_amp = setup.basis.n_amp
+    latent = theta[N_LOCAL_SCALARS:]
+    log_amp, phase = setup.basis.grids(latent[:n_amp], latent[n_amp:])
+    return illuminance_from_psfs(
+        instrument, setup, psfs, theta[3], theta[:2], log_amp, phase, anchor
+    )
+
+
+def local_detector(theta, instrument):
+    """The instrument's linear detector with the jitter of the local vector ``theta``."""
+    return instrument.detector.with_jitter(theta[JITTER_INDEX] / 1000.0)
+
+
+def _local_image(theta, instrument, setup, psfs, anchor) -> Float[Array, "80 80"]:
+    """Image (DN/s) of one exposure from its local vector (as :func:`image_from_psfs`),
+    with the detector geometry ``instrument`` holds."""
+    optical = local_illuminance(theta, instrument, setup, psfs, anchor)
+    return local_detector(theta, instrument)(optical, jnp.exp(theta[2]))
+
+
+def _columns(function, x: Array) -> Array:
+    """Forward-mode Jacobian of ``function`` at ``x``, (n, *out), in batches of columns.
+
+    The tangents are padded with zero columns to a whole number of batches: ``lax.map``
+    would otherwise trace the remainder as a second copy of the model, which doubles the
+    compile time (minutes on a CPU) to save a few JVPs.
+    """
+    n = x.shape[0]
+    batch = min(JVP_BATCH, n)
+    padded = -(-n // batch) * batch
+    tangents = jnp.eye(padded, n, dtype=x.dtype)  # rows n.. are zero
+    columns = jax.lax.map(lambda t: jax.jvp(function, (x,), (t,))[1], tangents, batch_size=batch)
+    return columns[:n]
+
+
+@eqx.filter_jit
+def local_jacobian(theta, instrument, setup, psfs, anchor) -> Float[Array, "n 80 80"]:
+    """Jacobian of one exposure's image w.r.t. its local vector (instrument block fixed)."""
+    return _columns(lambda t: _local_image(t, instrument, setup, psfs, anchor), theta)
+
+
+@eqx.filter_jit
+def optics_jacobian(block, theta, instrument, setup, anchor) -> Float[Array, "n 80 80"]:
+    """Jacobian of one exposure's image w.r.t. the instrument block ``[Zernikes
+    (flattened), defocus, geometry]``."""
+    shape = instrument.optics.zernikes_nm.shape
+
+    def image_of(vector):
+        optics = _split_block(vector, shape)
+        psfs = filter_psfs(instrument, setup, optics, anchor)
+        return _local_image(theta, *_at(instrument, setup, optics), psfs, anchor)
+
+    return _columns(image_of, block)
+
+
+@eqx.filter_jit
+def psfs_of(instrument, setup, optics, anchor):
+    """:func:`amigo.model.image.filter_psfs`, compiled."""
+    return filter_psfs(instrument, setup, optics, anchor)
+
+
+@eqx.filter_jit
+def _images(thetas, instrument, setup, psfs, anchor) -> Float[Array, "e 80 80"]:
+    return jax.vmap(lambda t: _local_image(t, instrument, setup, psfs, anchor))(thetas)
+
+
+@eqx.filter_jit
+def _gradient(thetas, block, instrument, setup, anchor, data, weight, members, calibrator):
+    """Gradient of ``L = sum_e |W_e (d_e - m_e)|^2 / 2`` over the exposures with
+    ``members[e] = 1`` w.r.t. every exposure's local vector (E, n) and the instrument
+    block ``[Zernikes, defocus, geometry]``, by reverse mode.
+
+    Only exposures with ``calibrator[e] = 1`` inform the instrument block (science
+    exposures see it as a constant, as in :meth:`amigo.fitting.filter_fit.FilterFit.models`).
+    """
+    shape = instrument.optics.zernikes_nm.shape
+    n_wave = shape[0] * shape[1] + 1
+
+    def psfs_of_wavefront(vector):
+        optics = _split_block(jnp.concatenate([vector, block[n_wave:]]), shape)
+        return filter_psfs(instrument, setup, optics, anchor)
+
+    psfs, pullback = jax.vjp(psfs_of_wavefront, block[:n_wave])
+
+    def images_of(thetas, psfs, rest):
+        # ``rest``: the block after the wavefront (geometry, band taper).
+        optics = _split_block(jnp.concatenate([block[:n_wave], rest]), shape)
+        at_instrument, at_setup = _at(instrument, setup, optics)
+        return jax.vmap(lambda t: _local_image(t, at_instrument, at_setup, psfs, anchor))(thetas)
+
+    images, image_pullback = jax.vjp(images_of, thetas, psfs, block[n_wave:])
+    r = (data - images.reshape(data.shape)) * weight
+    # dL/dm_e = -mask_e W_e r_e, with the members' mask for the local vectors and the
+    # calibrators' for the instrument: both pulled back by one batched reverse pass (one
+    # copy of the model's backward graph, not two, to compile).
+    masks = jnp.stack([members, calibrator]).astype(r.dtype)
+    cotangents = (-masks[:, :, None] * (r * weight)[None]).reshape((2, *images.shape))
+    g_thetas, g_psfs, g_rest = jax.vmap(image_pullback)(cotangents)
+    return g_thetas[0], jnp.concatenate([pullback(g_psfs[1])[0], g_rest[1]])
+
+
+# ------------------------------------------------------------------------------ solver
+class _Problem:
+    """The fit's data and structure as float64 NumPy, with the model as JAX calls.
+
+    ``members`` are the exposures in this problem (the solver fits the calibrators, then
+    the science exposures; see :func:`levenberg_marquardt`). ``float64`` switches the
+    model, its gradients and Jacobians to 64-bit (the solver does so near the optimum,
+    where float32 rounding of the loss and of the Jacobians hides the last fractions of
+    chi2 that the convergence test asks about).
+    """
+
+    def __init__(
+        self,
+        fit: JointFit,
+        params: FitParams,
+        members: np.ndarray,
+        wavefront_prior_nm: float | None = None,
+        geometry_prior_sigma: tuple[float, ...] = GEOMETRY_PRIOR_SIGMA,
+        jitter_prior_mas: float | None = None,
+        band_taper_prior: float = BAND_TAPER_PRIOR_SIGMA,
+    ) -> None:
+        self.fit = fit
+        self.layout = Layout.of(params)
+        self.members = np.asarray(members, int)
+        self.n_groups = len(self.members)
+        # The prior acts only where the wavefront is fitted: on the calibrators' stage.
+        fits_wavefront = bool(np.any(np.asarray(fit.is_calibrator, bool)[self.members]))
+        # Gaussian priors on the instrument block (only where it is fitted): the geometry's
+        # always, the wavefront's if asked for; zero precision means no prior.
+        lay = self.layout
+        self.prior_precision = np.zeros(len(lay.optics))
+        n_wave = len(lay.wavefront)
+        if fits_wavefront:
+            self.prior_precision[n_wave:-1] = 1.0 / np.square(geometry_prior_sigma)
+            self.prior_precision[-1] = 1.0 / float(band_taper_prior) ** 2
+            if wavefront_prior_nm is not None:
+                self.prior_precision[:n_wave] = 1.0 / float(wavefront_prior_nm) ** 2
+        self.prior_centre = np.concatenate(
+            [
+                np.asarray(wavefront_vector(fit.instrument.optics), np.float64),
+                np.asarray(fit.instrument.detector.geometry(), np.float64),
+                np.zeros(1),
+            ]
+        )
+        # An optional prior on the members' jitters, centred on the instrument's.
+        self.jitter_precision = np.zeros(lay.size)
+        if jitter_prior_mas is not None:
+            self.jitter_precision[lay.jitters[self.members]] = 1.0 / float(jitter_prior_mas) ** 2
+        self.jitter_centre = float(fit.instrument.detector.jitter_arcsec) * 1000.0
+        self.data = np.asarray(fit.pixels.data, np.float64).reshape(fit.n_exposures, -1)
+        self.weight = np.asarray(fit.pixels.inverse_sigma, np.float64).reshape(fit.n_exposures, -1)
+        self.locals = [
+            self.layout.local(e, int(fit.source_index[e])) for e in range(fit.n_exposures)
+        ]
+        self.n_values = float(np.count_nonzero(self.weight[self.members]))
+        self.member_mask = np.isin(np.arange(fit.n_exposures), self.members)
+        self.float64 = False
+        self._models64 = None
+
+    def _models(self):
+        if not self.float64:
+            return self.fit.instrument, self.fit.setup, jnp.float32
+        if self._models64 is None:
+            self._models64 = _float64((self.fit.instrument, self.fit.setup))
+        return (*self._models64, jnp.float64)
+
+    def precision(self):
+        """Context in which the model runs in the current precision."""
+        return jax.enable_x64(self.float64)
+
+    def _inputs(self, vector: np.ndarray):
+        """The model at ``vector``: the instrument (with the vector's geometry), setup,
+        dtype, instrument block, local vectors (E, n) and the PSF anchor."""
+        instrument, setup, dtype = self._models()
+        lay = self.layout
+        block = jnp.asarray(vector[lay.optics], dtype)
+        optics = _split_block(block, lay.zernike_shape)
+        instrument, setup = _at(instrument, setup, optics)
+        thetas = jnp.asarray(np.stack([vector[i] for i in self.locals]), dtype)
+        anchor = jnp.asarray(self.fit.anchor, dtype)
+        return instrument, setup, dtype, block, thetas, anchor
+
+    def _psfs(self, instrument, setup, block, anchor):
+        optics = _split_block(block, self.layout.zernike_shape)
+        return psfs_of(instrument, setup, optics, anchor)
+
+    def _residuals(self, instrument, setup, thetas, psfs, anchor) -> np.ndarray:
+        """(E, npix) whitened residuals ``(data - model) / sigma`` of every exposure
+        (0 where masked), in float64 from the model of the current precision."""
+        models = _images(thetas, instrument, setup, psfs, anchor)
+        models = np.asarray(models, np.float64).reshape(self.fit.n_exposures, -1)
+        return (self.data - models) * self.weight
+
+    def _prior_offset(self, vector: np.ndarray) -> np.ndarray:
+        """Instrument block minus the prior's centre."""
+        return vector[self.layout.optics] - self.prior_centre
+
+    def loss(self, vector: np.ndarray) -> float:
+        """``L = chi2 / 2`` of the member exposures at ``vector`` plus the priors'
+        ``sum (w - w0)^2 / (2 sigma^2)`` on the instrument block."""
+        with self.precision():
+            instrument, setup, _, wavefront, thetas, anchor = self._inputs(vector)
+            psfs = self._psfs(instrument, setup, wavefront, anchor)
+            r = self._residuals(instrument, setup, thetas, psfs, anchor)[self.members]
+        prior = 0.5 * float(np.sum(self.prior_precision * self._prior_offset(vector) ** 2))
+        jitter = vector - self.jitter_centre
+        prior += 0.5 * float(np.sum(self.jitter_precision * jitter**2))
+        return 0.5 * float(np.sum(r * r)) + prior
+
+    def gradient(self, vector: np.ndarray) -> np.ndarray:
+        """``g = -grad L`` at ``vector`` (one reverse-mode pass)."""
+        fit, lay = self.fit, self.layout
+        with self.precision():
+            instrument, setup, dtype, wavefront, thetas, anchor = self._inputs(vector)
+            g_thetas, g_wave = _gradient(
+                thetas,
+                wavefront,
+                instrument,
+                setup,
+                anchor,
+                jnp.asarray(self.data, dtype),
+                jnp.asarray(self.weight, dtype),
+                jnp.asarray(self.member_mask, dtype),
+                jnp.asarray(self.member_mask & np.asarray(fit.is_calibrator, bool), dtype),
+            )
+            g_thetas = np.asarray(g_thetas, np.float64)
+            g_wave = np.asarray(g_wave, np.float64)
+        grad = np.zeros(lay.size)
+        for e in self.members:
+            np.add.at(grad, self.locals[e], g_thetas[e])
+        grad[lay.optics] += g_wave + self.prior_precision * self._prior_offset(vector)
+        grad += self.jitter_precision * (vector - self.jitter_centre)
+        return -grad
+
+    def normal_equations(self, vector: np.ndarray, label: str) -> tuple[np.ndarray, np.ndarray]:
+        """Fisher matrix ``F`` and ``g = -grad L`` at ``vector`` (float64 sums of the
+        Jacobians and residuals of the current precision)."""
+        fit, lay = self.fit, self.layout
+        n = lay.size
+        fisher, grad = np.zeros((n, n)), np.zeros(n)
+        with self.precision():
+            instrument, setup, _, wavefront, thetas, anchor = self._inputs(vector)
+            psfs = self._psfs(instrument, setup, wavefront, anchor)
+            r = self._residuals(instrument, setup, thetas, psfs, anchor)
+            for e in self.members:
+                precision = "float64 " if self.float64 else ""
+                step(f"{label}: {precision}Jacobian of {fit.exposures[e].name}")
+                jac = local_jacobian(thetas[e], instrument, setup, psfs, anchor)
+                jac = np.asarray(jac, np.float64).reshape(len(self.locals[e]), -1)
+                index = self.locals[e]
+                if fit.is_calibrator[e]:
+                    jo = optics_jacobian(wavefront, thetas[e], instrument, setup, anchor)
+                    jo = np.asarray(jo, np.float64).reshape(len(lay.optics), -1)
+                    jac = np.concatenate([jac, jo])
+                    index = np.concatenate([index, lay.optics])
+                wj = jac * self.weight[e]  # whitened Jacobian
+                fisher[np.ix_(index, index)] += wj @ wj.T
+                grad[index] += wj @ r[e]
+        fisher[lay.optics, lay.optics] += self.prior_precision
+        grad[lay.optics] -= self.prior_precision * self._prior_offset(vector)
+        fisher[np.diag_indices(n)] += self.jitter_precision
+        grad -= self.jitter_precision * (vector - self.jitter_centre)
+        return fisher, grad
+
+
+def levenberg_marquardt(
+    fit: JointFit,
+    params: FitParams,
+    config: NewtonConfig | None = None,
+    label: str = "fit",
+) -> NewtonResult:
+    """Damped Gauss-Newton iterations from ``params`` until the Newton decrement is small.
+
+    The calibrator exposures are fitted first (with the wavefront), then the science
+    exposures with the wavefront held at the calibrators' optimum. This is exactly the
+    optimum of the joint fit in which the science exposures see the wavefront as a
+    constant (:meth:`amigo.fitting.filter_fit.FilterFit.models`), but, unlike a joint step, each
+    stage minimises a proper function: a joint step cannot anticipate how a move of the
+    wavefront changes the science images (their Jacobians have no wavefront columns), so
+    near the optimum its line search on the total loss refuses steps whose gradient is
+    right. Each stage costs one set of Jacobians per iteration and takes up to
+    ``config.chord_steps`` chord steps between them (see module notes).
+
+    ``loss_history`` is ``L`` of the calibrators' stage, then ``L`` of all exposures
+    during the science stage.
+    """
+    config = NewtonConfig() if config is None else config
+    start = time.perf_counter()
+    layout = Layout.of(params)
+    vector = layout.pack(params)
+    calibrator = np.asarray(fit.is_calibrator, bool)
+    stages = [
+        (np.nonzero(calibrator)[0], f"{label} calibrators"),
+        (np.nonzero(~calibrator)[0], f"{label} science"),
+    ]
+    converged, iterations, chords, history, change = True, 0, 0, [], 0.0
+    decrement = 0.0
+    fisher = np.zeros((layout.size, layout.size))
+    exact: list[int] = []
+    cal_loss = 0.0
+    for members, stage_label in stages:
+        if len(members) == 0:
+            continue
+        problem = _Problem(
+            fit,
+            params,
+            members,
+            config.wavefront_prior_nm,
+            config.geometry_prior_sigma,
+            config.jitter_prior_mas,
+            config.band_taper_prior,
+        )
+        result = minimise(problem, vector, config, stage_label)
+        vector = result.vector
+        converged &= result.converged
+        iterations += result.iterations
+        chords += result.chord_steps
+        history.extend(np.asarray(result.history) + cal_loss)
+        cal_loss = history[-1]
+        steps = result.history
+        change = (steps[-2] - steps[-1]) / len(members) if len(steps) > 1 else 0.0
+        decrement = max(decrement, result.decrement)
+        if result.fisher is not None:
+            fisher += result.fisher
+            exact.extend(int(e) for e in members)
+    return NewtonResult(
+        params=layout.unpack(params, vector),
+        converged=bool(converged),
+        iterations=iterations,
+        loss_history=history,
+        decrement=decrement,
+        seconds=time.perf_counter() - start,
+        chord_steps=chords,
+        fisher=fisher if exact else None,
+        exact_exposures=tuple(sorted(exact)),
+        # The science stage leaves the calibrators' loss unchanged: its history already
+        # holds the loss of all exposures.
+        loss=float(history[-1]),
+        loss_change=float(change),
+    )

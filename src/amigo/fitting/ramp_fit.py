@@ -1,0 +1,458 @@
+"""Science fits through the base model's ramp and read models (``amigo fit --detector``).
+
+The fitting engine (:mod:`amigo.fitting.filter_fit`, :mod:`amigo.fitting.newton`) models an exposure as an
+image ``M(theta)`` in DN/s: optics -> latent visibilities -> linear detector. A calslope
+file holds ``m = ngroups - 1`` mean slopes ``y`` per pixel (DN per group) and their
+covariance; with linear charge accumulation every slope expects ``t_g M`` (``t_g`` the
+group time) and :meth:`amigo.likelihood.pixels.ImageData.from_calslope` reduces the slope
+likelihood to an image likelihood exactly.
+
+The base model's detector (:meth:`amigo.model.base.BaseModel.slopes`: charge-migration
+network, flat field, intra-pixel response, dark, IPC, non-linearity, gain) predicts
+instead ``S(theta) = R(I(theta))`` from the same sub-pixel illuminance ``I``. Write ::
+
+    S(theta) = t_g M(theta) + D(theta),     D = S - t_g M,
+
+``D`` (m, 80, 80) being the detector's departure from linear accumulation: brighter-fatter
+charge migration, the flat and IPC, the non-linearity. It is a few per cent of the signal
+and changes slowly with ``theta``. :func:`fit_through_detector` alternates
+
+1. ``D_k = D(theta_k)``: one forward pass of the ramp model per exposure, no gradient;
+2. ``theta_{k+1}``: the linear-detector fit of the corrected slopes ``y - D_k``
+   (Levenberg-Marquardt from ``theta_k``),
+
+until ``D`` stops changing (whitened rms change below a tolerance). At the fixed point the
+residuals ``y - D(theta) - t_g M(theta) = y - S(theta)`` are those of the full model, so
+``fit_summary.json``'s chi2 and z-scores are the full model's, at the slope level.
+
+What the iteration leaves out is ``D``'s own derivative in the normal equations: the step
+uses ``t_g dM/dtheta`` where the full model has ``t_g dM/dtheta + dD/dtheta``, as in a
+Gauss-Newton method with an approximate Jacobian. The fixed point then differs from the
+full-model optimum by ``F^-1 (dD/dtheta)^T W r`` (``r`` the whitened residuals), whose
+size relative to the statistical error is that of ``dD/dtheta`` relative to ``t_g
+dM/dtheta``, a few per cent; the latent covariances (from ``dM/dtheta``) carry the same
+relative approximation. The network is evaluated, never differentiated, which keeps a
+science fit at the cost of a linear-detector fit plus one Gauss-Newton refit per round.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from amigo.fitting.filter_fit import FilterFit, FilterFitResult, FitConfig, FitExposure
+from amigo.fitting.newton import (
+    levenberg_marquardt,
+    local_detector,
+    local_illuminance,
+    local_vector,
+    psfs_of,
+)
+from amigo.fitting.params import FitParams
+from amigo.io.calslope import CalSlope
+from amigo.likelihood.pixels import ImageData
+from amigo.model.base import BaseModel
+from amigo.model.detector.dark_residual import HALO_FRACTION, pattern_amplitude
+from amigo.model.detector.reset import Superbias, with_first_group
+from amigo.model.image import FilterSetup, Instrument
+from amigo.niriss import GAIN_E_PER_DN
+from amigo.progress import step
+
+#: A level-2 image keeps the model's read offsets when their pattern's measured amplitude
+#: in it is above this (1 where the image is behind the dark reference they describe).
+PATTERN_THRESHOLD = 0.5
+#: Stop when the whitened rms change of the correction between rounds is below this.
+DEFAULT_TOLERANCE = 0.05
+#: Rounds of (correction, refit) at most.
+DEFAULT_MAX_ROUNDS = 4
+#: Gauss-Newton iterations of each refit: a round's change of the correction is a small
+#: fraction of the noise, so a few steps from the last optimum absorb it.
+DEFAULT_REFIT_ITERATIONS = 3
+
+
+@dataclass(frozen=True)
+class RampInput:
+    """A calslope exposure kept whole, for the full detector.
+
+    Attributes
+    ----------
+    product
+        The file's content; with a superbias, its slopes are the values of
+        :func:`amigo.model.detector.reset.with_first_group` (the first group less the superbias,
+        then the group differences: ``NGROUPS`` values per pixel).
+    group_time_s
+        Time between group reads (s), from the headers.
+    first_group
+        Whether the first group is in the likelihood.
+    """
+
+    product: CalSlope
+    group_time_s: float
+    first_group: bool = False
+
+    @classmethod
+    def create(
+        cls, product: CalSlope, group_time_s: float, superbias: Superbias | None = None
+    ) -> RampInput:
+        """The exposure with its first group when ``superbias`` is given."""
+        if superbias is None:
+            return cls(product, group_time_s)
+        return cls(with_first_group(product, superbias), group_time_s, first_group=True)
+
+    @property
+    def ngroups(self) -> int:
+        return int(self.product.ramp_dn.shape[0])
+
+    @property
+    def dark_reference(self) -> str:
+        """None: amigo processed the raw ramps itself, no pipeline dark was subtracted."""
+        return ""
+
+    def image(self, correction_dn: np.ndarray | None) -> ImageData:
+        """The exposure reduced to an image after subtracting ``correction_dn``
+        (m, ny, nx) DN per group from its values (``None``: none)."""
+        product = self.product
+        if correction_dn is not None:
+            product = dataclasses.replace(product, slope_dn=product.slope_dn - correction_dn)
+        return ImageData.from_calslope(
+            product, self.group_time_s, leading=1 if self.first_group else 0
+        )
+
+    def correction(self, values_dn: np.ndarray, image_dn_s: np.ndarray) -> np.ndarray:
+        """``D = S - t_g M`` (m, ny, nx), DN per group: the detector's values ``S`` (its
+        first group, when in the likelihood, then its slopes) less the linear image ``M``
+        (DN/s) accumulated over a group."""
+        return values_dn - image_dn_s[None] * self.group_time_s
+
+    def sigma(self) -> np.ndarray:
+        """(m, ny, nx) standard deviation of each value (DN per group)."""
+        return np.sqrt(np.einsum("iiyx->iyx", self.product.slope_cov_dn2))
+
+
+@dataclass(frozen=True)
+class Level2Input:
+    """A level-2 exposure (``_cal``/``_calints``/``_rateints``) for the full detector.
+
+    The STScI pipeline fitted each pixel's ramp with its weighted least-squares slope
+    (:mod:`amigo.model.detector.pipeline_slope`); the forward model is that estimator applied
+    to the base model's ramp, so the image expects ``est(R(theta))`` (DN/s) where the
+    linear fit models ``M(theta)``; the correction is ``D = est(R) - M``.
+
+    Attributes
+    ----------
+    data
+        The exposure reduced to an image (:meth:`ImageData.from_exposure`).
+    ngroups, nframes
+        NGROUPS and NFRAMES of the read-out.
+    group_time_s
+        TGROUP (s).
+    dark_reference
+        The dark reference file the pipeline subtracted (``R_DARK``): a base model's
+        per-group read offsets apply only behind the file they were measured behind
+        (:meth:`~amigo.model.base.BaseModel.dark_residual_for`).
+    """
+
+    data: ImageData
+    ngroups: int
+    nframes: int
+    group_time_s: float
+    dark_reference: str = ""
+
+    @property
+    def first_group(self) -> bool:
+        """False: the pipeline's slope has no first group to add (the model's slopes go
+        through its estimator)."""
+        return False
+
+    def image(self, correction_dn_s: np.ndarray | None) -> ImageData:
+        """The image less ``correction_dn_s`` (ny, nx) DN/s (``None``: as read)."""
+        if correction_dn_s is None:
+            return self.data
+        corrected = np.where(self.data.mask, self.data.data - correction_dn_s, 0.0)
+        return dataclasses.replace(self.data, data=corrected)
+
+    def correction(self, slopes_dn: np.ndarray, image_dn_s: np.ndarray) -> np.ndarray:
+        """``D = est(R) - M`` (ny, nx), DN/s: the pipeline's slope of the base model's
+        ramp (its group differences ``slopes_dn``, (m, ny, nx) DN per group, summed from
+        zero: the estimator only sees differences) less the linear image."""
+        from amigo.model.detector.pipeline_slope import pipeline_group_slope
+
+        per_group = pipeline_group_slope(
+            jnp.asarray(slopes_dn), self.group_time_s, GAIN_E_PER_DN, self.nframes
+        )
+        return np.asarray(per_group, np.float64) / self.group_time_s - image_dn_s
+
+    def sigma(self) -> np.ndarray:
+        """(1, ny, nx) standard deviation of the image (DN/s)."""
+        return self.data.error[None]
+
+    def with_variance(self, variance_dn_s2: np.ndarray) -> Level2Input:
+        """The same image with ``variance_dn_s2`` (ny, nx), (DN/s)^2, added to its
+        pixels' variance: noise its ERR does not state (the dark reference's, see
+        :meth:`amigo.model.base.BaseModel.dark_offset_terms`)."""
+        error = np.sqrt(self.data.error**2 + np.where(self.data.mask, variance_dn_s2, 0.0))
+        return dataclasses.replace(self, data=dataclasses.replace(self.data, error=error))
+
+
+@eqx.filter_jit
+def _slopes_and_image(
+    base: BaseModel,
+    instrument: Instrument,
+    setup: FilterSetup,
+    psfs: Array,
+    anchor: Array,
+    theta: Float[Array, " n"],
+    electrons_per_dn_s: Array,
+    ngroups: int,
+    first_group: bool = False,
+) -> tuple[Float[Array, "m 80 80"], Float[Array, "80 80"]]:
+    """The base model's slopes (DN per group; with ``first_group``, the first group's
+    value in front of them) and the fit's linear image (DN/s) of one exposure with local
+    vector ``theta = [x, y, log_flux, slope, jitter, latents]``."""
+    optical = local_illuminance(theta, instrument, setup, psfs, anchor)
+    detector = local_detector(theta, instrument)
+    unit = detector.illuminance(optical)  # sums to the in-field fraction
+    flux = jnp.exp(theta[2])
+    # The linear image exactly as the refit models it (IPC included where the detector
+    # has it), so that D = S - t_g M and the refit's M are the same M.
+    image = detector(optical, flux)
+    # The ramp model runs in the base model's precision (its network is float32), whatever
+    # the precision of the optics (float64 when x64 is on).
+    electrons = (unit * (flux * electrons_per_dn_s)).astype(base.ramp.flat.dtype)
+    if first_group:
+        return base.group_values(electrons, ngroups), image
+    return base.slopes(electrons, ngroups), image
+
+
+class RampDetector:
+    """The base model's detector in front of a filter's image fit (see module notes).
+
+    Parameters
+    ----------
+    base
+        Base model whose ramp and read models predict the slopes; with its network, or
+        without (``with_linear_detector``: linear charge accumulation, flat, IPC and
+        non-linearity kept) for ``--detector linear``.
+    inputs
+        The exposures by :attr:`FitExposure.name`: :class:`RampInput` (calslope files,
+        the correction on the slopes) or :class:`Level2Input` (level-2 images, the
+        correction through the pipeline's slope estimator on the image; their variance
+        gains what the base model does not know of the dark reference's offsets,
+        ``added_sigma_dn_s`` holds its median per image).
+    tolerance, max_rounds, refit_iterations
+        Convergence of the correction and Gauss-Newton iterations per refit (see
+        :func:`fit_through_detector`).
+    """
+
+    def __init__(
+        self,
+        base: BaseModel,
+        inputs: dict[str, RampInput | Level2Input],
+        tolerance: float = DEFAULT_TOLERANCE,
+        max_rounds: int = DEFAULT_MAX_ROUNDS,
+        refit_iterations: int = DEFAULT_REFIT_ITERATIONS,
+    ) -> None:
+        self.base = base
+        # Level-2 images carry the dark reference's noise, which their ERR leaves out: the
+        # part of it the base model does not know joins each pixel's variance.
+        self.added_sigma_dn_s: dict[str, float] = {}
+        self.inputs = dict(inputs)
+        self.originals = dict(inputs)
+        # What the model's offsets add to each level-2 image (DN/s), for the check that
+        # the image has them (check_dark_patterns), and its measured amplitude.
+        self.patterns: dict[str, np.ndarray] = {}
+        self.pattern_amplitudes: dict[str, tuple[float, float]] = {}
+        for name, ramp in inputs.items():
+            if isinstance(ramp, Level2Input):
+                pattern, variance = base.dark_offset_terms(
+                    ramp.dark_reference, ramp.data.data, ramp.ngroups, ramp.group_time_s,
+                    ramp.nframes,
+                )  # fmt: skip
+                if pattern is not None:
+                    self.patterns[name] = pattern
+                if np.any(variance > 0):
+                    self.inputs[name] = ramp.with_variance(variance)
+                    used = ramp.data.mask
+                    self.added_sigma_dn_s[name] = float(np.median(np.sqrt(variance[used])))
+        self.tolerance = tolerance
+        self.max_rounds = max_rounds
+        self.refit_iterations = refit_iterations
+
+    @property
+    def mode(self) -> str:
+        """``"full"`` with the charge-migration network, ``"linear"`` without."""
+        return "linear" if self.base.linear else "full"
+
+    def check_dark_patterns(self, fit: FilterFit, params: FitParams) -> list[str]:
+        """Measure, in each level-2 image the model's read offsets apply to, the amplitude
+        of their pattern in the halo at ``params`` (:func:`pattern_amplitude`; 1: there as
+        the model says, 0: absent); images where it is below :data:`PATTERN_THRESHOLD`
+        are fitted from now on as images without a subtracted dark (neither the offsets
+        nor their variance: e.g. a simulation whose header names the dark file). Returns
+        the names of those images; the amplitudes go to ``pattern_amplitudes``."""
+        models = np.asarray(fit.models(params), np.float64)
+        dropped = []
+        for e, exposure in enumerate(fit.exposures):
+            name = exposure.name
+            pattern = self.patterns.get(name)
+            if pattern is None or name in self.pattern_amplitudes:
+                continue
+            image = exposure.image
+            # The fit's residual holds the data less the model with its offsets: adding
+            # the pattern back gives what the data say of it.
+            residual = image.data - models[e] + pattern
+            halo = image.mask & (models[e] < HALO_FRACTION * models[e][image.mask].max())
+            amplitude = pattern_amplitude(residual, pattern, image.error**2, halo)
+            self.pattern_amplitudes[name] = amplitude
+            if not amplitude[0] > PATTERN_THRESHOLD:
+                self.inputs[name] = dataclasses.replace(self.originals[name], dark_reference="")
+                self.added_sigma_dn_s.pop(name, None)
+                dropped.append(name)
+        return dropped
+
+    def corrections(self, fit: FilterFit, params: FitParams) -> list[np.ndarray]:
+        """The correction ``D`` of every exposure at ``params``: (m, 80, 80) ``S - t_g M``
+        in DN per group for calslope inputs, (80, 80) ``est(R) - M`` in DN/s for level-2."""
+        setup = fit.setup.with_band_taper(params.optics.band_taper_per_um2)
+        instrument = fit.instrument.with_geometry(params.optics.geometry)
+        anchor = fit.anchor.astype(setup.wavelengths_m.dtype)
+        psfs = psfs_of(instrument, setup, params.optics, anchor)
+        gain = self.base.read.gain_e_per_dn
+        out = []
+        for e, exposure in enumerate(fit.exposures):
+            ramp = self.inputs[exposure.name]
+            # Electrons per integration for 1 DN/s: reads at t_g, 2 t_g, ... ngroups t_g.
+            scale = jnp.asarray(gain * ramp.ngroups * ramp.group_time_s, setup.wavelengths_m.dtype)
+            theta = local_vector(params, e, int(fit.source_index[e]))
+            base = self.base.dark_residual_for(ramp.dark_reference)
+            slopes, image = _slopes_and_image(
+                base, instrument, setup, psfs, anchor, theta, scale, ramp.ngroups,
+                ramp.first_group,
+            )  # fmt: skip
+            out.append(
+                ramp.correction(np.asarray(slopes, np.float64), np.asarray(image, np.float64))
+            )
+        return out
+
+    def corrected(
+        self, exposures: list[FitExposure], corrections: list[np.ndarray]
+    ) -> list[FitExposure]:
+        """The exposures with their slopes corrected and reduced to images again."""
+        return [
+            dataclasses.replace(e, image=self.inputs[e.name].image(d))
+            for e, d in zip(exposures, corrections, strict=True)
+        ]
+
+    def change(
+        self, exposures: list[FitExposure], old: list[np.ndarray], new: list[np.ndarray]
+    ) -> float:
+        """Whitened rms of ``new - old`` over the values in the likelihood (the largest
+        over exposures), in units of each value's own standard deviation (a slope's, or
+        a level-2 pixel's)."""
+        worst = 0.0
+        for exposure, a, b in zip(exposures, old, new, strict=True):
+            sigma = self.inputs[exposure.name].sigma()
+            delta = np.reshape(b - a, sigma.shape)
+            used = np.broadcast_to(exposure.image.mask, sigma.shape)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                z = delta[used] / sigma[used]
+            z = z[np.isfinite(z)]
+            worst = max(worst, float(np.sqrt(np.mean(z * z))) if z.size else 0.0)
+        return worst
+
+
+@dataclass(frozen=True)
+class DetectorRecord:
+    """How the correction converged (``fit_summary.json``'s per-filter record).
+
+    Attributes
+    ----------
+    mode
+        ``"full"`` or ``"linear"``.
+    changes
+        Whitened rms change of the correction in each round.
+    converged
+        Whether the last change was below the tolerance.
+    seconds
+        Wall time of the ramp-model passes and refits.
+    """
+
+    mode: str
+    changes: tuple[float, ...]
+    converged: bool
+    seconds: float
+
+
+def fit_through_detector(
+    instrument: Instrument,
+    setup: FilterSetup,
+    exposures: list[FitExposure],
+    config: FitConfig,
+    detector: RampDetector,
+    label: str = "fit",
+) -> tuple[FilterFit, FilterFitResult, DetectorRecord]:
+    """Fit a filter's exposures with the base model's detector (see module notes).
+
+    The first correction is taken at the starting point (point sources at their
+    cross-correlation positions), the full fit runs on the corrected slopes, and each
+    later round recomputes the correction at the current optimum and refits from it by
+    Levenberg-Marquardt (``detector.refit_iterations`` steps at most). Returns the fit
+    whose data carry the correction at the final parameters (so its residuals are the
+    full model's), the result, and the record.
+    """
+    start = time.perf_counter()
+    fit = FilterFit(instrument, setup, exposures)
+    corrections = detector.corrections(fit, fit.initial_params())
+    step(f"{label}: {detector.mode} detector: correction at the starting point computed")
+    fit = fit.with_exposures(detector.corrected(exposures, corrections))
+    result = fit.fit(config, label=label)
+    for name in detector.check_dark_patterns(fit, result.params):
+        amplitude, error = detector.pattern_amplitudes[name]
+        step(
+            f"{label}: {name}: the dark residual's pattern is not in the image (amplitude "
+            f"{amplitude:.2f} +- {error:.2f}): fitted without it"
+        )
+    changes: list[float] = []
+    refit = dataclasses.replace(
+        config.newton,
+        max_iterations=min(config.newton.max_iterations, detector.refit_iterations),
+    )
+    for round_ in range(1, detector.max_rounds + 1):
+        new = detector.corrections(fit, result.params)
+        changes.append(detector.change(fit.exposures, corrections, new))
+        corrections = new
+        # Same anchor: a fit that recomputed the PSFs elsewhere would not be the model
+        # whose parameters `result` holds (it doubled the chi2 of the refits).
+        fit = fit.with_exposures(detector.corrected(exposures, corrections))
+        step(f"{label}: detector round {round_}: correction changed by {changes[-1]:.3g} sigma")
+        last = round_ == detector.max_rounds or config.newton.max_iterations == 0
+        if changes[-1] < detector.tolerance or last:
+            break  # the data now carry the correction at the final parameters
+        newton = levenberg_marquardt(fit, result.params, refit, f"{label} round {round_}")
+        result = FilterFitResult(
+            params=newton.params,
+            converged=newton.converged,
+            iterations=result.iterations + newton.iterations,
+            loss_history=np.concatenate([result.loss_history, newton.loss_history]),
+            loss_change=newton.loss_change,
+            newton_decrement=float(newton.decrement),
+            seconds=result.seconds + newton.seconds,
+            # The Fisher matrix depends on the parameters and the noise, not on the
+            # corrected data: it stays valid for the final round's fit.
+            fisher=newton.fisher,
+            exact_exposures=newton.exact_exposures,
+        )
+    converged = bool(changes) and changes[-1] < detector.tolerance
+    record = DetectorRecord(
+        mode=detector.mode,
+        changes=tuple(changes),
+        converged=converged,
+        seconds=time.perf_counter() - start,
+    )
+    return fit, result, record

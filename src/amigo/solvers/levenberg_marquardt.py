@@ -1,0 +1,232 @@
+"""Levenberg-Marquardt (damped Gauss-Newton) with chord steps, for any least-squares problem.
+
+The solver sees a parameter vector and a :class:`Problem`: the loss ``L = chi2 / 2``, its
+gradient ``g`` (``-dL/dx``, the direction of descent) and the normal equations ``(F, g)``
+with the Fisher (Gauss-Newton) matrix ``F = J^T W J``. It knows nothing of images or
+instruments (:mod:`amigo.fitting.newton` builds the fit's problem).
+
+A step solves ``(F_s + mu I) d_s = g_s`` in Jacobi-scaled coordinates (``F_s = D^-1 F D^-1``,
+``D = sqrt(diag F)``). Exact degeneracies are dropped by an eigenvalue floor
+(:data:`EIGEN_FLOOR`); ``mu`` grows when a step does not lower the loss and shrinks when it
+does. The natural gradient with the *full* Fisher matrix, taken with a unit step, is
+exactly this Gauss-Newton step.
+
+Convergence is the Newton decrement ``g^T F^+ g`` (twice the decrease of ``L`` that a full
+step would give) per group (an exposure, in the fits), below the settings' tolerance times
+``max(1, 2 L / n_values)``.
+
+Chord steps
+-----------
+Where a Fisher matrix costs much more than a gradient (the fits: seconds against a
+fraction of a second), the solver keeps the last Fisher matrix and takes up to
+``settings.chord_steps`` steps with fresh gradients only (the frozen-Jacobian, or chord,
+Gauss-Newton method; it converges linearly at the rate at which ``F`` changes). When a
+chord step's decrement estimate falls below the tolerance, the next normal equations are
+asked for in float64 (``problem.float64 = True``): if they confirm convergence, that exact
+Fisher matrix at the final point is returned with the solution.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from amigo.progress import step
+
+#: A chord step whose fall of ``L`` is below this fraction of the fall the stale Fisher
+#: matrix predicts (half the decrement estimate) calls for new Jacobians. Low on purpose:
+#: far from the noise the Gauss-Newton model itself over-predicts every step (fresh
+#: Jacobians predict no better), and a chord step costs ~1/50 of a Jacobian.
+CHORD_EFFICIENCY = 0.05
+#: Eigenvalues of the Jacobi-scaled Fisher matrix below this fraction of the largest are
+#: treated as exact degeneracies: the Jacobians are float32 (~1e-7 relative noise), so
+#: smaller eigenvalues are set by rounding, and the gradient's rounding noise along them
+#: would dominate both the step and the Newton decrement.
+EIGEN_FLOOR = 1e-7
+
+
+class Problem(Protocol):
+    """A least-squares problem as :func:`minimise` sees it (float64 NumPy vectors)."""
+
+    #: Values in the likelihood (pixels), for the tolerance's ``chi2 / n`` scaling.
+    n_values: int
+    #: Independent groups (exposures) the decrement is normalised by.
+    n_groups: int
+    #: Whether the model runs in float64; the solver switches it on near the optimum.
+    float64: bool
+
+    def loss(self, vector: np.ndarray) -> float:
+        """``L = chi2 / 2`` (priors included) at ``vector``."""
+        ...
+
+    def gradient(self, vector: np.ndarray) -> np.ndarray:
+        """``-dL/dx`` at ``vector``."""
+        ...
+
+    def normal_equations(self, vector: np.ndarray, label: str) -> tuple[np.ndarray, np.ndarray]:
+        """The Fisher matrix ``F`` and the gradient ``g`` at ``vector``."""
+        ...
+
+
+class Settings(Protocol):
+    """What :func:`minimise` reads of its settings (e.g. :class:`amigo.fitting.newton.NewtonConfig`)."""
+
+    max_iterations: int
+    tolerance: float
+    damping: float
+    chord_steps: int
+    float64_check: bool
+
+
+class FisherSolve:
+    """``(F_s + mu I)^-1 g_s`` for one Fisher matrix and any gradient and damping.
+
+    In Jacobi-scaled coordinates (``F_s = D^-1 F D^-1``, ``D = sqrt(diag F)``), on the
+    parameters with information (``diag F > 0``; the others get no step), with exact
+    degeneracies (eigenvalues below :data:`EIGEN_FLOOR` of the largest) dropped. The
+    eigendecomposition is done once: a Levenberg-Marquardt iteration solves with the same
+    matrix for several dampings and, in chord steps, several gradients.
+    """
+
+    def __init__(self, fisher: np.ndarray) -> None:
+        diag = np.diag(fisher)
+        self.active = np.nonzero(diag > 0)[0]
+        self.size = fisher.shape[0]
+        self.root = np.sqrt(diag[self.active])
+        scaled = fisher[np.ix_(self.active, self.active)] / np.outer(self.root, self.root)
+        evals, self.evecs = np.linalg.eigh(scaled)
+        self.keep = evals > EIGEN_FLOOR * evals.max() if evals.size else evals > 0
+        self.evals = np.where(self.keep, evals, 1.0)
+
+    def __call__(self, grad: np.ndarray, damping: float = 0.0) -> np.ndarray:
+        inv = np.where(self.keep, 1.0 / (self.evals + damping), 0.0)
+        scaled = self.evecs @ (inv * (self.evecs.T @ (grad[self.active] / self.root)))
+        step = np.zeros(self.size)
+        step[self.active] = scaled / self.root
+        return step
+
+
+def marginal_errors(fisher: np.ndarray | None, indices: np.ndarray) -> np.ndarray:
+    """Standard errors ``sqrt((F^+)_ii)`` of the global vector's entries ``indices``
+    (all others marginalised), from a fit's Fisher matrix (priors included); exact
+    degeneracies are dropped as in the solver. NaN where ``fisher`` is ``None`` or the
+    parameter has no information."""
+    indices = np.asarray(indices, int)
+    if fisher is None:
+        return np.full(indices.shape, np.nan)
+    solver = FisherSolve(fisher)
+    out = np.full(indices.shape, np.nan)
+    for k, i in enumerate(indices):
+        unit = np.zeros(fisher.shape[0])
+        unit[i] = 1.0
+        variance = float(solver(unit)[i])
+        if variance > 0:
+            out[k] = np.sqrt(variance)
+    return out
+
+
+@dataclass
+class Solution:
+    """Outcome of :func:`minimise`: the final vector, and ``fisher`` (float64, at the
+    final vector) when float64 normal equations confirmed convergence, else ``None``."""
+
+    vector: np.ndarray
+    converged: bool
+    iterations: int
+    chord_steps: int
+    decrement: float
+    history: list[float]
+    fisher: np.ndarray | None
+
+
+def minimise(problem: Problem, vector: np.ndarray, config: Settings, label: str) -> Solution:
+    """Levenberg-Marquardt with chord steps from ``vector`` (see module notes)."""
+    n_groups = float(problem.n_groups)
+    loss = problem.loss(vector)
+    history = [loss]
+    damping = config.damping
+    decrement = np.inf
+    estimate = np.inf  # decrement predicted with the last Fisher matrix
+    converged = False
+    iteration = chords = 0
+    fisher = None
+    exact = False  # whether `fisher` is float64 and was evaluated at `vector`
+
+    def tolerance() -> float:
+        return config.tolerance * max(1.0, 2.0 * loss / problem.n_values)
+
+    def damped_step(solver, grad) -> float | None:
+        """A Levenberg-Marquardt step from ``vector``: the fall of the loss, or None if
+        no damping makes the loss fall."""
+        nonlocal vector, loss, damping
+        for _ in range(12):
+            trial = vector + solver(grad, damping)
+            trial_loss = problem.loss(trial)
+            if np.isfinite(trial_loss) and trial_loss < loss:
+                fall = loss - trial_loss
+                vector, loss = trial, trial_loss
+                damping = max(damping / 3.0, 1e-9)
+                history.append(loss)
+                return fall
+            damping *= 4.0
+        return None
+
+    def to_float64() -> None:
+        """From here on the model runs in float64 (the loss is re-evaluated in it)."""
+        nonlocal loss
+        if config.float64_check and not problem.float64:
+            problem.float64 = True
+            loss = problem.loss(vector)
+            history.append(loss)
+
+    for iteration in range(1, config.max_iterations + 1):
+        if estimate < tolerance():
+            to_float64()  # these Jacobians are expected to confirm convergence
+        fisher, grad = problem.normal_equations(vector, label)
+        exact = problem.float64
+        solver = FisherSolve(fisher)
+        decrement = float(grad @ solver(grad)) / n_groups
+        step(
+            f"{label}: Gauss-Newton {iteration}: chi2 {2 * loss:.2f}, "
+            f"Newton decrement {decrement:.3g} per exposure"
+        )
+        if decrement < tolerance():
+            converged = True
+            break
+        if damped_step(solver, grad) is None:
+            if problem.float64 or not config.float64_check:
+                step(f"{label}: no damped step lowers the loss; stopping")
+                break
+            # float32 may not resolve the remaining fall of the loss: go on in float64.
+            to_float64()
+            step(f"{label}: continuing in float64")
+            estimate = np.inf
+            continue
+        exact = False
+        estimate = np.inf
+        for _ in range(config.chord_steps):
+            grad = problem.gradient(vector)
+            estimate = float(grad @ solver(grad)) / n_groups
+            if estimate < tolerance():
+                break  # new Jacobians (float64) to confirm
+            fall = damped_step(solver, grad)
+            if fall is None:
+                break
+            chords += 1
+            if fall < CHORD_EFFICIENCY * 0.5 * estimate * n_groups:
+                break  # the stale Fisher matrix no longer predicts the fall: new Jacobians
+        step(
+            f"{label}: {chords} chord steps so far, chi2 {2 * loss:.2f}, "
+            f"decrement estimate {estimate:.3g} per exposure"
+        )
+    return Solution(
+        vector=vector,
+        converged=converged,
+        iterations=iteration,
+        chord_steps=chords,
+        decrement=decrement,
+        history=history,
+        fisher=fisher if (converged and exact) else None,
+    )
