@@ -8,7 +8,7 @@ covariance where every slope averages >= 10 m integrations, the pooled estimate
 otherwise) and with its diagonal. Prints a table
 per exposure and per filter, and writes the numbers as JSON.
 
-The fit is the training's ramp-level point-source fit (amigo.training.trainer.fit_exposure):
+The fit is the training's ramp-level point-source fit (amigo.training.exposure.fit_exposure):
 a cross-check of ``amigo fit`` with nothing (latent visibilities, the calibrators'
 wavefront) to absorb or add to the detector's residuals.
 
@@ -30,7 +30,7 @@ import numpy as np
 
 from amigo.likelihood.slopes import SlopeData
 from amigo.model.base import default_model_path, load_base_model
-from amigo.training.trainer import fit_exposure
+from amigo.training.exposure import fit_exposure
 
 
 def main() -> None:

@@ -52,7 +52,8 @@ def main() -> None:
 
     from amigo.model.base import level2_model_path, load_base_model
     from amigo.model.optics import cast
-    from amigo.training.trainer import Trainer, TrainingData, TrainSettings, machine_description
+    from amigo.training.data import TrainingData, TrainSettings
+    from amigo.training.trainer import Trainer, machine_description
 
     dtype = jnp.float64 if args.float64 else jnp.float32
     start = time.perf_counter()

@@ -26,19 +26,11 @@ from amigo.likelihood.slopes import (
     whiten,
 )
 from amigo.model.base import BaseModel, BaseModelConfig
-from amigo.training.trainer import (
-    FisherMomentum,
-    Trainer,
-    TrainingData,
-    TrainSettings,
-    dark_fisher,
-    fisher_diagonal,
-    physical_mask,
-    pixel_fisher,
-    pixel_mask,
-    pixel_newton,
-    split,
-)
+from amigo.solvers.natural_gradient import FisherMomentum
+from amigo.training.data import TrainingData, TrainSettings
+from amigo.training.fisher import dark_fisher, fisher_diagonal, pixel_fisher, pixel_newton
+from amigo.training.groups import physical_mask, pixel_mask, split
+from amigo.training.trainer import Trainer
 
 SMALL = BaseModelConfig(
     filters=("F430M",), shape=(16, 16), pupil_npix=48, n_wavelengths=2, n_substeps=4

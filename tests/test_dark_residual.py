@@ -27,7 +27,7 @@ from amigo.model.detector.dark_residual import (
 )
 from amigo.model.detector.pipeline_slope import MODEL_READ_NOISE_CDS_DN
 from amigo.model.detector.read import ReadModel, group_offsets
-from amigo.training.trainer import solve_dark_residual
+from amigo.training.exposure import solve_dark_residual
 from test_pipeline_slope import _stcal
 
 TGROUP = 0.07544

@@ -82,7 +82,10 @@ def train(
     from amigo._version import source_commit
 
     # Taken now: the code that trains is the code imported at the start.
-    record = {"source_commit": source_commit(), "float": "float64" if float64 else "float32"}
+    record: dict[str, Any] = {
+        "source_commit": source_commit(),
+        "float": "float64" if float64 else "float32",
+    }
     record.update(provenance or {})
     # Unusable inputs fail here, in seconds, before the model's modules are imported
     # (tens of seconds on a small machine).
@@ -96,11 +99,11 @@ def train(
 
         from amigo.model.base import BaseModelConfig, load_base_model, read_metadata
         from amigo.model.optics import cast
-        from amigo.training.trainer import TrainingData, TrainSettings
+        from amigo.training.data import TrainingData, TrainSettings
         from amigo.training.trainer import train as train_model
 
         dtype = jnp.float64 if float64 else jnp.float32
-        optics = {
+        optics: dict[str, Any] = {
             k: v
             for k, v in (("pupil_npix", pupil_npix), ("defocus_method", defocus_method))
             if v is not None
@@ -136,7 +139,8 @@ def train(
         )
     from amigo.plots.optics import save
     from amigo.plots.training import loss_curve_figure
-    from amigo.training.trainer import History, loss_curve_path
+    from amigo.training.data import History
+    from amigo.training.trainer import loss_curve_path
 
     curve = loss_curve_path(out)
     save(loss_curve_figure(History(**metadata["history"]), title=out.name), curve)

@@ -11,7 +11,7 @@ def loss_curve_figure(history, title: str = "") -> Figure:
     """The calibration losses (per batch step and per epoch) and the validation loss (per
     epoch), chi2/2 per value, against the step; dashed lines where a stage begins.
 
-    ``history`` is an :class:`amigo.training.trainer.History`.
+    ``history`` is an :class:`amigo.training.data.History`.
     """
     fig = Figure(figsize=(7, 4.2), layout="constrained")
     FigureCanvasAgg(fig)

@@ -51,7 +51,7 @@ class Problem(Protocol):
     """A least-squares problem as :func:`minimise` sees it (float64 NumPy vectors)."""
 
     #: Values in the likelihood (pixels), for the tolerance's ``chi2 / n`` scaling.
-    n_values: int
+    n_values: float
     #: Independent groups (exposures) the decrement is normalised by.
     n_groups: int
     #: Whether the model runs in float64; the solver switches it on near the optimum.
@@ -73,11 +73,17 @@ class Problem(Protocol):
 class Settings(Protocol):
     """What :func:`minimise` reads of its settings (e.g. :class:`amigo.fitting.newton.NewtonConfig`)."""
 
-    max_iterations: int
-    tolerance: float
-    damping: float
-    chord_steps: int
-    float64_check: bool
+    # Read-only (properties), so that a frozen dataclass satisfies the protocol.
+    @property
+    def max_iterations(self) -> int: ...
+    @property
+    def tolerance(self) -> float: ...
+    @property
+    def damping(self) -> float: ...
+    @property
+    def chord_steps(self) -> int: ...
+    @property
+    def float64_check(self) -> bool: ...
 
 
 class FisherSolve:

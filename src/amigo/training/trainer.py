@@ -34,15 +34,21 @@ The paper's "Base Model Training and Calibration", as code:
   the model's ramp (:mod:`amigo.likelihood.slopes`), so the network still learns the
   brighter-fatter bending, and the per-pixel group learnt from the calibrators is the
   *residual sensitivity* the pipeline's flat leaves (in place of the dark current), with
-  a Gaussian prior of width :attr:`TrainSettings.sensitivity_prior` around one: dithers
+  a Gaussian prior of width :attr:`~amigo.training.data.TrainSettings.sensitivity_prior` around one: dithers
   move the PSF over the pixels and so tell a pixel's response from the PSF's shape.
 * **Dark residual (level 2).** After the steps, the per-pixel offsets of each group read
   that the pipeline's dark subtraction left (:mod:`amigo.model.detector.dark_residual`) are
   solved in closed form from the calibrators' residuals at their fitted states, under a
-  Gaussian prior of :attr:`TrainSettings.dark_prior_dn` per read, and stored in the model
-  with the dark reference file they belong to (:func:`solve_dark_residual`).
-* **Loss curve.** :func:`train` draws the calibration and validation losses against the
-  step into ``MODEL_loss.png`` (:func:`loss_curve_path`).
+  Gaussian prior of :attr:`~amigo.training.data.TrainSettings.dark_prior_dn` per read, and stored in the model
+  with the dark reference file they belong to (:func:`~amigo.training.exposure.solve_dark_residual`).
+* **Loss curve.** ``amigo.train`` draws the calibration and validation losses against
+  the step into ``MODEL_loss.png`` (:func:`loss_curve_path`).
+
+The module holds the :class:`Trainer` and :func:`train`; the parameter groups are in
+:mod:`~amigo.training.groups`, the Fisher information in :mod:`~amigo.training.fisher`
+(the momentum optimiser in :mod:`amigo.solvers.natural_gradient`), the settings, data and
+state in :mod:`~amigo.training.data`, and the per-exposure and closed-form pieces in
+:mod:`~amigo.training.exposure`.
 
 Everything is float32 unless the caller enables 64-bit JAX (the metadata records it).
 """
@@ -53,8 +59,7 @@ import functools
 import platform
 import sys
 import time
-from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -65,21 +70,13 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 from jax.flatten_util import ravel_pytree
-from jaxtyping import Array, Float
 
-from amigo import niriss
 from amigo._version import __version__, source_commit
 from amigo.errors import InputError
 from amigo.likelihood.slopes import (
     FitStatistics,
-    FlatParams,
-    PointSourceParams,
-    SlopeData,
     fit_statistics,
     initial_params,
-    model_slopes,
-    whiten,
-    whitened_residuals,
 )
 from amigo.model.base import (
     BaseModel,
@@ -91,507 +88,33 @@ from amigo.model.base import (
     save_base_model,
     write_leaves,
 )
-from amigo.model.detector.dark_residual import DEFAULT_PRIOR_DN, OffsetSystem, offset_jacobian
-from amigo.model.detector.pipeline_slope import pipeline_group_slope
 from amigo.model.detector.ramp import ChargeMigrationNetwork
 from amigo.model.detector.reset import Superbias
 from amigo.progress import step as report_step
-
-# ---------------------------------------------------------------------------- parameter groups
-#
-# Physical and pixel parameters are handled on the *linear* view of the model (network
-# subtree None), so that their trees have one structure whether or not the network is on.
-
-
-def _false_like(tree: Any) -> Any:
-    return jax.tree.map(lambda _: False, tree)
-
-
-def _physical_leaves(m: BaseModel) -> tuple:
-    """The physical parameters trained on calibration exposures, in a fixed order (the
-    selector shared by :func:`physical_mask` and :func:`physical_step_limits`)."""
-    return (
-        m.zernikes_nm,
-        m.defocus_nm,
-        m.hole_centres_m,
-        m.hole_sizes_m,
-        m.detector.jitter_arcsec,
-        m.detector.rotation_deg,
-        m.detector.anisotropy,
-        m.detector.skew_deg,
-        m.detector.scale,
-        m.ramp.intra_pixel.coefficients,
-    )
-
-
-def physical_mask(base: BaseModel, filter_name: str | None = None) -> BaseModel:
-    """Boolean pytree over ``base.with_linear_detector()``: True on the physical
-    parameters (trained on calibrators); only one filter's optics if ``filter_name``."""
-    linear = base.with_linear_detector()
-
-    def on(k: str) -> bool:
-        return filter_name is None or k == filter_name
-
-    return eqx.tree_at(
-        _physical_leaves,
-        _false_like(linear),
-        (
-            {k: on(k) for k in linear.zernikes_nm},
-            {k: on(k) for k in linear.defocus_nm},
-            True,
-            True,
-            True,
-            True,
-            True,
-            True,
-            True,
-            True,
-        ),
-    )
-
-
-def physical_step_limits(base: BaseModel) -> BaseModel:
-    """Largest move of each physical parameter in one step (the trust region), shaped
-    like ``split(base, physical_mask(base))``: 2 nm of aberration, 5 nm of defocus, 2 mm
-    of hole position, 1 mm of hole size, 1 mas of jitter, 0.05 deg of rotation, 5e-4 of anisotropy, 0.05 deg
-    of skew, 5e-4 of scale, 0.05 of intra-pixel response."""
-    physical = split(base, physical_mask(base))
-    limits = (
-        {k: jnp.full_like(v, 2.0) for k, v in physical.zernikes_nm.items()},
-        {k: jnp.full_like(v, 5.0) for k, v in physical.defocus_nm.items()},
-        jnp.full_like(physical.hole_centres_m, 2e-3),
-        jnp.full_like(physical.hole_sizes_m, 1e-3),
-        jnp.full_like(physical.detector.jitter_arcsec, 1e-3),
-        jnp.full_like(physical.detector.rotation_deg, 0.05),
-        jnp.full_like(physical.detector.anisotropy, 5e-4),
-        jnp.full_like(physical.detector.skew_deg, 0.05),
-        jnp.full_like(physical.detector.scale, 5e-4),
-        jnp.full_like(physical.ramp.intra_pixel.coefficients, 0.05),
-    )
-    return eqx.tree_at(
-        _physical_leaves,
-        physical,
-        limits,
-    )
-
-
-def pixel_mask(base: BaseModel) -> BaseModel:
-    """Boolean pytree over the linear view: True on the flat field and non-linearity
-    (trained on flat fields only)."""
-    linear = base.with_linear_detector()
-    return eqx.tree_at(
-        lambda m: (m.ramp.flat, m.read.nonlinearity), _false_like(linear), (True, True)
-    )
-
-
-def _calibrator_pixels(m: BaseModel):
-    """The per-pixel leaf trained on the calibrators: the dark current of a model of raw
-    ramps, the residual sensitivity (the flat) of a model behind the pipeline."""
-    return m.ramp.flat if m.config.data_level == "level2" else m.read.dark_e_per_group
-
-
-def dark_mask(base: BaseModel) -> BaseModel:
-    """Boolean pytree over the linear view: True on the per-pixel leaf trained on the
-    calibrators (:func:`_calibrator_pixels`: the dark current, or for a level-2 model
-    the residual sensitivity)."""
-    linear = base.with_linear_detector()
-    return eqx.tree_at(_calibrator_pixels, _false_like(linear), True)
-
-
-def _seen_by(datasets: Sequence[SlopeData]) -> np.ndarray:
-    """(ny, nx) True where a pixel enters the likelihood of any of ``datasets``."""
-    return np.logical_or.reduce([np.asarray(d.used) > 0 for d in datasets])
-
-
-def _less_common_mode(step: Array, used: np.ndarray) -> Array:
-    """A per-pixel step less its mean over the ``used`` pixels (the others as they are)."""
-    return jnp.where(used, step - jnp.mean(step[used]), step)
-
-
-def pin_mask_centroid(base: BaseModel) -> BaseModel:
-    """``base`` with its hole centres moved together so that their mean is the nominal
-    mask's.
-
-    Moving the whole mask across the pupil multiplies the focal-plane field by a phase
-    ramp: the image does not change, only which part of the wavefront each hole samples,
-    which the per-hole Zernikes describe anyway. The data do not constrain that common
-    shift, so training let it drift (19 mm across 400 steps of the first real-data model,
-    2.4 % of a hole); pinning it leaves the 12 relative positions free.
-    """
-    nominal = jnp.asarray(niriss.HOLE_CENTRES_M, base.hole_centres_m.dtype)
-    centres = base.hole_centres_m
-    shift = jnp.mean(centres - nominal, axis=0)
-    return eqx.tree_at(lambda m: m.hole_centres_m, base, centres - shift)
-
-
-def split(tree: BaseModel, mask: BaseModel) -> BaseModel:
-    """The leaves of ``tree`` (a model or a gradient) selected by ``mask`` (None elsewhere)."""
-    return eqx.filter(tree.with_linear_detector(), mask)
-
-
-def merge(base: BaseModel, part: BaseModel, mask: BaseModel) -> BaseModel:
-    """``base`` with the leaves selected by ``mask`` replaced by those of ``part``."""
-    rest = eqx.filter(base.with_linear_detector(), mask, inverse=True)
-    return eqx.combine(part, rest).with_network(base.ramp.network)
-
-
-# ---------------------------------------------------------------------------- compiled pieces
-
-
-def _per_layout(function):
-    """``eqx.filter_jit(function)``, called with every :class:`SlopeData` argument reduced
-    to what the computation reads (:meth:`SlopeData.layout`): the exposures of one filter
-    and number of groups then share one traced and compiled program. With the file name,
-    role and value count in the key, every exposure traced and lowered its own (seconds
-    each on a CPU: a training on 33 calibrator files traced each program 33 times)."""
-    compiled = eqx.filter_jit(function)
-
-    @functools.wraps(function)
-    def call(*args):
-        return compiled(*(a.layout() if isinstance(a, SlopeData) else a for a in args))
-
-    return call
-
-
-@_per_layout
-def _loss_and_grad(base: BaseModel, params: Any, data: SlopeData, cache: PupilCache):
-    """``(chi2 / 2, (d/dbase, d/dparams))`` of one exposure (compiled once per filter and
-    number of groups)."""
-
-    def loss(bp):
-        b, p = bp
-        return 0.5 * jnp.sum(whitened_residuals(model_slopes(b, cache, p, data), data) ** 2)
-
-    return eqx.filter_value_and_grad(loss)((base, params))
-
-
-@_per_layout
-def _model(base: BaseModel, params: Any, data: SlopeData, cache: PupilCache):
-    return model_slopes(base, cache, params, data)
-
-
-@_per_layout
-def _fisher(base: BaseModel, params: Any, data: SlopeData, cache: PupilCache, mask: Any):
-    linear = base.with_linear_detector()
-    diff, static = eqx.partition((linear, params), (mask, jax.tree.map(lambda _: True, params)))
-    vector, unravel = ravel_pytree(diff)
-
-    def residuals(v):
-        b, p = eqx.combine(unravel(v), static)
-        return whitened_residuals(model_slopes(b, cache, p, data), data).ravel()
-
-    jac = jax.jacfwd(residuals)(vector)  # (n_values, n_params)
-    return jac.T @ jac
-
-
-def fisher_matrix(
-    base: BaseModel, params: Any, data: SlopeData, cache: PupilCache, mask: Any
-) -> tuple[np.ndarray, np.ndarray]:
-    """Fisher (Gauss-Newton) matrix ``J^T J`` of the whitened residuals ``z`` of the
-    *linear-detector* model, from the exact Jacobian (forward mode, one column per
-    parameter), for the base-model leaves selected by ``mask`` (a
-    :func:`physical_mask`-like tree) and every per-exposure parameter.
-
-    Returns ``(F_base, F_params)``: the block of the selected base parameters, in the
-    order of ``ravel_pytree(split(base, mask))``, and the diagonal of the per-exposure
-    block (float64 NumPy).
-    """
-    # The linear view: one compiled function whether or not the network is on.
-    linear = base.with_linear_detector()
-    matrix = np.asarray(_fisher(linear, params, data, cache, mask), dtype=np.float64)
-    n_base = ravel_pytree(split(base, mask))[0].size
-    return matrix[:n_base, :n_base], np.diagonal(matrix)[n_base:]
-
-
-def fisher_diagonal(
-    base: BaseModel, params: Any, data: SlopeData, cache: PupilCache, mask: Any
-) -> tuple[Any, Any]:
-    """The diagonals of :func:`fisher_matrix`, shaped like ``split(base, mask)`` and
-    ``params``."""
-    f_base, f_params = fisher_matrix(base, params, data, cache, mask)
-    unravel_base = ravel_pytree(split(base, mask))[1]
-    unravel_params = ravel_pytree(params)[1]
-    return unravel_base(jnp.asarray(np.diagonal(f_base))), unravel_params(jnp.asarray(f_params))
-
-
-@_per_layout
-def pixel_fisher(
-    base: BaseModel, params: FlatParams, data: SlopeData
-) -> tuple[BaseModel, Float[Array, "ny nx"]]:
-    """Per-pixel 2 x 2 Fisher matrix of the flat field and the non-linearity from one
-    flat field: its diagonal, shaped like ``split(base, pixel_mask(base))``, and the
-    (ny, nx) cross term. A pixel's parameters act (IPC aside) on that pixel's slopes
-    only, so one forward-mode pass with a tangent of ones gives every pixel's derivative
-    at once. Under one light level the two are strongly correlated (the non-linearity
-    bends the ramp, the flat scales it): the cross term is what keeps a Newton step of
-    the pair from overshooting (see :func:`pixel_newton`)."""
-
-    def slopes(flat, nonlinearity):
-        b = eqx.tree_at(lambda m: (m.ramp.flat, m.read.nonlinearity), base, (flat, nonlinearity))
-        return model_slopes(b, None, params, data)  # type: ignore[arg-type]
-
-    primals = (base.ramp.flat, base.read.nonlinearity)
-    dz = []
-    for index in range(2):
-        tangents = tuple(
-            jnp.ones_like(p) if i == index else jnp.zeros_like(p) for i, p in enumerate(primals)
-        )
-        _, dslopes = jax.jvp(slopes, primals, tangents)
-        dz.append(whiten(dslopes, data))  # the derivative of W (data - model), up to sign
-    diagonal = tuple(jnp.sum(d**2, axis=1).reshape(data.shape) for d in dz)
-    cross = jnp.sum(dz[0] * dz[1], axis=1).reshape(data.shape)
-    mask = pixel_mask(base)
-    tree = eqx.tree_at(lambda m: (m.ramp.flat, m.read.nonlinearity), split(base, mask), diagonal)
-    return tree, cross
-
-
-def pixel_newton(grad: BaseModel, fisher: dict[str, Any], damping: float) -> BaseModel:
-    """``(F + damping diag F)^-1 g`` per pixel for the (flat, non-linearity) pair, ``F``
-    the per-pixel 2 x 2 Fisher matrix (``fisher``: ``"diag"`` shaped like ``grad``,
-    ``"cross"`` (ny, nx)); zero where a pixel is not constrained."""
-    a = fisher["diag"].ramp.flat * (1.0 + damping)
-    b = fisher["diag"].read.nonlinearity * (1.0 + damping)
-    c = fisher["cross"]
-    g_f, g_n = grad.ramp.flat, grad.read.nonlinearity
-    det = a * b - c**2
-    ok = (a > 0) & (b > 0) & jnp.isfinite(det) & (det > 0)
-    det = jnp.where(ok, det, 1.0)
-    step_f = jnp.where(ok, (b * g_f - c * g_n) / det, 0.0)
-    step_n = jnp.where(ok, (a * g_n - c * g_f) / det, 0.0)
-    return eqx.tree_at(lambda m: (m.ramp.flat, m.read.nonlinearity), grad, (step_f, step_n))
-
-
-@_per_layout
-def dark_fisher(
-    base: BaseModel, params: PointSourceParams, data: SlopeData, cache: PupilCache
-) -> BaseModel:
-    """Per-pixel Fisher diagonal of the calibrators' per-pixel leaf (the dark current, or
-    a level-2 model's residual sensitivity) from one calibration exposure, shaped like
-    ``split(base, dark_mask(base))`` (one forward-mode pass with a tangent of ones, as
-    :func:`pixel_fisher`; a pixel's dark charge or sensitivity, IPC and charge migration
-    aside, reaches only that pixel's slopes)."""
-
-    def slopes(value):
-        b = eqx.tree_at(_calibrator_pixels, base, value)
-        return model_slopes(b, cache, params, data)
-
-    value = _calibrator_pixels(base)
-    _, dslopes = jax.jvp(slopes, (value,), (jnp.ones_like(value),))
-    dz = whiten(dslopes, data)
-    per_pixel = jnp.sum(dz**2, axis=1).reshape(data.shape)
-    return eqx.tree_at(_calibrator_pixels, split(base, dark_mask(base)), per_pixel)
-
-
-# ---------------------------------------------------------------------------- optimiser
-
-
-class FisherMomentum(eqx.Module):
-    """Nesterov momentum on Fisher-preconditioned gradients (a diagonal natural gradient).
-
-    ``v <- mu v + g / F``; ``theta <- theta - lr (g / F + mu v)``. ``lr = 1`` is a Newton
-    step per parameter for a quadratic loss with a diagonal Hessian.
-    """
-
-    velocity: Any
-    learning_rate: float = eqx.field(static=True, default=0.5)
-    momentum: float = eqx.field(static=True, default=0.6)
-
-    @classmethod
-    def init(cls, params: Any, learning_rate: float = 0.5, momentum: float = 0.6):
-        return cls(jax.tree.map(jnp.zeros_like, params), learning_rate, momentum)
-
-    def update(self, params: Any, grads: Any, fisher: Any, floor: float = 1e-30):
-        """One step; returns ``(new_params, new_optimiser)``."""
-        scaled = jax.tree.map(lambda g, f: g / jnp.maximum(f, floor), grads, fisher)
-        velocity = jax.tree.map(lambda v, s: self.momentum * v + s, self.velocity, scaled)
-        new = jax.tree.map(
-            lambda p, s, v: p - self.learning_rate * (s + self.momentum * v),
-            params,
-            scaled,
-            velocity,
-        )
-        return new, eqx.tree_at(lambda o: o.velocity, self, velocity)
-
-    def update_vector(
-        self,
-        vector: jax.Array,
-        grad: jax.Array,
-        preconditioner: jax.Array,
-        limit: jax.Array | None = None,
-    ):
-        """The same step on a flat parameter vector with a full preconditioning matrix
-        (the inverse of the damped Fisher matrix): a Gauss-Newton direction. ``limit``
-        (same shape) is a trust region: the whole step is shrunk so that no parameter
-        moves by more than its limit (far from the optimum a Gauss-Newton step of the
-        optics can be wildly non-linear)."""
-        scaled = preconditioner @ grad
-        velocity = self.momentum * self.velocity + scaled
-        delta = self.learning_rate * (scaled + self.momentum * velocity)
-        if limit is not None:
-            shrink = jnp.minimum(1.0, jnp.min(limit / jnp.maximum(jnp.abs(delta), 1e-30)))
-            delta, velocity = delta * shrink, velocity * shrink
-        return vector - delta, eqx.tree_at(lambda o: o.velocity, self, velocity)
-
-
-# ---------------------------------------------------------------------------- settings, data
-
-
-@dataclass(frozen=True)
-class TrainSettings:
-    """Hyper-parameters of :func:`train` (all recorded in the model's metadata).
-
-    ``steps`` batch steps in all (0, with ``init``: none; only the closed-form dark
-    residual of level-2 training is solved afresh); ``stage_steps`` the steps of each stage (stage 0 with
-    the network off, then one stage per network restart); by default a fifth of the
-    steps with the network off and the rest split over two network restarts.
-
-    ``init`` (the path of a base model, recorded here): fine-tuning. Training starts
-    from that model, network included, so stage 0 is empty: ``stage_steps`` (default all
-    ``steps``) then lists the stages with the network on, the first continuing the
-    model's network and every later one restarting it.
-
-    ``sensitivity_prior``: standard deviation of the Gaussian prior on each pixel's
-    residual sensitivity around one when training on level-2 images (the pipeline's flat
-    is good to about a per cent; unused otherwise).
-
-    ``dark_prior_dn``: level-2 training: width (DN) of the prior on the per-group read
-    offsets the pipeline's dark subtraction left (:func:`solve_dark_residual`); 0: none
-    solved.
-    """
-
-    steps: int = 200
-    n_batches: int = 5
-    stage_steps: tuple[int, ...] = ()
-    init: str | None = None
-    physical_lr: float = 0.5
-    pixel_lr: float = 0.8
-    dark_lr: float = 0.25
-    exposure_lr: float = 0.5
-    momentum: float = 0.6
-    network_lr: float = 3e-3
-    network_init_scale: float = 0.01
-    damping: float = 0.1
-    seed: int = 0
-    diagonal: bool = False
-    sensitivity_prior: float = 0.01
-    dark_prior_dn: float = DEFAULT_PRIOR_DN
-
-    def stages(self) -> list[int]:
-        if self.init is not None:
-            return [0, *(self.stage_steps or (self.steps,))]
-        if self.stage_steps:
-            return list(self.stage_steps)
-        first = max(1, self.steps // 5)
-        rest = self.steps - first
-        if rest <= 1:
-            return [first, rest] if rest else [first]
-        return [first, rest - rest // 2, rest // 2]
-
-    def stage_of(self, step: int) -> int:
-        return int(np.searchsorted(np.cumsum(self.stages()), step, side="right"))
-
-
-@dataclass
-class TrainingData:
-    """Calibration, flat-field and validation exposures (:class:`SlopeData`)."""
-
-    cal: list[SlopeData]
-    flats: list[SlopeData]
-    val: list[SlopeData]
-
-    @classmethod
-    def read(
-        cls,
-        cal: Sequence[str | Path],
-        flats: Sequence[str | Path] = (),
-        val: Sequence[str | Path] = (),
-        diagonal: bool = False,
-        dtype=jnp.float32,
-    ) -> TrainingData:
-        if not cal:
-            raise InputError("--cal", "at least one calibration exposure is needed")
-        read = SlopeData.read
-        return cls(
-            cal=[read(p, "calibrator", diagonal, dtype) for p in cal],
-            flats=[read(p, "flat", diagonal, dtype) for p in flats],
-            val=[read(p, "validation", diagonal, dtype) for p in val],
-        )
-
-    @property
-    def filters(self) -> tuple[str, ...]:
-        return tuple(sorted({d.filter for d in self.cal + self.val}))
-
-    @property
-    def level2(self) -> bool:
-        """Whether the exposures are level-2 images (:meth:`check` makes them all one
-        kind)."""
-        return bool(self.cal) and self.cal[0].level2
-
-    def check(self) -> None:
-        """Refuse a mix of level-2 images and calslope files (one model cannot stand both
-        in front of and behind the pipeline) and flat fields with level-2 images (the
-        :class:`Trainer` checks its data)."""
-        kinds = {d.level2 for d in self.cal + self.val}
-        if len(kinds) > 1:
-            odd = next(d for d in self.cal + self.val if d.level2 != self.cal[0].level2)
-            raise InputError(
-                odd.name, "level-2 images and calslope files cannot be mixed in one training"
-            )
-        if self.level2 and self.flats:
-            raise InputError(
-                self.flats[0].name,
-                "flat fields train the detector of raw ramps; a level-2 model learns the "
-                "residual sensitivity from the calibrators",
-            )
-
-    def describe(self) -> dict[str, Any]:
-        def one(d: SlopeData) -> dict[str, Any]:
-            described = {"name": d.name, "filter": d.filter, "ngroups": d.ngroups}
-            if d.level2:
-                described["level"] = "level2"
-                described["dark_reference"] = d.dark_reference
-            return {**described, "values": d.n_values}
-
-        return {
-            "calibration": [one(d) for d in self.cal],
-            "flats": [one(d) for d in self.flats],
-            "validation": [one(d) for d in self.val],
-        }
-
-
-class TrainState(eqx.Module):
-    """Everything that changes during training (what a checkpoint holds)."""
-
-    base: BaseModel
-    cal_params: tuple[PointSourceParams, ...]
-    flat_params: tuple[FlatParams, ...]
-    val_params: tuple[PointSourceParams, ...]
-    physical_opt: FisherMomentum
-    pixel_opt: FisherMomentum
-    dark_opt: FisherMomentum
-    cal_opt: FisherMomentum
-    flat_opt: FisherMomentum
-    val_opt: FisherMomentum
-    adam_state: Any
-    best_base: BaseModel
-    best_loss: jax.Array
-
-
-@dataclass
-class History:
-    """Losses: per step (calibration batch, chi2/2 per slope value) and per epoch."""
-
-    step: list[int] = field(default_factory=list)
-    stage: list[int] = field(default_factory=list)
-    loss: list[float] = field(default_factory=list)
-    epoch_step: list[int] = field(default_factory=list)
-    cal_loss: list[float] = field(default_factory=list)
-    flat_loss: list[float] = field(default_factory=list)
-    val_loss: list[float] = field(default_factory=list)
-
-
-CHECKPOINT_FORMAT = "amigo-train-checkpoint"
-
+from amigo.solvers.natural_gradient import FisherMomentum
+from amigo.training.data import CHECKPOINT_FORMAT, History, TrainingData, TrainSettings, TrainState
+from amigo.training.exposure import FIT_ITERATIONS, solve_dark_residual
+from amigo.training.fisher import (
+    compiled_model,
+    dark_fisher,
+    fisher_diagonal,
+    fisher_matrix,
+    loss_and_grad,
+    pixel_fisher,
+    pixel_newton,
+)
+from amigo.training.groups import (
+    dark_mask,
+    false_like,
+    less_common_mode,
+    merge,
+    physical_mask,
+    physical_step_limits,
+    pin_mask_centroid,
+    pixel_mask,
+    seen_by,
+    split,
+)
 
 # ---------------------------------------------------------------------------- the trainer
 
@@ -688,7 +211,7 @@ class Trainer:
         values are too rough for the joint fit. Keeps each exposure's Fisher diagonal
         for :meth:`compute_fisher`."""
         state, base, cache = self.state, self.state.base, self.cache
-        nothing = _false_like(physical_mask(base))
+        nothing = false_like(physical_mask(base))
         sets = {
             "cal_params": self.data.cal,
             "flat_params": self.data.flats,
@@ -701,7 +224,7 @@ class Trainer:
                 p = params[i]
                 fisher = fisher_diagonal(base, p, d, cache, nothing)[1]
                 for _ in range(iterations):
-                    _, (_, grad) = _loss_and_grad(base, p, d, cache)
+                    _, (_, grad) = loss_and_grad(base, p, d, cache)
                     p = jax.tree.map(lambda x, g, f: x - g / jnp.maximum(f, 1e-30), p, grad, fisher)
                 params[i] = p
                 fishers.append(fisher)
@@ -748,7 +271,7 @@ class Trainer:
         inverse = np.linalg.pinv(np.where(np.isinf(damped), 0.0, damped), hermitian=True)
         inverse[unseen, :] = 0.0
         inverse[:, unseen] = 0.0
-        nothing = _false_like(full)
+        nothing = false_like(full)
         stored = getattr(self, "_exposure_fisher", {})
 
         def exposure_fisher(name: str, params, datasets) -> list[Any]:
@@ -821,7 +344,7 @@ class Trainer:
         grads = [jax.tree.map(jnp.zeros_like, p) for p in state.cal_params]
         for i in batch:
             d = self.data.cal[i]
-            value, (gb, gp) = _loss_and_grad(base, state.cal_params[i], d, self.cache)
+            value, (gb, gp) = loss_and_grad(base, state.cal_params[i], d, self.cache)
             if not np.isfinite(float(value)):
                 # e.g. a detector geometry beyond the resampling's reach (NaN images)
                 raise FloatingPointError(
@@ -902,7 +425,7 @@ class Trainer:
         """The sensitivity step less its mean over the calibrators' pixels: the mean
         sensitivity is degenerate with every exposure's flux, which carries it (pixels no
         calibrator sees have an infinite Fisher diagonal: their step is zero)."""
-        step = _less_common_mode(after.ramp.flat - before.ramp.flat, _seen_by(self.data.cal))
+        step = less_common_mode(after.ramp.flat - before.ramp.flat, seen_by(self.data.cal))
         return eqx.tree_at(lambda m: m.ramp.flat, after, before.ramp.flat + step)
 
     def flat_step(self) -> float:
@@ -913,7 +436,7 @@ class Trainer:
             return float("nan")
         grad_base, grads, loss, values = None, [], 0.0, 0
         for p, d in zip(state.flat_params, self.data.flats, strict=True):
-            value, (gb, gp) = _loss_and_grad(base, p, d, self.cache)
+            value, (gb, gp) = loss_and_grad(base, p, d, self.cache)
             loss, values = loss + float(value), values + d.n_values
             grad_base = gb if grad_base is None else jax.tree.map(jnp.add, grad_base, gb)
             grads.append(gp)
@@ -928,8 +451,8 @@ class Trainer:
         )
         # The flat's mean is degenerate with every flux: the flats' levels carry it, the
         # flat's step has none (a common-mode step would jolt every calibrator's flux).
-        used = _seen_by(self.data.flats)
-        step = _less_common_mode(direction.ramp.flat, used)
+        used = seen_by(self.data.flats)
+        step = less_common_mode(direction.ramp.flat, used)
         direction = eqx.tree_at(lambda m: m.ramp.flat, direction, step)
         ones = jax.tree.map(jnp.ones_like, direction)
         pixel, pixel_opt = state.pixel_opt.update(split(base, mask), direction, ones)
@@ -953,7 +476,7 @@ class Trainer:
             return float("nan")
         grads, loss, values = [], 0.0, 0
         for p, d in zip(state.val_params, self.data.val, strict=True):
-            value, (_, gp) = _loss_and_grad(state.base, p, d, self.cache)
+            value, (_, gp) = loss_and_grad(state.base, p, d, self.cache)
             loss, values = loss + float(value), values + d.n_values
             grads.append(gp)
         val_params, val_opt = state.val_opt.update(
@@ -1072,7 +595,7 @@ class Trainer:
         )
         for datasets, params, n_free in sets:
             for p, d in zip(params, datasets, strict=True):
-                out.append(fit_statistics(_model(base, p, d, self.cache), d, n_free))
+                out.append(fit_statistics(compiled_model(base, p, d, self.cache), d, n_free))
         return out
 
     # -------------------------------------------------------------- checkpoints
@@ -1261,113 +784,3 @@ def machine_description() -> str:
         f"{device.platform}:{device.device_kind}; {cpu}; {os.cpu_count()} cores; "
         f"{platform.system()} {platform.release()}"
     )
-
-
-#: Fraction of the model image counted as model error when the dark residual is solved
-#: (:func:`solve_dark_residual`): keeps PSF residuals in the bright core out of it.
-MODEL_ERROR = 0.01
-
-
-@_per_layout
-def _ramp_differences(base: BaseModel, params: PointSourceParams, data: SlopeData, cache):
-    """(ngroups - 1, ny, nx) group differences (DN per group) of a point source's model
-    ramp: what the pipeline's estimator sees, before it."""
-    unit = base.illuminance(data.filter, params.position_arcsec, cache)
-    return base.slopes(params.flux_e * unit, data.ngroups)
-
-
-def solve_dark_residual(
-    base: BaseModel,
-    datasets: Sequence[SlopeData],
-    params: Sequence[PointSourceParams],
-    cache: PupilCache,
-    prior_dn: float = DEFAULT_PRIOR_DN,
-    model_error: float = MODEL_ERROR,
-) -> tuple[BaseModel, dict[str, Any]]:
-    """``base`` with the per-group read offsets that best explain the level-2
-    calibrators ``datasets`` at their fitted ``params`` (see
-    :mod:`amigo.model.detector.dark_residual`), and a record of the solve.
-
-    Each pixel's variance in the solve is its noise plus ``(model_error * model)^2``: the
-    PSF model's own errors where the star is bright (1-4 % of the signal in the cores of
-    the COM 1093 calibrators) must not be taken for a detector offset. The offsets there
-    come from the prior and the halo's exposures, where the noise is read noise.
-
-    Only images behind one dark reference file can share offsets: those of the most
-    common ``R_DARK`` are used (the others are listed as skipped). Offsets are solved for
-    the reads of the longest ramp among them; the model's own offsets, where they were
-    measured behind the same file with as many reads, are the starting point (the
-    residuals are taken with them), else they are dropped first. The model keeps the
-    posterior's Cholesky factor and ``prior_dn`` with them: the uncertainty of the
-    offsets, which fits add to the images' variance.
-    """
-    usable = [(d, p) for d, p in zip(datasets, params, strict=True) if d.level2]
-    references = sorted({d.dark_reference for d, _ in usable if d.dark_reference})
-    if not references:
-        return base, {"solved": False, "reason": "no level-2 image names its dark reference"}
-    reference = max(references, key=lambda r: sum(d.dark_reference == r for d, _ in usable))
-    chosen = [(d, p) for d, p in usable if d.dark_reference == reference]
-    groups = max(d.ngroups for d, _ in chosen)
-    config = base.config
-    same = config.dark_reference == reference and config.dark_residual_groups == groups
-    model = base if same else base.with_dark_residual(None)
-    current = np.asarray(base.read.group_offsets_dn, np.float64) if same else None
-    system = OffsetSystem.empty(groups, config.shape)
-    gain = model.read.gain_e_per_dn
-    for d, p in chosen:
-        differences = _ramp_differences(model, p, d, cache)
-        estimate = pipeline_group_slope(differences, d.group_time_s, gain, d.nframes)
-        jacobian = offset_jacobian(differences, groups, d.group_time_s, gain, d.nframes)
-        white = np.asarray(d.whitening, np.float64)[:, 0, 0].reshape(d.shape)
-        estimate = np.asarray(estimate, np.float64)
-        with np.errstate(divide="ignore"):
-            variance = np.where(white > 0, 1.0 / white**2, np.inf) + (model_error * estimate) ** 2
-        residual = np.asarray(d.slopes_dn[0], np.float64) - estimate
-        system.add(jacobian, residual * (white > 0), 1.0 / variance, d.ngroups)
-    offsets = system.solve(prior_dn, current)
-    # What the calibrators left unknown of each pixel's offsets: the variance an image at
-    # NGROUPS they did not cover inherits (BaseModel.dark_offset_terms).
-    chol = system.posterior_cholesky(prior_dn)
-    rms = float(np.sqrt(np.mean(offsets**2)))
-    report_step(
-        f"train: dark residual: {groups} group reads solved from {len(chosen)} exposures "
-        f"behind {reference} (rms {rms:.2f} DN)"
-    )
-    record = {
-        "solved": True,
-        "reference": reference,
-        "prior_dn": prior_dn,
-        "model_error": model_error,
-        "groups": groups,
-        "exposures": [d.name for d, _ in chosen],
-        "skipped": [d.name for d, _ in usable if d.dark_reference != reference],
-        "rms_dn": round(rms, 4),
-    }
-    return base.with_dark_residual(offsets, reference, chol, prior_dn), record
-
-
-#: Newton steps of an exposure's own parameters under a fixed instrument (fit_exposure).
-FIT_ITERATIONS = 8
-
-
-def fit_exposure(
-    base: BaseModel,
-    data: SlopeData,
-    cache: PupilCache,
-    iterations: int = FIT_ITERATIONS,
-    params: Any = None,
-) -> tuple[Any, FitStatistics]:
-    """Fit one exposure's own parameters (position and flux of a point source, or a flat's
-    level) with the instrument fixed: Newton steps preconditioned by the Fisher diagonal
-    (recomputed every other step). A stand-in for the fitting engine of ``amigo fit``,
-    used for validation and the acceptance figures (docs/detector.md)."""
-    params = initial_params(base, data) if params is None else params
-    nothing = _false_like(physical_mask(base))
-    fisher = None
-    for k in range(iterations):
-        if k % 2 == 0:
-            fisher = fisher_diagonal(base, params, data, cache, nothing)[1]
-        _, (_, grad) = _loss_and_grad(base, params, data, cache)
-        params = jax.tree.map(lambda x, g, f: x - g / jnp.maximum(f, 1e-30), params, grad, fisher)
-    n_free = len(jax.tree.leaves(params)) + (1 if isinstance(params, PointSourceParams) else 0)
-    return params, fit_statistics(_model(base, params, data, cache), data, n_free)

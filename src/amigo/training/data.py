@@ -1,0 +1,183 @@
+"""What training reads and keeps: its settings, the training data (calibration, flat
+and validation exposures), the state it checkpoints and the loss history."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from amigo.errors import InputError
+from amigo.likelihood.slopes import (
+    FlatParams,
+    PointSourceParams,
+    SlopeData,
+)
+from amigo.model.base import (
+    BaseModel,
+)
+from amigo.model.detector.dark_residual import DEFAULT_PRIOR_DN
+from amigo.solvers.natural_gradient import FisherMomentum
+
+
+@dataclass(frozen=True)
+class TrainSettings:
+    """Hyper-parameters of :func:`train` (all recorded in the model's metadata).
+
+    ``steps`` batch steps in all (0, with ``init``: none; only the closed-form dark
+    residual of level-2 training is solved afresh); ``stage_steps`` the steps of each stage (stage 0 with
+    the network off, then one stage per network restart); by default a fifth of the
+    steps with the network off and the rest split over two network restarts.
+
+    ``init`` (the path of a base model, recorded here): fine-tuning. Training starts
+    from that model, network included, so stage 0 is empty: ``stage_steps`` (default all
+    ``steps``) then lists the stages with the network on, the first continuing the
+    model's network and every later one restarting it.
+
+    ``sensitivity_prior``: standard deviation of the Gaussian prior on each pixel's
+    residual sensitivity around one when training on level-2 images (the pipeline's flat
+    is good to about a per cent; unused otherwise).
+
+    ``dark_prior_dn``: level-2 training: width (DN) of the prior on the per-group read
+    offsets the pipeline's dark subtraction left (:func:`solve_dark_residual`); 0: none
+    solved.
+    """
+
+    steps: int = 200
+    n_batches: int = 5
+    stage_steps: tuple[int, ...] = ()
+    init: str | None = None
+    physical_lr: float = 0.5
+    pixel_lr: float = 0.8
+    dark_lr: float = 0.25
+    exposure_lr: float = 0.5
+    momentum: float = 0.6
+    network_lr: float = 3e-3
+    network_init_scale: float = 0.01
+    damping: float = 0.1
+    seed: int = 0
+    diagonal: bool = False
+    sensitivity_prior: float = 0.01
+    dark_prior_dn: float = DEFAULT_PRIOR_DN
+
+    def stages(self) -> list[int]:
+        if self.init is not None:
+            return [0, *(self.stage_steps or (self.steps,))]
+        if self.stage_steps:
+            return list(self.stage_steps)
+        first = max(1, self.steps // 5)
+        rest = self.steps - first
+        if rest <= 1:
+            return [first, rest] if rest else [first]
+        return [first, rest - rest // 2, rest // 2]
+
+    def stage_of(self, step: int) -> int:
+        return int(np.searchsorted(np.cumsum(self.stages()), step, side="right"))
+
+
+@dataclass
+class TrainingData:
+    """Calibration, flat-field and validation exposures (:class:`SlopeData`)."""
+
+    cal: list[SlopeData]
+    flats: list[SlopeData]
+    val: list[SlopeData]
+
+    @classmethod
+    def read(
+        cls,
+        cal: Sequence[str | Path],
+        flats: Sequence[str | Path] = (),
+        val: Sequence[str | Path] = (),
+        diagonal: bool = False,
+        dtype=jnp.float32,
+    ) -> TrainingData:
+        if not cal:
+            raise InputError("--cal", "at least one calibration exposure is needed")
+        read = SlopeData.read
+        return cls(
+            cal=[read(p, "calibrator", diagonal, dtype) for p in cal],
+            flats=[read(p, "flat", diagonal, dtype) for p in flats],
+            val=[read(p, "validation", diagonal, dtype) for p in val],
+        )
+
+    @property
+    def filters(self) -> tuple[str, ...]:
+        return tuple(sorted({d.filter for d in self.cal + self.val}))
+
+    @property
+    def level2(self) -> bool:
+        """Whether the exposures are level-2 images (:meth:`check` makes them all one
+        kind)."""
+        return bool(self.cal) and self.cal[0].level2
+
+    def check(self) -> None:
+        """Refuse a mix of level-2 images and calslope files (one model cannot stand both
+        in front of and behind the pipeline) and flat fields with level-2 images (the
+        :class:`Trainer` checks its data)."""
+        kinds = {d.level2 for d in self.cal + self.val}
+        if len(kinds) > 1:
+            odd = next(d for d in self.cal + self.val if d.level2 != self.cal[0].level2)
+            raise InputError(
+                odd.name, "level-2 images and calslope files cannot be mixed in one training"
+            )
+        if self.level2 and self.flats:
+            raise InputError(
+                self.flats[0].name,
+                "flat fields train the detector of raw ramps; a level-2 model learns the "
+                "residual sensitivity from the calibrators",
+            )
+
+    def describe(self) -> dict[str, Any]:
+        def one(d: SlopeData) -> dict[str, Any]:
+            described = {"name": d.name, "filter": d.filter, "ngroups": d.ngroups}
+            if d.level2:
+                described["level"] = "level2"
+                described["dark_reference"] = d.dark_reference
+            return {**described, "values": d.n_values}
+
+        return {
+            "calibration": [one(d) for d in self.cal],
+            "flats": [one(d) for d in self.flats],
+            "validation": [one(d) for d in self.val],
+        }
+
+
+class TrainState(eqx.Module):
+    """Everything that changes during training (what a checkpoint holds)."""
+
+    base: BaseModel
+    cal_params: tuple[PointSourceParams, ...]
+    flat_params: tuple[FlatParams, ...]
+    val_params: tuple[PointSourceParams, ...]
+    physical_opt: FisherMomentum
+    pixel_opt: FisherMomentum
+    dark_opt: FisherMomentum
+    cal_opt: FisherMomentum
+    flat_opt: FisherMomentum
+    val_opt: FisherMomentum
+    adam_state: Any
+    best_base: BaseModel
+    best_loss: jax.Array
+
+
+@dataclass
+class History:
+    """Losses: per step (calibration batch, chi2/2 per slope value) and per epoch."""
+
+    step: list[int] = field(default_factory=list)
+    stage: list[int] = field(default_factory=list)
+    loss: list[float] = field(default_factory=list)
+    epoch_step: list[int] = field(default_factory=list)
+    cal_loss: list[float] = field(default_factory=list)
+    flat_loss: list[float] = field(default_factory=list)
+    val_loss: list[float] = field(default_factory=list)
+
+
+CHECKPOINT_FORMAT = "amigo-train-checkpoint"
