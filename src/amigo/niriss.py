@@ -34,6 +34,7 @@ import warnings
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 
@@ -305,7 +306,7 @@ def svo_votable(name: str) -> bytes:
 
     The svo-filters package ships these files (Angstrom, filter-only throughput); we read
     them at run time rather than copying curves. The package is located, not imported:
-    importing it imports bokeh and astropy.table, 15 s per process on a 2-core CI machine.
+    importing it imports bokeh and astropy.table, seconds per process for nothing we use.
     """
     spec = importlib.util.find_spec("svo_filters")
     if spec is None or not spec.submodule_search_locations:
@@ -318,7 +319,7 @@ def svo_votable(name: str) -> bytes:
 def _filter_curve_cached(name: str) -> tuple[np.ndarray, np.ndarray]:
     root = ET.fromstring(svo_votable(name))
     rows = [
-        [float(td.text) for td in tr.findall("{*}TD")]
+        [float(cast(str, td.text)) for td in tr.findall("{*}TD")]
         for tr in root.iter()
         if tr.tag.endswith("TR")
     ]

@@ -56,7 +56,7 @@ import zlib
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import equinox as eqx
 import jax
@@ -169,7 +169,8 @@ class BaseModelConfig:
         How the optics applies the Fresnel defocus (see :class:`amigo.model.optics.OpticsConfig`).
         ``"pupil"`` (the quadratic OPD in the pupil) is exact for a defocus and free;
         ``"angular_spectrum"`` (the paper's, applied to the finite focal field) gave the
-        same fidelity floor at three times the cost of the image (95 ms against 30 ms).
+        same fidelity floor at several times the cost of the image (docs/detector.md, "Optics
+        fidelity: why a 256-pixel pupil").
         Files written before these defaults record 128 and ``"angular_spectrum"``.
     data_level
         What the detector half describes. ``"ramp"`` (trained on raw ramps, calslope
@@ -288,11 +289,11 @@ class MovableHoles(eqx.Module):
         # the hexagon's graph instead of seven (compile time, which dominates on a CPU).
         cx = self.centres_m[:, 0, None, None]
         cy = self.centres_m[:, 1, None, None]
-        total = 0.0
+        total: float | Array = 0.0
         for oy in offsets:
             for ox in offsets:
                 total = total + soft_hexagon(x + ox - cx, y + oy - cy, size, edge)
-        return total / supersample**2
+        return cast(Array, total) / supersample**2  # an Array: supersample >= 1
 
     def zernike_basis(self, grid: PupilGrid, n_modes: int, radius_factor: float) -> Array:
         del grid, radius_factor

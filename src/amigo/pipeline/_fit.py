@@ -15,7 +15,7 @@ from collections import defaultdict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from amigo.errors import InputError
 from amigo.progress import warn
@@ -88,6 +88,7 @@ class FitResult:
             product = self.products.get(record.get("filter"))
             names = [e.name for e in product.fit.exposures] if product else []
             if name in names:
+                assert product is not None  # names is empty without a product
                 e = names.index(name)
                 exposure = product.fit.exposures[e]
                 figures.append(exposure_figure(exposure.image, product.models[e], product.stats[e]))
@@ -138,11 +139,12 @@ def fit(
     (``.status`` 3 or 4, docs/reliability.md).
     """
     os.environ.setdefault("JAX_PLATFORMS", "cpu")
-    sci, cal, superbias = tuple(map(Path, sci)), tuple(map(Path, cal)), tuple(map(Path, superbias))
+    sci_paths, cal_paths = tuple(map(Path, sci)), tuple(map(Path, cal))
+    superbias_paths = tuple(map(Path, superbias))
     out = Path(out)
     model = None if model is None else Path(model)
-    check_roles(sci, cal, superbias, first_group)
-    level = _check_inputs(sci, cal, detector)
+    check_roles(sci_paths, cal_paths, superbias_paths, first_group)
+    level = _check_inputs(sci_paths, cal_paths, detector)
     grid = _grid(knots, knot_spacing)
 
     import dataclasses
@@ -154,12 +156,12 @@ def fit(
     from amigo.progress import step
 
     fit_model = _fit_model(model, detector, level)
-    reset = _reset_level(superbias, level, fit_model, not first_group)
+    reset = _reset_level(superbias_paths, level, fit_model, not first_group)
     read = []
     ramps = {}
     excluded = []  # (role, ReadExposure) of the exposures without a star to fit
     given: dict[str, list] = defaultdict(list)  # filter -> (role, meta) of every input
-    for role, paths in (("science", sci), ("calibrator", cal)):
+    for role, paths in (("science", sci_paths), ("calibrator", cal_paths)):
         for path in paths:
             item = _read_fit_exposure(path, role, level, reset)
             given[item.meta.filter].append((role, item.meta))
@@ -204,7 +206,7 @@ def fit(
         "detector": fit_model.detector,
         "grid": [knots, knot_spacing],
         "config": repr(config),
-        "superbias": [fingerprint(p) for p in superbias],
+        "superbias": [fingerprint(p) for p in superbias_paths],
         "first_group": reset is not None,
     }
 
@@ -212,7 +214,12 @@ def fit(
     previous = {} if force else previous_summary(out)
     summary_exposures = [
         _unfitted_record(
-            item.meta.path.name, role, item.meta.target, item.meta.filter, "excluded", item.problem
+            item.meta.path.name,
+            role,
+            item.meta.target,
+            item.meta.filter,
+            "excluded",
+            cast(str, item.problem),  # excluded holds only the exposures with a problem
         )
         for role, item in excluded
     ]
@@ -357,8 +364,8 @@ def _fit_model(model: Path | None, detector: str | None, level: str) -> FitModel
     name = f"{model.name} (trained on {about})"
     if level == "level2" and detector is None and base.config.data_level == "level2":
         # A model trained behind the pipeline is made for level-2 images with its
-        # detector: on held-out COM 1093 images it fits 0.1-0.6 closer to the noise (z
-        # std) than the same optics with the linear detector (docs/detector.md).
+        # detector: on held-out real images it fits closer to the noise than the same
+        # optics with the linear detector (docs/detector.md).
         detector = "full"
     if level == "level2" and detector != "full":
         mode, ramp = "linear", None
@@ -406,7 +413,7 @@ def _read_fit_exposure(path: Path, role: str, level: str, superbias=None) -> Rea
     from amigo.fitting.filter_fit import FitExposure
     from amigo.likelihood.pixels import ImageData
 
-    ramp = None
+    ramp: Any = None  # RampInput (calslope) or Level2Input
     if level == "calslope":
         from amigo.fitting.ramp_fit import RampInput
         from amigo.io.calslope import read_calslope
@@ -748,6 +755,8 @@ def _run_filter(
                 seconds = metas[exposure.name].photon_time_s(first_group)
                 photons += float(np.exp(params.exposures.log_flux[e])) * seconds * nis.GAIN_E_PER_DN
         discos = target_product.discos
+        basis = fit.setup.basis
+        assert basis is not None  # FilterFit refuses a setup without its latent basis
         calvis_path = out / calvis_filename(target, filter_name)
         write_calvis(
             calvis_path,
@@ -755,7 +764,7 @@ def _run_filter(
             errors=discos.errors,
             kinds=discos.kinds,
             disco_matrix=discos.matrix,
-            uv_m=fit.setup.basis.knots_m(),
+            uv_m=basis.knots_m(),
             wavelengths_m=bins.wavelengths_m,
             weights=bins.weights,
             sky_to_uv=sky_to_uv,
@@ -766,8 +775,8 @@ def _run_filter(
             science_files=[e.name for e, _ in sci_items],
             calibrator_files=cal_names,
             header={
-                "NAMP": (fit.setup.basis.n_amp, "latent log-amplitude modes"),
-                "NPHA": (fit.setup.basis.n_phase, "latent phase modes"),
+                "NAMP": (basis.n_amp, "latent log-amplitude modes"),
+                "NPHA": (basis.n_phase, "latent phase modes"),
                 "NNUIS": (discos.kernel.n_nuisance, "nuisance parameters nulled"),
                 # Products of an unconverged fit are still written, but flagged.
                 "CONVERGD": (bool(product.result.converged), "fit converged (fit_summary.json)"),

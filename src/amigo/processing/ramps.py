@@ -293,7 +293,7 @@ def keep_prefix(mask: np.ndarray, axis: int = 1) -> np.ndarray:
     """``mask`` with everything after the first False along ``axis`` set False too."""
     out = np.array(mask, dtype=bool)  # a copy
     view = np.moveaxis(out, axis, 0)
-    # A loop over the (few) groups is ~20x faster than np.logical_and.accumulate here.
+    # A loop over the (few) groups is much faster than np.logical_and.accumulate here.
     for index in range(1, view.shape[0]):
         view[index] &= view[index - 1]
     return out

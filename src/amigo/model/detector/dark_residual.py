@@ -17,15 +17,11 @@ the ordinary least-squares slope, ``est_N(f) = sum_g (g - (N-1)/2) f(g) / (t_g N
 NGROUPS (two exposures with 9 and 12 groups see patterns correlated by ``sqrt(60/143) =
 0.65``, the 12-group one ``60/143 = 0.42`` times the 9-group one projected on it).
 
-Measured on real COM 1093 level-2 calibrators (CAL_VER 1.5.3, R_DARK
-``jwst_niriss_dark_0178.fits``): the halo residual of HD 36805 at 9 groups (25 dithers)
-reappears in other stars, filters and visits at 9 groups (regression coefficient 1.01 and
-0.92) and at 12 groups with coefficient 0.39-0.41 (white per-group offsets predict 0.42);
-differences of same-configuration pairs (one star, one position, one NGROUPS, an hour
-apart), in which the offsets cancel, are at the noise the files' ERR states (z std
-1.05-1.13 beyond 25 pixels), while a fit of either leaves z std 2.0-2.1 there. Offsets
-learned from other visits bring held-out calibrator halos from z std 2.0-2.9 to 1.07-2.3
-(docs/detector.md).
+On real level-2 calibrators the halo residual of one star reappears in other stars,
+filters and visits with the NGROUPS scaling above, and cancels in the difference of two
+exposures with the same configuration. docs/detector.md ("The dark residual: what the
+pipeline's dark subtraction leaves") gives the measurements, and what learned offsets do
+to held-out calibrators.
 
 So a model behind the pipeline holds ``f`` (``BaseModel.read.group_offsets_dn``, (G, ny,
 nx)) and applies it only to images processed with the same ``R_DARK``. The offsets are
@@ -47,10 +43,9 @@ from jaxtyping import Array, ArrayLike, Float
 
 from amigo.model.detector.pipeline_slope import pipeline_group_slope
 
-#: Prior width of each group read's offset (DN). Measured: on COM 1093 (R_DARK
-#: jwst_niriss_dark_0178.fits), offsets solved with 0.8 / 1.6 / 3.2 / 6.4 DN from two of
-#: the calibrator visits 15, 17, 18 and 20 predict the held-out third's halo best at 1.6
-#: (held-out z std beyond 15 pixels 1.17 / 1.31 / 1.07 for obs 15 / 17 / 18 in F480M).
+#: Prior width of each group read's offset (DN): of 0.8 / 1.6 / 3.2 / 6.4, the width whose
+#: offsets, solved from some real calibrator visits, best predict a held-out visit's halo
+#: (docs/detector.md gives the comparison).
 DEFAULT_PRIOR_DN = 1.6
 
 

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import functools
 import math
+from typing import cast
 
 import equinox as eqx
 import jax
@@ -274,11 +275,11 @@ class Aperture(eqx.Module):
         """
         offsets = (np.arange(supersample) - 0.5 * (supersample - 1)) / supersample
         edge_m = softening_px * grid.pixel_m / supersample
-        total = 0.0
+        total: float | Array = 0.0
         for oy in offsets:
             for ox in offsets:
                 total = total + self._draw(grid, ox * grid.pixel_m, oy * grid.pixel_m, edge_m)
-        return total / supersample**2
+        return cast(Array, total) / supersample**2  # an Array: supersample >= 1
 
     def _draw(self, grid: PupilGrid, dx_m: float, dy_m: float, edge_m: float) -> Array:
         x, y = grid.coordinates()
@@ -299,7 +300,7 @@ class Aperture(eqx.Module):
             hx, hy = polynomial_displacement(qx / rc, qy / rc, coefficients, powers)
             return soft_hexagon(qx + rc * hx, qy + rc * hy, self.flat_to_flat_m, edge_m)
 
-        # vmap, not a Python loop over holes: one copy of the graph compiles 7x faster.
+        # vmap, not a Python loop over holes: one copy of the graph, not seven, to compile.
         return jax.vmap(one_hole)(self.centres_m, self.hole_distortion)
 
     def zernike_basis(self, grid: PupilGrid, n_modes: int, radius_factor: float) -> Array:

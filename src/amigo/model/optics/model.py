@@ -377,7 +377,7 @@ def cast(tree: Any, dtype: Any) -> Any:
         if isinstance(leaf, jax.core.Tracer):
             return leaf.astype(target)
         # Through the host, not an XLA conversion: outside a jit every new shape would
-        # compile its own conversion program (0.3-1 s each on a 2-core CPU; a model has
+        # compile its own conversion program (each costs a compilation; a model has
         # dozens of leaf shapes).
         return jnp.asarray(np.asarray(leaf).astype(target))
 

@@ -14,6 +14,7 @@ Sign conventions (tested in tests/test_optics.py)
 from __future__ import annotations
 
 import functools
+from typing import cast
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -70,9 +71,10 @@ def mft_symmetric(
     Why: ``exp(-i k t x) = cos(k t x) - i sin(k t x)`` and the grid holds ``-t`` with
     every ``t``, so one real cosine and one real sine matrix of half the outputs serve
     both signs. A complex field times a real matrix is two real products instead of four
-    (and XLA's real matrix products are faster than its complex ones): about 3x faster
-    than :func:`mft` forward and 2.5x with the gradient on a CPU, agreeing to float
-    rounding (tested). The pupil grid need not be symmetric.
+    (and XLA's real matrix products are faster than its complex ones): several times
+    faster than :func:`mft`, forward and with the gradient (docs/optics.md gives the
+    measured speed), agreeing to float rounding (tested). The pupil grid need not be
+    symmetric.
     """
     k = 2.0 * jnp.pi / wavelength_m
     phase_x = k * jnp.outer(theta_x_rad, x_m)  # (hx, nx)
@@ -186,10 +188,10 @@ def box_fir_taps(half_width: int = 4, band: float = 0.3) -> np.ndarray:
     return fit_symmetric_fir("box", half_width, band)
 
 
-def keys_cubic(t: Array | np.ndarray, a: float = -0.5):
+def keys_cubic(t: Array | np.ndarray, a: float = -0.5) -> Array | np.ndarray:
     """Keys cubic-convolution kernel (``a = -0.5``: the classic "cubic" interpolant)."""
-    t = abs(t)
     xp = jnp if isinstance(t, Array) else np
+    t = xp.abs(t)
     near = ((a + 2) * t - (a + 3)) * t * t + 1
     far = ((a * t - 5 * a) * t + 8 * a) * t - 4 * a
     return xp.where(t <= 1, near, xp.where(t < 2, far, 0.0))
@@ -213,8 +215,9 @@ def separable_filter(image: Float[Array, "... n m"], taps: np.ndarray) -> Array:
     r = (len(taps) - 1) // 2
     n, m = image.shape[-2:]
     padded = jnp.pad(image, [(0, 0)] * (image.ndim - 2) + [(r, r), (r, r)])
-    rows = sum(float(w) * padded[..., :, i : i + m] for i, w in enumerate(taps))
-    return sum(float(w) * rows[..., i : i + n, :] for i, w in enumerate(taps))
+    # cast: sum() starts from the int 0, which typeshed cannot add to an Array.
+    rows = cast(Array, sum(float(w) * padded[..., :, i : i + m] for i, w in enumerate(taps)))
+    return cast(Array, sum(float(w) * rows[..., i : i + n, :] for i, w in enumerate(taps)))
 
 
 @eqx.filter_jit

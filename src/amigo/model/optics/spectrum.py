@@ -50,8 +50,7 @@ class LinearSpectrum(AbstractSpectrum):
         ``tau``, a calibratable correction of the band's shape: the weights are multiplied
         by ``exp(-tau (lambda - lambda_c)^2)`` (lambda in um). ``tau > 0`` narrows the
         effective band (its rms width by a fraction ~``0.43 tau s^2`` for a band of rms
-        width ``s`` um: measured 3.4 % for ``tau = 20`` in F430M, 7.8 % in F480M), ``tau <
-        0`` widens it. It absorbs what the filter curve, the detector QE and the star's
+        width ``s`` um; docs/optics.md gives the measured values), ``tau < 0`` widens it. It absorbs what the filter curve, the detector QE and the star's
         spectrum do not describe.
     """
 
