@@ -1,4 +1,4 @@
-"""The Python API (amigo.open, process, fit, detect, simulate, run: amigo.pipeline), as a
+"""The Python API (amigo.open, process, fit, detect, simulate, run, train: amigo.pipeline), as a
 notebook user calls it; the commands are thin layers over it (tests/test_cli_*)."""
 
 from __future__ import annotations
@@ -141,3 +141,20 @@ def test_fit_and_detect_return_what_they_wrote(tmp_path):
     assert found.document["inputs"] == ["STAR-sci_F480M_calvis.fits"]
     again = amigo.detect(fitted.calvis, out, hmc=False, rmax_mas=300.0)
     assert again.result is None and again.document == found.document
+
+
+def test_train_refuses_bad_inputs_before_training(seeds, tmp_path):
+    """``amigo.train`` checks its inputs in seconds and raises the one-line InputError:
+    the steps without a model to keep, stages that do not add up, a file that is not
+    training data, and level-2 images mixed with calslope files."""
+    out = tmp_path / "model.npz"
+    with pytest.raises(amigo.InputError, match="0 needs --init"):
+        amigo.train([seeds["calslope"]], out, steps=0)
+    with pytest.raises(amigo.InputError, match="summing to --steps"):
+        amigo.train([seeds["calslope"]], out, steps=10, stage_steps=(3, 3))
+    with pytest.raises(amigo.InputError) as caught:
+        amigo.train([seeds["calvis"]], out)
+    assert str(seeds["calvis"]) in str(caught.value)
+    with pytest.raises(amigo.InputError, match="cannot be mixed"):
+        amigo.train([seeds["calslope"], seeds["cal"]], out)
+    assert not out.exists()
