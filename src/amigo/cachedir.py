@@ -38,8 +38,8 @@ def enable_compilation_cache() -> Path | None:
     Returns the folder in use, or ``None`` when the cache is off.
     """
     if "JAX_COMPILATION_CACHE_DIR" in os.environ:
-        folder = os.environ["JAX_COMPILATION_CACHE_DIR"]
-        return Path(folder) if folder else None
+        explicit = os.environ["JAX_COMPILATION_CACHE_DIR"]
+        return Path(explicit) if explicit else None
     folder = cache_dir() / "xla"
     try:
         folder.mkdir(parents=True, exist_ok=True)

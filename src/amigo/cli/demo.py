@@ -41,7 +41,8 @@ def command(out: Path, no_hmc: bool) -> int:
     for item in written:
         click.echo(f"{item.uncal}\t{item.truth}")
     truths = {item.truth: json.loads(Path(item.truth).read_text()) for item in written}
-    sci, cal = [], []
+    sci: list[Path] = []
+    cal: list[Path] = []
     for item in written:
         role = truths[item.truth]["exposure"]["role"]
         (sci if role == "science" else cal).append(Path(item.uncal))
@@ -58,6 +59,7 @@ def command(out: Path, no_hmc: bool) -> int:
     if not result.calvis:
         return result.status  # the fit's warnings and fit_summary.json say why
     science_truth = next(t for t in truths.values() if t["exposure"]["role"] == "science")
+    assert result.detect is not None  # run() searches whenever the fit wrote calvis files
     found = result.detect.companions
     click.echo(_comparison(science_truth["scene"]["companions"], found))
     return result.status

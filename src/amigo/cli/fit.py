@@ -7,14 +7,19 @@ docs/fit.md and the interfaces contract).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any, TypeVar
 
 import click
 
 from amigo.cli.options import ManyValues
 
+#: A command function being decorated with options.
+FC = TypeVar("FC", bound=Callable[..., Any])
 
-def exposures_option(name: str, text: str):
+
+def exposures_option(name: str, text: str) -> Callable[[FC], FC]:
     """The required ``--sci``/``--cal`` option of ``fit`` and ``run``: several files after
     one flag (``--sci A B C``, as a shell glob gives them) or the flag repeated."""
     return click.option(
@@ -27,11 +32,11 @@ def exposures_option(name: str, text: str):
     )
 
 
-def superbias_option(text: str):
+def superbias_option(text: str) -> Callable[[FC], FC]:
     """The optional ``--superbias FILE...`` of ``fit`` and ``run`` (several files after
     one flag, or the flag repeated; ``text`` says which files) and ``--no-first-group``."""
 
-    def decorate(command):
+    def decorate(command: FC) -> FC:
         command = click.option(
             "--no-first-group",
             "no_first_group",
@@ -87,7 +92,7 @@ _MODEL_OPTIONS = [
 ]
 
 
-def model_options(command):
+def model_options(command: FC) -> FC:
     """The fit-model options ``--model``, ``--detector``, ``--knots``, ``--knot-spacing``
     shared by ``fit`` and ``run``."""
     for option in reversed(_MODEL_OPTIONS):

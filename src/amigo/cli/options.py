@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from typing import Any
+
 import click
 
 
@@ -11,10 +14,10 @@ class ManyValues(click.Option):
     one flag); it can also be repeated (``--sci a.fits --sci b.fits``). A value that
     starts with ``-`` ends the list, as an option does."""
 
-    def __init__(self, *args, **kwargs) -> None:
-        super().__init__(*args, multiple=True, **kwargs)
+    def __init__(self, param_decls: Sequence[str] | None = None, **kwargs: Any) -> None:
+        super().__init__(param_decls, multiple=True, **kwargs)
 
-    def add_to_parser(self, parser, ctx) -> None:
+    def add_to_parser(self, parser: Any, ctx: click.Context) -> None:
         super().add_to_parser(parser, ctx)
         for name in self.opts:
             option = parser._long_opt.get(name) or parser._short_opt.get(name)
@@ -22,7 +25,7 @@ class ManyValues(click.Option):
                 continue
             previous = option.process
 
-            def process(value, state, _previous=previous) -> None:
+            def process(value: Any, state: Any, _previous: Any = previous) -> None:
                 _previous(value, state)
                 while state.rargs and not state.rargs[0].startswith("-"):
                     _previous(state.rargs.pop(0), state)

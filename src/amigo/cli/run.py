@@ -48,7 +48,7 @@ def command(
     superbias: tuple[Path, ...] = (),
     no_first_group: bool = False,
     force: bool = False,
-) -> None:
+) -> int:
     """Raw ramps to companions: amigo process, amigo fit and amigo detect in one go.
 
     All outputs go directly under OUT, named as by the individual commands. Exit status

@@ -8,12 +8,15 @@ covariance is the inverse Gauss-Newton Hessian ``(J^T J)^-1`` at the optimum.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import numpy.typing as npt
 
 from amigo.companions.models import scene_visibility
 from amigo.companions.observables import Dataset
@@ -59,7 +62,12 @@ def group_chi2(dataset: Dataset, residuals: tuple[jax.Array, ...]) -> tuple[np.n
     return chi2, count
 
 
-def estimate_scales(dataset: Dataset, offsets_mas, contrasts, primary_diameter_mas=0.0):
+def estimate_scales(
+    dataset: Dataset,
+    offsets_mas: npt.ArrayLike,
+    contrasts: npt.ArrayLike,
+    primary_diameter_mas: float = 0.0,
+) -> np.ndarray:
     """Maximum-likelihood error scales ``sqrt(chi2_g / n_g)`` per group for a given scene."""
     residuals = block_residuals(
         dataset, jnp.asarray(offsets_mas), jnp.asarray(contrasts), primary_diameter_mas
@@ -143,7 +151,10 @@ def _residual_and_jacobian(flat, args):
 
 
 def levenberg_marquardt(
-    function, x0: np.ndarray, max_steps: int = 200, rtol: float = 1e-10
+    function: Callable[[np.ndarray], tuple[Any, Any]],
+    x0: np.ndarray,
+    max_steps: int = 200,
+    rtol: float = 1e-10,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
     """Minimise ``|r(x)|^2`` by Levenberg-Marquardt with Marquardt's diagonal scaling.
 

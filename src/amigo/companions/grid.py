@@ -75,7 +75,7 @@ def default_step_mas(dataset: Dataset) -> float:
 
 def inner_working_angle_mas(blocks: tuple[Observables, ...] | list[Observables]) -> float:
     """``lambda / (2 B_max)`` (mas) at the blocks' mean wavelength and longest baseline."""
-    wavelength = np.mean([b.mean_wavelength_m for b in blocks])
+    wavelength = float(np.mean([b.mean_wavelength_m for b in blocks]))
     baseline = max(b.max_baseline_m for b in blocks)
     return wavelength / (2.0 * baseline) / MAS_TO_RAD
 

@@ -38,6 +38,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 from scipy import special, stats
 
 from amigo.companions.grid import ContrastMap, GridResult
@@ -58,7 +59,9 @@ def lambda_over_d_mas(wavelength_m: float) -> float:
     return wavelength_m / PUPIL_DIAMETER_M / MAS_TO_RAD
 
 
-def ruffio_upper_limit(contrast, sigma, confidence: float = THREE_SIGMA) -> np.ndarray:
+def ruffio_upper_limit(
+    contrast: npt.ArrayLike, sigma: npt.ArrayLike, confidence: float = THREE_SIGMA
+) -> np.ndarray:
     """Upper limit on a flux ratio from a normal estimate truncated to positive values.
 
     Solves ``[Phi((u - c)/s) - Phi(-c/s)] / [1 - Phi(-c/s)] = confidence`` for ``u``,
@@ -72,7 +75,11 @@ def ruffio_upper_limit(contrast, sigma, confidence: float = THREE_SIGMA) -> np.n
 
 
 def absil_limit(
-    contrast, sigma, chi2_background: float, n_obs: int, n_sigma: float = 3.0
+    contrast: npt.ArrayLike,
+    sigma: npt.ArrayLike,
+    chi2_background: float,
+    n_obs: int,
+    n_sigma: float = 3.0,
 ) -> np.ndarray:
     """Flux ratio excluded at ``n_sigma`` by the chi2 test described in the module doc."""
     c = np.asarray(contrast, dtype=float)

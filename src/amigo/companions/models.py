@@ -29,6 +29,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
+#: The models' array inputs: NumPy (as read from files) or JAX (traced) arrays.
+AnyArray = Array | np.ndarray
+
 #: One milliarcsecond in radians.
 MAS_TO_RAD: float = np.pi / (180.0 * 3600.0 * 1000.0)
 
@@ -37,10 +40,10 @@ DISC_MAX_ARGUMENT: float = 12.0
 
 
 def point_phasors(
-    uv_m: Array,
-    wavelengths_m: Array,
-    weights: Array,
-    offsets_mas: Array,
+    uv_m: AnyArray,
+    wavelengths_m: AnyArray,
+    weights: AnyArray,
+    offsets_mas: AnyArray,
 ) -> Array:
     """Band-averaged visibility of a unit point source at each offset.
 
@@ -55,9 +58,9 @@ def point_phasors(
 
 
 def disc_visibility(
-    uv_m: Array,
-    wavelengths_m: Array,
-    weights: Array,
+    uv_m: AnyArray,
+    wavelengths_m: AnyArray,
+    weights: AnyArray,
     diameter_mas: float | Array,
 ) -> Array:
     """Band-averaged visibility ``2 J1(x)/x`` of a uniform disc, ``x = pi d |b| / lambda``.
@@ -85,11 +88,11 @@ def airy_amplitude(x: Array, n_terms: int = 30) -> Array:
 
 
 def scene_visibility(
-    uv_m: Array,
-    wavelengths_m: Array,
-    weights: Array,
-    offsets_mas: Array,
-    contrasts: Array,
+    uv_m: AnyArray,
+    wavelengths_m: AnyArray,
+    weights: AnyArray,
+    offsets_mas: AnyArray,
+    contrasts: AnyArray,
     primary_diameter_mas: float = 0.0,
 ) -> Array:
     """Complex visibility of a primary plus ``n_comp`` companions (flux ratios ``contrasts``).
@@ -106,11 +109,11 @@ def scene_visibility(
 
 
 def scene_terms(
-    uv_m: Array,
-    wavelengths_m: Array,
-    weights: Array,
-    offsets_mas: Array,
-    contrasts: Array,
+    uv_m: AnyArray,
+    wavelengths_m: AnyArray,
+    weights: AnyArray,
+    offsets_mas: AnyArray,
+    contrasts: AnyArray,
     primary_diameter_mas: float = 0.0,
 ) -> tuple[Array, Array]:
     """Numerator (complex, per uv point) and denominator (total flux) of the scene visibility.

@@ -30,7 +30,7 @@ from __future__ import annotations
 import dataclasses
 import os
 from collections.abc import Sequence
-from typing import Literal
+from typing import Literal, cast
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -51,6 +51,11 @@ OIFITS_BAND_SAMPLES = 5
 
 #: Eigenvalues below this fraction of the largest are the null space of a covariance.
 COVARIANCE_RANK_TOL = 1e-9
+
+#: An array leaf of :class:`Observables`: NumPy as built, a JAX array where traced.
+Leaf = np.ndarray | Array
+#: A 2x2 matrix as nested tuples (hashable: static metadata).
+Matrix2 = tuple[tuple[float, float], tuple[float, float]]
 
 
 class Observables(eqx.Module):
@@ -89,15 +94,15 @@ class Observables(eqx.Module):
         wrapping, no projection: calvis files); the grid search then uses a faster path.
     """
 
-    uv_m: Array
-    wavelengths_m: Array
-    weights: Array
-    design: Array
-    exp_rows: Array
-    wrap_rows: Array
-    data_raw: Array
-    projection: Array | None
-    errors: Array
+    uv_m: Leaf
+    wavelengths_m: Leaf
+    weights: Leaf
+    design: Leaf
+    exp_rows: Leaf
+    wrap_rows: Leaf
+    data_raw: Leaf
+    projection: Leaf | None
+    errors: Leaf
     kinds: tuple[int, ...] = eqx.field(static=True)
     filter_name: str = eqx.field(static=True)
     source: str = eqx.field(static=True)
@@ -105,9 +110,7 @@ class Observables(eqx.Module):
     n_photons: float = eqx.field(static=True, default=float("nan"))
     photon_source: str = eqx.field(static=True, default="")
     linear: bool = eqx.field(static=True, default=False)
-    sky_to_uv: tuple[tuple[float, float], tuple[float, float]] = eqx.field(
-        static=True, default=((1.0, 0.0), (0.0, 1.0))
-    )
+    sky_to_uv: Matrix2 = eqx.field(static=True, default=((1.0, 0.0), (0.0, 1.0)))
 
     # ------------------------------------------------------------------ sizes
     @property
@@ -144,17 +147,18 @@ class Observables(eqx.Module):
 
     def _whiten(self, raw_residual: Array) -> Array:
         wrapped = jnp.where(self.wrap_rows, jnp.angle(jnp.exp(1j * raw_residual)), raw_residual)
-        return wrapped if self.projection is None else self.projection @ wrapped
+        # NumPy @ JAX array is a JAX array (JAX's __rmatmul__), which typeshed cannot see.
+        return wrapped if self.projection is None else cast(Array, self.projection @ wrapped)
 
     def residuals(self, vis: Array) -> Array:
         """Whitened residuals ``(model - data) / error`` (n_obs,) for a visibility (n_uv,)."""
         return self._whiten(self.raw(vis) - self.data_raw) / self.errors
 
-    def observed(self) -> Array:
+    def observed(self) -> Leaf:
         """The independent observables (data)."""
         return self.data_raw if self.projection is None else self.projection @ self.data_raw
 
-    def predicted(self, vis: Array) -> Array:
+    def predicted(self, vis: Array) -> Leaf:
         """Model independent observables (data + wrapped difference, for plots)."""
         return self.observed() + self._whiten(self.raw(vis) - self.data_raw)
 
@@ -185,7 +189,7 @@ def from_calvis(calvis: CalVis, source: str = "") -> Observables:
         n_photons=float(calvis.n_photons),
         photon_source="NPHOT" if np.isfinite(calvis.n_photons) else "",
         linear=True,
-        sky_to_uv=tuple(tuple(float(x) for x in row) for row in sky_to_uv),
+        sky_to_uv=cast(Matrix2, tuple(tuple(float(x) for x in row) for row in sky_to_uv)),
     )
 
 
@@ -212,9 +216,16 @@ def from_oifits(
     n_holes
         Holes of the mask, used only for the photon-count estimate from closure phases.
     """
-    uv, waves, bands = [], [], []
-    rows_amp, rows_phase = [], []  # (indices into uv, coefficients)
-    raw_data, exp_rows, wrap_rows, kinds = [], [], [], []
+    uv: list[np.ndarray] = []
+    waves: list[np.ndarray] = []
+    bands: list[np.ndarray] = []
+    # (indices into uv, coefficients)
+    rows_amp: list[tuple[np.ndarray, np.ndarray]] = []
+    rows_phase: list[tuple[np.ndarray, np.ndarray]] = []
+    raw_data: list[np.ndarray] = []
+    exp_rows: list[np.ndarray] = []
+    wrap_rows: list[np.ndarray] = []
+    kinds: list[np.ndarray] = []
     blocks_cov: list[np.ndarray] = []
 
     def add_uv(u: np.ndarray, v: np.ndarray, wave: np.ndarray, band: np.ndarray) -> np.ndarray:

@@ -106,7 +106,7 @@ def _potential(z: dict, dataset: Dataset, bounds: dict, primary_diameter_mas: fl
     )
     offsets = jnp.stack([x["dra"], x["ddec"]], axis=-1)
     residuals = block_residuals(dataset, offsets, 10.0 ** x["log10c"], primary_diameter_mas)
-    loglike = 0.0
+    loglike: float | jax.Array = 0.0
     for i, r in enumerate(residuals):
         s = x["scale"][dataset.group_index(i)]
         loglike = loglike - 0.5 * jnp.sum((r / s) ** 2) - jnp.sum(jnp.log(s))
@@ -167,7 +167,7 @@ def sample_posterior(
         z0 = {name: _from_box(start[name], *bounds[name]) for name in SITES}
         if num_chains > 1:
             z0 = {name: np.broadcast_to(v, (num_chains, *v.shape)) for name, v in z0.items()}
-        z0 = {name: jnp.asarray(v) for name, v in z0.items()}
+        init = {name: jnp.asarray(v) for name, v in z0.items()}
         diameter = float(primary_diameter_mas)
         kernel = NUTS(
             potential_fn=lambda z: _potential(z, dataset, bounds, diameter),
@@ -182,7 +182,7 @@ def sample_posterior(
             chain_method=chain_method,
             progress_bar=progress_bar,
         )
-        mcmc.run(jax.random.PRNGKey(seed), init_params=z0)
+        mcmc.run(jax.random.PRNGKey(seed), init_params=init)
         z = mcmc.get_samples(group_by_chain=True)
         # Back to the physical box in NumPy (float64): eager JAX would compile each
         # operation of the transform on its own.

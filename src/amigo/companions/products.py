@@ -102,11 +102,11 @@ def companions_document(result: DetectionResult, inputs: list[str]) -> dict[str,
     # (several filters) under their own top-level key.
     limits = {c.filter_name: curve_record(c) for c in result.limits if c.filter_name != COMBINED}
     combined = None
-    for c in result.limits:
-        if c.filter_name == COMBINED:
-            rule = c.photon_limit_dmag
+    for curve in result.limits:
+        if curve.filter_name == COMBINED:
+            rule = curve.photon_limit_dmag
             combined = {
-                "contrast_limits": curve_record(c),
+                "contrast_limits": curve_record(curve),
                 "photon_limit_dmag": None if rule is None else _r(rule, 3),
                 "assumes": "the same flux ratio in every filter",
             }

@@ -563,6 +563,7 @@ def _detect(dataset: Dataset, settings: SearchSettings) -> DetectionResult:
     companions: list[Companion] = []
     group_scales = scales_ml
     if k:
+        assert current is not None  # k > 0 only with a fitted scene
         final_fit = fitting.fit_companions(
             dataset, current.offsets_mas, current.log10_contrasts, scales_ml, diameter
         )

@@ -45,11 +45,11 @@ SPECTRUM_P_MIN = 1e-3
 def log_chi2_sf(x: np.ndarray | float, dof: int) -> np.ndarray:
     """``log P(chi2_dof > x)``, finite far into the tail (where SciPy underflows, the
     asymptotic ``Gamma(s, y) ~ y^(s-1) e^-y (1 + (s-1)/y)`` with ``s = dof/2, y = x/2``)."""
-    x = np.clip(np.asarray(x, dtype=float), 0.0, None)
-    log_p = np.asarray(stats.chi2.logsf(x, dof), dtype=float)
+    xs = np.clip(np.asarray(x, dtype=float), 0.0, None)
+    log_p = np.asarray(stats.chi2.logsf(xs, dof), dtype=float)
     lost = ~np.isfinite(log_p)
     if np.any(lost):
-        s, y = 0.5 * dof, 0.5 * x[lost]
+        s, y = 0.5 * dof, 0.5 * xs[lost]
         log_p[lost] = (s - 1) * np.log(y) - y - special.gammaln(s) + np.log1p((s - 1) / y)
     return log_p
 

@@ -54,6 +54,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import Any, cast
 
 import equinox as eqx
 import jax
@@ -370,6 +371,7 @@ class FilterFit:
         # All exposures share one anchor (the mean position) for the PSF computation.
         self.anchor = jnp.asarray(np.mean(positions, axis=0), jnp.float32)
         basis = setup.basis
+        assert basis is not None  # checked by __init__
         n_s = len(self.targets)
         return FitParams(
             exposures=ExposureParams(
@@ -398,7 +400,7 @@ class FilterFit:
         being nearly linear) or only its diagonal (``"diagonal"``: slower).
         """
         w = self.pixels.inverse_sigma**2
-        blocks = []
+        blocks: list[Array | None] = []
         for select in _SMALL:
             if select is _optics and not self.is_calibrator.any():
                 blocks.append(None)
@@ -488,7 +490,9 @@ class FilterFit:
         state = momentum.init(params)
 
         @eqx.filter_jit
-        def iterate(params, state, count, rate, instrument, setup, pixels, precond):
+        def iterate(
+            params: FitParams, state, count, rate, instrument, setup, pixels, precond
+        ) -> tuple[FitParams, Any, Array, Array]:
             loss, grad = eqx.filter_value_and_grad(self.loss)(params, instrument, setup, pixels)
             natural = precond.natural(grad, count >= starts)
             decrement = _tree_dot(grad, natural)
@@ -505,7 +509,7 @@ class FilterFit:
         iteration = 0
         rate = config.learning_rate
         for iteration in range(1, config.max_iterations + 1):
-            new_params, state, loss, decrement = iterate(
+            new_params, state, loss_array, decrement = iterate(
                 params,
                 state,
                 jnp.asarray(iteration - 1),
@@ -515,7 +519,7 @@ class FilterFit:
                 self.pixels,
                 precond,
             )
-            loss = float(loss)
+            loss = float(loss_array)
             if not np.isfinite(loss) or loss > best_loss + DIVERGENCE * max(best_loss, 1.0):
                 # Diverging: go back to the best point, drop the momentum, halve the step.
                 rate *= 0.5
@@ -557,9 +561,12 @@ class FilterFit:
                     converged = True
                     break
         if config.polish_steps > 0:
+            assert precond is not None  # computed above when polish_steps > 0
             best, n_polish = self.polish(best, precond, config.polish_steps)
             iteration += n_polish
-        fisher, exact = None, ()
+        fisher: np.ndarray | None = None
+        exact: tuple[int, ...] = ()
+        final_loss: float | Array
         if config.newton.max_iterations > 0:
             # The full-Fisher finish decides convergence (see amigo.fitting.newton).
             newton = levenberg_marquardt(self, best, config.newton, label)
@@ -575,6 +582,7 @@ class FilterFit:
                 best, self.instrument, self.setup, self.pixels
             )
             all_active = jnp.ones(len(_GROUP_NAMES), bool)
+            assert precond is not None  # computed above when newton.max_iterations == 0
             final_decrement = float(_tree_dot(final_grad, precond.natural(final_grad, all_active)))
             window = min(config.window, len(history) - 1)
             change = (
@@ -605,7 +613,7 @@ class FilterFit:
             return self.loss(theta, *args)
 
         u0 = jax.tree.map(jnp.zeros_like, params)
-        solution = optx.minimise(
+        solution: optx.Solution = optx.minimise(
             objective,
             optx.BFGS(rtol=1e-6, atol=1e-3),
             u0,
@@ -757,7 +765,8 @@ def _flatten(tree):
 
 
 def _tree_dot(a, b) -> Array:
-    return sum(jnp.sum(x * y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True))
+    leaves = zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True)
+    return cast(Array, sum(jnp.sum(x * y) for x, y in leaves))  # sum() starts from int 0
 
 
 # ------------------------------------------------------------------------------ information
@@ -854,12 +863,13 @@ def latent_information(
         for e in range(fit.n_exposures):
             if source[e] not in known:
                 step(f"{label}: Hessian of {fit.exposures[e].name} ({n} latent visibilities)")
-                jac = fit.latent_jacobian(params64, e, instrument, setup)
-                jac = np.asarray(jac).reshape(n, -1)
+                jac = np.asarray(fit.latent_jacobian(params64, e, instrument, setup))
+                jac = jac.reshape(n, -1)
                 hessian[fit.source_index[e]] += (jac * w[e].ravel()) @ jac.T
             if fit.is_calibrator[e]:
                 step(f"{label}: kernel Jacobians of {fit.exposures[e].name} (point source)")
                 local, wave = fit.local_jacobians(point, e, instrument, setup, wavefront=True)
+                assert wave is not None  # wavefront=True returns the optics block
                 jac0 = np.asarray(local[N_LOCAL_SCALARS:]).reshape(n, -1)
                 # Columns in the order of nuisance_names(): Zernikes, log-flux, slope,
                 # defocus, jitter (the instrument block is [Zernikes, defocus, geometry]).
@@ -893,6 +903,8 @@ def _model_images(
     # the PSFs are computed once per role and shared by the exposures.
     shared = filter_psfs(instrument, setup, params.optics, anchor)
     psfs = {True: shared, False: jax.lax.stop_gradient(shared)}
+    basis = setup.basis
+    assert basis is not None  # FilterFit refuses a setup without its latent basis
 
     def images(indices: list[int], psfs_of_role: Array) -> Array:
         # The exposures of one role share their PSFs: one vmapped copy of the model.
@@ -901,7 +913,7 @@ def _model_images(
         sources = jax.tree.map(lambda x: x[picked], params.sources)
 
         def one(exposure, source):
-            log_amp, phase = setup.basis.grids(source.amp, source.phase)
+            log_amp, phase = basis.grids(source.amp, source.phase)
             return image_from_psfs(
                 instrument, setup, psfs_of_role, source.slope_per_um, exposure, log_amp,
                 phase, anchor,

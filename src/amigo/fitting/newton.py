@@ -43,8 +43,9 @@ being computed again (:func:`amigo.fitting.filter_fit.latent_information`).
 from __future__ import annotations
 
 import time
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol, cast
 
 import equinox as eqx
 import jax
@@ -64,6 +65,10 @@ from amigo.model.image import (
 from amigo.model.image import float64 as _float64
 from amigo.progress import step
 from amigo.solvers.levenberg_marquardt import minimise
+
+if TYPE_CHECKING:
+    from amigo.model.detector.linear import LinearDetector
+    from amigo.model.optics import NRMOptics
 
 #: Columns differentiated together (memory: each holds the visibility FFTs of one image).
 JVP_BATCH = 16
@@ -285,7 +290,7 @@ class Layout:
         return cls(
             n_exposures=int(params.exposures.log_flux.shape[0]),
             n_targets=int(params.sources.slope_per_um.shape[0]),
-            zernike_shape=tuple(params.optics.zernikes_nm.shape),
+            zernike_shape=cast(tuple[int, int], tuple(params.optics.zernikes_nm.shape)),
             n_latent=int(params.sources.amp.shape[1] + params.sources.phase.shape[1]),
         )
 
@@ -313,7 +318,7 @@ def local_vector(params: FitParams, e: int, s: int) -> Float[Array, " n"]:
     )
 
 
-def wavefront_vector(optics) -> Float[Array, " n"]:
+def wavefront_vector(optics: OpticsParams | NRMOptics) -> Float[Array, " n"]:
     """``[Zernikes (flattened), defocus]`` of anything holding ``zernikes_nm`` and
     ``defocus_nm`` (an :class:`~amigo.model.image.OpticsParams` or the instrument's optics)."""
     return jnp.concatenate([jnp.ravel(optics.zernikes_nm), jnp.atleast_1d(optics.defocus_nm)])
@@ -332,7 +337,9 @@ def _split_block(block: Array, shape: tuple[int, int]) -> OpticsParams:
     return OpticsParams(block[:n].reshape(shape), block[n], block[n + 1 : -1], block[-1])
 
 
-def _at(instrument, setup, optics: OpticsParams):
+def _at(
+    instrument: Instrument, setup: FilterSetup, optics: OpticsParams
+) -> tuple[Instrument, FilterSetup]:
     """The instrument and setup with the block's geometry and band taper."""
     return (
         instrument.with_geometry(optics.geometry),
@@ -340,19 +347,23 @@ def _at(instrument, setup, optics: OpticsParams):
     )
 
 
-def local_illuminance(theta, instrument, setup, psfs, anchor) -> Float[Array, "240 240"]:
+def local_illuminance(
+    theta: Array, instrument: Instrument, setup: FilterSetup, psfs: Array, anchor: Array
+) -> Float[Array, "240 240"]:
     """Unit-flux optical illuminance (:func:`amigo.model.image.illuminance_from_psfs`) of one
     exposure from its local vector ``[x, y, log_flux, slope, jitter, latents]`` (the
     flux, ``theta[2]``, and the jitter are applied by the detector)."""
-    n_amp = setup.basis.n_amp
+    basis = setup.basis
+    assert basis is not None  # a fitted filter's setup has its latent basis
+    n_amp = basis.n_amp
     latent = theta[N_LOCAL_SCALARS:]
-    log_amp, phase = setup.basis.grids(latent[:n_amp], latent[n_amp:])
+    log_amp, phase = basis.grids(latent[:n_amp], latent[n_amp:])
     return illuminance_from_psfs(
         instrument, setup, psfs, theta[3], theta[:2], log_amp, phase, anchor
     )
 
 
-def local_detector(theta, instrument):
+def local_detector(theta: Array, instrument: Instrument) -> LinearDetector:
     """The instrument's linear detector with the jitter of the local vector ``theta``."""
     return instrument.detector.with_jitter(theta[JITTER_INDEX] / 1000.0)
 
@@ -380,16 +391,20 @@ def _columns(function, x: Array) -> Array:
 
 
 @eqx.filter_jit
-def local_jacobian(theta, instrument, setup, psfs, anchor) -> Float[Array, "n 80 80"]:
+def local_jacobian(
+    theta: Array, instrument: Instrument, setup: FilterSetup, psfs: Array, anchor: Array
+) -> Float[Array, "n 80 80"]:
     """Jacobian of one exposure's image w.r.t. its local vector (instrument block fixed)."""
     return _columns(lambda t: _local_image(t, instrument, setup, psfs, anchor), theta)
 
 
 @eqx.filter_jit
-def optics_jacobian(block, theta, instrument, setup, anchor) -> Float[Array, "n 80 80"]:
+def optics_jacobian(
+    block: Array, theta: Array, instrument: Instrument, setup: FilterSetup, anchor: Array
+) -> Float[Array, "n 80 80"]:
     """Jacobian of one exposure's image w.r.t. the instrument block ``[Zernikes
     (flattened), defocus, geometry]``."""
-    shape = instrument.optics.zernikes_nm.shape
+    shape = cast(tuple[int, int], instrument.optics.zernikes_nm.shape)  # (7, n_zernike)
 
     def image_of(vector):
         optics = _split_block(vector, shape)
@@ -400,7 +415,9 @@ def optics_jacobian(block, theta, instrument, setup, anchor) -> Float[Array, "n 
 
 
 @eqx.filter_jit
-def psfs_of(instrument, setup, optics, anchor):
+def psfs_of(
+    instrument: Instrument, setup: FilterSetup, optics: OpticsParams, anchor: Array | None
+) -> Float[Array, "l 264 264"]:
     """:func:`amigo.model.image.filter_psfs`, compiled."""
     return filter_psfs(instrument, setup, optics, anchor)
 
@@ -502,7 +519,7 @@ class _Problem:
         self.n_values = float(np.count_nonzero(self.weight[self.members]))
         self.member_mask = np.isin(np.arange(fit.n_exposures), self.members)
         self.float64 = False
-        self._models64 = None
+        self._models64: tuple[Instrument, FilterSetup] | None = None
 
     def _models(self):
         if not self.float64:
@@ -511,7 +528,7 @@ class _Problem:
             self._models64 = _float64((self.fit.instrument, self.fit.setup))
         return (*self._models64, jnp.float64)
 
-    def precision(self):
+    def precision(self) -> AbstractContextManager[Any]:
         """Context in which the model runs in the current precision."""
         return jax.enable_x64(self.float64)
 
@@ -534,8 +551,8 @@ class _Problem:
     def _residuals(self, instrument, setup, thetas, psfs, anchor) -> np.ndarray:
         """(E, npix) whitened residuals ``(data - model) / sigma`` of every exposure
         (0 where masked), in float64 from the model of the current precision."""
-        models = _images(thetas, instrument, setup, psfs, anchor)
-        models = np.asarray(models, np.float64).reshape(self.fit.n_exposures, -1)
+        models = np.asarray(_images(thetas, instrument, setup, psfs, anchor), np.float64)
+        models = models.reshape(self.fit.n_exposures, -1)
         return (self.data - models) * self.weight
 
     def _prior_offset(self, vector: np.ndarray) -> np.ndarray:
@@ -592,12 +609,15 @@ class _Problem:
             for e in self.members:
                 precision = "float64 " if self.float64 else ""
                 step(f"{label}: {precision}Jacobian of {fit.exposures[e].name}")
-                jac = local_jacobian(thetas[e], instrument, setup, psfs, anchor)
-                jac = np.asarray(jac, np.float64).reshape(len(self.locals[e]), -1)
+                jac = np.asarray(
+                    local_jacobian(thetas[e], instrument, setup, psfs, anchor), np.float64
+                ).reshape(len(self.locals[e]), -1)
                 index = self.locals[e]
                 if fit.is_calibrator[e]:
-                    jo = optics_jacobian(wavefront, thetas[e], instrument, setup, anchor)
-                    jo = np.asarray(jo, np.float64).reshape(len(lay.optics), -1)
+                    jo = np.asarray(
+                        optics_jacobian(wavefront, thetas[e], instrument, setup, anchor),
+                        np.float64,
+                    ).reshape(len(lay.optics), -1)
                     jac = np.concatenate([jac, jo])
                     index = np.concatenate([index, lay.optics])
                 wj = jac * self.weight[e]  # whitened Jacobian
@@ -640,7 +660,8 @@ def levenberg_marquardt(
         (np.nonzero(calibrator)[0], f"{label} calibrators"),
         (np.nonzero(~calibrator)[0], f"{label} science"),
     ]
-    converged, iterations, chords, history, change = True, 0, 0, [], 0.0
+    history: list[float] = []
+    converged, iterations, chords, change = True, 0, 0, 0.0
     decrement = 0.0
     fisher = np.zeros((layout.size, layout.size))
     exact: list[int] = []

@@ -311,7 +311,9 @@ class RampDetector:
             amplitude = pattern_amplitude(residual, pattern, image.error**2, halo)
             self.pattern_amplitudes[name] = amplitude
             if not amplitude[0] > PATTERN_THRESHOLD:
-                self.inputs[name] = dataclasses.replace(self.originals[name], dark_reference="")
+                original = self.originals[name]
+                assert isinstance(original, Level2Input)  # only level-2 images have patterns
+                self.inputs[name] = dataclasses.replace(original, dark_reference="")
                 self.added_sigma_dn_s.pop(name, None)
                 dropped.append(name)
         return dropped

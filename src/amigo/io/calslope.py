@@ -58,14 +58,23 @@ class SlopeArrays(Protocol):
     file format does not depend on how the arrays were made). Shapes as in the module
     notes."""
 
-    slope_dn: np.ndarray
-    slope_cov_dn2: np.ndarray
-    slope_support: np.ndarray
-    ramp_dn: np.ndarray
-    ramp_cov_dn2: np.ndarray
-    ramp_support: np.ndarray
-    badpix: np.ndarray
-    badpix_reason: np.ndarray
+    # Read-only (properties), so that a frozen dataclass satisfies the protocol.
+    @property
+    def slope_dn(self) -> np.ndarray: ...
+    @property
+    def slope_cov_dn2(self) -> np.ndarray: ...
+    @property
+    def slope_support(self) -> np.ndarray: ...
+    @property
+    def ramp_dn(self) -> np.ndarray: ...
+    @property
+    def ramp_cov_dn2(self) -> np.ndarray: ...
+    @property
+    def ramp_support(self) -> np.ndarray: ...
+    @property
+    def badpix(self) -> np.ndarray: ...
+    @property
+    def badpix_reason(self) -> np.ndarray: ...
 
     def header_cards(self) -> Mapping[str, tuple[Any, str]]:
         """Keyword -> (value, comment) of the processing, for the primary header."""

@@ -335,7 +335,7 @@ def _array_like(
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # casting NaN or negatives: judged by the caller
-            array = np.array(hdu.data, dtype=dtype)
+            array: np.ndarray = np.array(hdu.data, dtype=dtype)
     except Exception as error:
         raise InputError(path, f"{name} data cannot be read ({error})") from None
     if array.shape != tuple(shape) and array.shape != tuple(shape[-2:]):

@@ -29,6 +29,7 @@ from typing import TYPE_CHECKING
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import DTypeLike
 from jaxtyping import Array, Bool, Float
 
 from amigo import niriss
@@ -198,7 +199,7 @@ class PixelData(eqx.Module):
     inverse_sigma: Float[Array, "ny nx"]
 
     @classmethod
-    def from_image(cls, image: ImageData, dtype=jnp.float32) -> PixelData:
+    def from_image(cls, image: ImageData, dtype: DTypeLike = jnp.float32) -> PixelData:
         inv = np.where(image.mask, 1.0 / image.error, 0.0)
         return cls(jnp.asarray(image.data, dtype), jnp.asarray(inv, dtype))
 

@@ -27,12 +27,14 @@ that one compiled function serves every exposure with the same number of groups.
 from __future__ import annotations
 
 import dataclasses
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import DTypeLike
 from jaxtyping import Array, Float
 
 from amigo import niriss
@@ -83,7 +85,11 @@ class SlopeData(eqx.Module):
 
     @classmethod
     def from_calslope(
-        cls, product: CalSlope, role: str, diagonal: bool = False, dtype=jnp.float32
+        cls,
+        product: CalSlope,
+        role: str,
+        diagonal: bool = False,
+        dtype: DTypeLike = jnp.float32,
     ) -> SlopeData:
         """Build from a :class:`~amigo.io.calslope.CalSlope`: the full slope covariance
         where the file averages enough integrations, the pooled estimate otherwise (as
@@ -123,7 +129,9 @@ class SlopeData(eqx.Module):
         )
 
     @classmethod
-    def from_level2(cls, exposure: Exposure, role: str, dtype=jnp.float32) -> SlopeData:
+    def from_level2(
+        cls, exposure: Exposure, role: str, dtype: DTypeLike = jnp.float32
+    ) -> SlopeData:
         """Build from a level-2 exposure (``_cal``/``_calints``/``_rateints``, DN/s).
 
         The image (integrations averaged as :meth:`ImageData.from_exposure` does) becomes
@@ -175,7 +183,7 @@ class SlopeData(eqx.Module):
         name: str = "level2",
         filter_name: str = "F480M",
         role: str = "calibrator",
-        dtype=jnp.float32,
+        dtype: DTypeLike = jnp.float32,
         dark_reference: str = "",
     ) -> SlopeData:
         """A level-2 exposure from its (ny, nx) rate and error (DN/s) and the pixels to
@@ -203,7 +211,13 @@ class SlopeData(eqx.Module):
         )
 
     @classmethod
-    def read(cls, path, role: str, diagonal: bool = False, dtype=jnp.float32) -> SlopeData:
+    def read(
+        cls,
+        path: str | os.PathLike[str],
+        role: str,
+        diagonal: bool = False,
+        dtype: DTypeLike = jnp.float32,
+    ) -> SlopeData:
         """Read a calslope file or a level-2 image (raises
         :class:`~amigo.errors.InputError` if it is neither)."""
         if is_level2(path):
@@ -287,7 +301,9 @@ def flat_slopes(base: BaseModel, params: FlatParams, data: SlopeData) -> Array:
     return predict_slopes(base, uniform, data.ngroups)
 
 
-def model_slopes(base: BaseModel, cache: PupilCache, params, data: SlopeData) -> Array:
+def model_slopes(
+    base: BaseModel, cache: PupilCache, params: PointSourceParams | FlatParams, data: SlopeData
+) -> Array:
     """Model slopes of any exposure (point source or flat field)."""
     if isinstance(params, FlatParams):
         return flat_slopes(base, params, data)
@@ -380,7 +396,7 @@ def initial_flat(base: BaseModel, data: SlopeData) -> FlatParams:
     return FlatParams(jnp.asarray(level, data.slopes_dn.dtype))
 
 
-def initial_params(base: BaseModel, data: SlopeData):
+def initial_params(base: BaseModel, data: SlopeData) -> PointSourceParams | FlatParams:
     """Starting parameters for any exposure."""
     if data.role == "flat":
         return initial_flat(base, data)

@@ -63,6 +63,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
+from numpy.lib.npyio import NpzFile
 
 from amigo import niriss
 from amigo.errors import InputError
@@ -437,9 +438,9 @@ class BaseModel(eqx.Module):
 
     def with_dark_residual(
         self,
-        offsets_dn: Float[Array, "G ny nx"] | None,
+        offsets_dn: Float[Array, "G ny nx"] | np.ndarray | None,
         reference: str = "",
-        posterior_cholesky: Float[Array, "G G ny nx"] | None = None,
+        posterior_cholesky: Float[Array, "G G ny nx"] | np.ndarray | None = None,
         prior_dn: float | None = None,
     ) -> BaseModel:
         """The same instrument with per-group read offsets (``None``: none), measured
@@ -518,7 +519,7 @@ class BaseModel(eqx.Module):
     def dark_offset_terms(
         self,
         reference: str,
-        rate_dn_s: Float[Array, "ny nx"],
+        rate_dn_s: Float[Array, "ny nx"] | np.ndarray,
         ngroups: int,
         group_time_s: float,
         nframes: int = 1,
@@ -553,8 +554,8 @@ class BaseModel(eqx.Module):
             pattern = np.einsum("gyx,gyx->yx", response[:n], offsets[:n]) / group_time_s
         variance = zeros
         if prior > 0:
-            chol = read.group_offsets_chol_dn
-            chol = None if chol is None else np.asarray(chol)
+            chol_dn = read.group_offsets_chol_dn
+            chol = None if chol_dn is None else np.asarray(chol_dn)
             variance = offset_variance(response, prior, chol) / group_time_s**2
         return pattern, variance
 
@@ -671,7 +672,8 @@ def write_leaves(path: str | os.PathLike[str], tree: Any, record: dict[str, Any]
     """Write the array leaves of any pytree, keyed by path, plus a JSON record, to one
     ``.npz`` file (atomically). Used for base models and training checkpoints."""
     path = Path(path)
-    arrays = {name: np.asarray(leaf) for name, leaf in leaf_paths(tree).items()}
+    # Any: numpy's stub types **kwds of savez_compressed as its allow_pickle flag too.
+    arrays: dict[str, Any] = {name: np.asarray(leaf) for name, leaf in leaf_paths(tree).items()}
     arrays[METADATA_KEY] = np.array(json.dumps(record, indent=1, sort_keys=True))
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as handle:  # a file object: numpy would append ".npz" to a name
@@ -695,7 +697,7 @@ def leaf_paths(tree: Any) -> dict[str, Array]:
 def fill_leaves(
     path: Path,
     skeleton: Any,
-    data,
+    data: NpzFile,
     broadcast: tuple[str, ...] = (),
     from_skeleton: tuple[str, ...] = (),
 ) -> Any:
@@ -752,7 +754,7 @@ def read_metadata(path: str | os.PathLike[str]) -> dict[str, Any]:
         return _metadata(Path(path), data)
 
 
-def open_npz(path: Path, what: str = "base-model"):
+def open_npz(path: Path, what: str = "base-model") -> NpzFile:
     """Open an ``.npz`` without pickle support; :class:`InputError` if impossible."""
     require_file(path, f"{what} file")
     try:
@@ -784,7 +786,7 @@ def _metadata(path: Path, data, fmt: str = FORMAT) -> dict[str, Any]:
     return record
 
 
-def read_record(path: Path, data, fmt: str) -> dict[str, Any]:
+def read_record(path: Path, data: NpzFile, fmt: str) -> dict[str, Any]:
     """The validated JSON record of an npz written by :func:`write_leaves`."""
     return _metadata(path, data, fmt)
 
@@ -847,7 +849,8 @@ def verify_checksum(path: Path, sums: Path) -> None:
         lines = sums.read_text(encoding="ascii").splitlines()
     except OSError:
         return  # an installation without the list: nothing to compare against
-    recorded = dict(reversed(line.split(None, 1)) for line in lines if line.strip())
+    pairs = (line.split(None, 1) for line in lines if line.strip())
+    recorded = {name: digest for digest, name in pairs}
     expected = recorded.get(path.name)
     if expected is None:
         return

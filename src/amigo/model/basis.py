@@ -112,7 +112,7 @@ def _file_name(filter_name: str, key: str) -> str:
 def knot_mtf(
     psfs: np.ndarray,
     weights: np.ndarray,
-    wavelengths_m: np.ndarray,
+    wavelengths_m: np.ndarray | jax.Array,
     pixel_rad: float,
     uv_m: np.ndarray,
 ) -> np.ndarray:

@@ -29,11 +29,14 @@ Who owns what
 from __future__ import annotations
 
 import dataclasses
+import os
 from pathlib import Path
+from typing import TYPE_CHECKING, TypeVar
 
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import DTypeLike
 from jaxtyping import Array, Float
 
 from amigo import niriss as nis
@@ -43,6 +46,11 @@ from amigo.io.files import require_file
 from amigo.model.detector.linear import LinearDetector
 from amigo.model.optics import LinearSpectrum, NRMOptics, cast
 from amigo.model.visibility import Injector, LatentBasis, UVGrid
+
+if TYPE_CHECKING:
+    from amigo.model.base import BaseModel
+
+T = TypeVar("T")
 
 #: Number of wavelengths propagated per filter. Source: AMIGO paper (9 by default).
 DEFAULT_N_WAVELENGTHS = 9
@@ -87,7 +95,11 @@ class Instrument(eqx.Module):
 
     @classmethod
     def from_base_model(
-        cls, base, filter_name: str, name: str = "amigo base model", detector: str = "linear"
+        cls,
+        base: BaseModel,
+        filter_name: str,
+        name: str = "amigo base model",
+        detector: str = "linear",
     ) -> Instrument:
         """The image-level instrument of one filter from a trained
         :class:`~amigo.model.base.BaseModel`: its mask (fitted hole positions), wavefront
@@ -154,7 +166,7 @@ def save_instrument(instrument: Instrument, path: str | Path) -> None:
         eqx.tree_serialise_leaves(tmp, instrument)
 
 
-def load_instrument(path: str | Path) -> Instrument:
+def load_instrument(path: str | os.PathLike[str]) -> Instrument:
     """Load arrays saved by :func:`save_instrument` into the nominal structure.
 
     Raises :class:`~amigo.errors.InputError` if the file does not match it.
@@ -204,7 +216,7 @@ class FilterSetup(eqx.Module):
         instrument: Instrument,
         basis: LatentBasis | None = None,
         grid: UVGrid | None = None,
-        dtype=np.float32,
+        dtype: DTypeLike = np.float32,
         bins: nis.FilterBins | None = None,
     ) -> FilterSetup:
         """Setup of filter ``name``; ``grid`` defaults to the basis's (or the default).
@@ -307,7 +319,7 @@ class SourceParams(eqx.Module):
     slope_per_um: Float[Array, ""]
 
     @classmethod
-    def point(cls, basis: LatentBasis, dtype=jnp.float32) -> SourceParams:
+    def point(cls, basis: LatentBasis, dtype: DTypeLike = jnp.float32) -> SourceParams:
         """A point source (``V = 1``) with a flat SED."""
         return cls(
             jnp.zeros(basis.n_amp, dtype), jnp.zeros(basis.n_phase, dtype), jnp.zeros((), dtype)
@@ -496,6 +508,6 @@ def unit_image(
     )
 
 
-def float64(tree):
+def float64(tree: T) -> T:
     """Cast every floating array of a pytree to float64 (inside ``jax.enable_x64``)."""
     return cast(tree, jnp.float64)

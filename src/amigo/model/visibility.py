@@ -38,6 +38,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import DTypeLike
 from jaxtyping import Array, Float
 
 #: Default knot grid: 51 x 51 knots, 0.259 m apart. Source: AMIGO research code (a grid of
@@ -234,7 +235,7 @@ class Injector(eqx.Module):
         pixel_scale_rad: float,
         psf_size: int = 240,
         fft_size: int | None = None,
-        dtype: np.dtype = np.float32,
+        dtype: DTypeLike = np.float32,
     ) -> Injector:
         """Precompute the interpolation weights for ``wavelengths_m`` (n_lambda,).
 

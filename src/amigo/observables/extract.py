@@ -103,6 +103,7 @@ class FilterProduct:
 def baseline_map(setup: FilterSetup) -> np.ndarray:
     """(42, m_a + m_p) map: latent ``[amp, phase]`` -> ``[log|V|, arg V]`` at the 21 baselines."""
     basis = setup.basis
+    assert basis is not None, "the filter setup has no latent basis"
     grid = basis.grid
     weights = grid.point_weights(nis.baselines_m())  # (21, n^2) on the full grid
     s_amp, s_pha = grid.fold_matrix()  # (n^2, n_half)
@@ -252,6 +253,7 @@ def _calibrate(
     """
     setup = fit.setup
     basis = setup.basis
+    assert basis is not None  # FilterFit refuses a setup without its latent basis
     roles = fit.target_roles()
     to_knots = basis.latent_from_knots()
     nuisance = obs.nuisance_regression(information.cal_hessian, information.cross)

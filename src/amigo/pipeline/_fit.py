@@ -15,10 +15,13 @@ from collections import defaultdict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, cast
+from typing import TYPE_CHECKING, Any, cast
 
 from amigo.errors import InputError
 from amigo.progress import warn
+
+if TYPE_CHECKING:
+    from amigo.likelihood.pixels import ImageData
 
 
 @dataclass
@@ -467,7 +470,7 @@ MAX_PEAK_FRACTION = 0.25
 MIN_PEAK_SIGMA = 10.0
 
 
-def star_problem(image) -> str | None:
+def star_problem(image: ImageData) -> str | None:
     """Why an image has no star to fit, or ``None``. Tested over the usable pixels: a
     brightest pixel less than :data:`MIN_PEAK_SIGMA` errors above the median (a flat
     field), more than :data:`MAX_PEAK_FRACTION` of the flux in one pixel (a hot pixel),

@@ -58,10 +58,11 @@ def run(
     from amigo.io.calslope import calslope_name
     from amigo.progress import step
 
-    sci, cal, superbias = tuple(map(Path, sci)), tuple(map(Path, cal)), tuple(map(Path, superbias))
+    sci_paths, cal_paths = tuple(map(Path, sci)), tuple(map(Path, cal))
+    superbias_paths = tuple(map(Path, superbias))
     out = Path(out)
-    check_roles(sci, cal, superbias, first_group)
-    inputs = tuple(dict.fromkeys((*sci, *cal, *superbias)))
+    check_roles(sci_paths, cal_paths, superbias_paths, first_group)
+    inputs = tuple(dict.fromkeys((*sci_paths, *cal_paths, *superbias_paths)))
     step(f"run: processing {len(inputs)} raw exposures")
     processed = process(inputs, out, force=force)
     if processed.failed:  # each named on its own line already
@@ -71,14 +72,14 @@ def run(
     slopes = {path: out / calslope_name(path) for path in inputs}
     step("run: fitting")
     fitted = fit(
-        [slopes[p] for p in sci],
-        [slopes[p] for p in cal],
+        [slopes[p] for p in sci_paths],
+        [slopes[p] for p in cal_paths],
         out,
         model=model,
         detector=detector,
         knots=knots,
         knot_spacing=knot_spacing,
-        superbias=[slopes[p] for p in superbias],
+        superbias=[slopes[p] for p in superbias_paths],
         first_group=first_group,
         force=force,
     )

@@ -9,7 +9,7 @@ from matplotlib.figure import Figure
 from amigo.model.basis import BasisInfo
 
 
-def spectrum_figure(info: BasisInfo):
+def spectrum_figure(info: BasisInfo) -> Figure:
     """Figure: normalised eigenvalue spectra with the truncation marked."""
     fig = Figure(figsize=(7.5, 4.2), layout="constrained")
     FigureCanvasAgg(fig)

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 
@@ -23,6 +24,7 @@ matplotlib.use("Agg")
 import jax
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.figure import Figure
 
 from amigo.companions.limits import COMBINED, lambda_over_d_mas
 from amigo.companions.models import scene_visibility
@@ -144,7 +146,7 @@ def plot_detection_maps(
 
 def corner(
     samples: np.ndarray, labels: list[str], truths: list[float] | None = None, bins: int = 30
-):
+) -> Figure:
     """A minimal corner plot: 1-D histograms on the diagonal, 2-D histograms below."""
     n = samples.shape[1]
     fig, axes = plt.subplots(n, n, figsize=(1.9 * n + 1, 1.9 * n + 1), squeeze=False)
@@ -254,9 +256,15 @@ def plot_contrast_limits(result: DetectionResult, path: str | os.PathLike[str]) 
     if waves:
         wave = float(np.mean(waves))
         mas_per_unit = lambda_over_d_mas(wave)
-        top = ax.secondary_xaxis(
-            "top", functions=(lambda x: x / mas_per_unit, lambda x: x * mas_per_unit)
-        )
+
+        # Any: matplotlib passes arrays (its stub says ArrayLike, which has no arithmetic).
+        def to_units(x: Any) -> Any:
+            return x / mas_per_unit
+
+        def to_mas(x: Any) -> Any:
+            return x * mas_per_unit
+
+        top = ax.secondary_xaxis("top", functions=(to_units, to_mas))
         top.set_xlabel(f"separation (λ/D at {wave * 1e6:.2f} µm, D = {PUPIL_DIAMETER_M:.2f} m)")
     ax.set_ylabel("contrast limit (delta mag)")
     ax.set_title("Contrast limits on the companion-subtracted data", fontsize=10)
@@ -281,6 +289,7 @@ def plot_posterior_predictive(
             )
             params = [(s["dra"][d], s["ddec"][d], s["log10c"][d]) for d in draws]
         else:
+            assert result.fit is not None  # a result with companions has their fit
             median = (
                 result.fit.offsets_mas[:, 0],
                 result.fit.offsets_mas[:, 1],

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -10,8 +11,12 @@ from matplotlib.figure import Figure
 
 from amigo.plots.optics import save
 
+if TYPE_CHECKING:
+    from amigo.likelihood.pixels import ImageData
+    from amigo.observables.extract import ExposureStats
 
-def exposure_figure(image, model: np.ndarray, stats) -> Figure:
+
+def exposure_figure(image: ImageData, model: np.ndarray, stats: ExposureStats) -> Figure:
     """Four panels for one exposure.
 
     Parameters
@@ -40,7 +45,9 @@ def exposure_figure(image, model: np.ndarray, stats) -> Figure:
     fig.colorbar(im, ax=axes[2], shrink=0.8)
     values = z[np.isfinite(z)]
     bins = np.linspace(-max(5.0, lim), max(5.0, lim), 81)
-    axes[3].hist(values, bins=bins, density=True, color="tab:blue", alpha=0.7, label="pixels")
+    axes[3].hist(
+        values, bins=bins.tolist(), density=True, color="tab:blue", alpha=0.7, label="pixels"
+    )
     grid = np.linspace(bins[0], bins[-1], 400)
     axes[3].plot(grid, np.exp(-0.5 * grid**2) / np.sqrt(2 * np.pi), "k--", label="N(0, 1)")
     axes[3].set_yscale("log")

@@ -7,6 +7,7 @@ Every function returns a :class:`matplotlib.figure.Figure` built on the Agg back
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -14,6 +15,9 @@ from matplotlib.figure import Figure
 
 from amigo import niriss
 from amigo.io.atomic import atomic_path
+
+if TYPE_CHECKING:
+    from amigo.model.optics.model import NRMOptics
 
 
 def _figure(ncols: int = 1, size: float = 4.2) -> tuple[Figure, list]:
@@ -23,7 +27,7 @@ def _figure(ncols: int = 1, size: float = 4.2) -> tuple[Figure, list]:
     return fig, axes
 
 
-def pupil_figure(optics) -> Figure:
+def pupil_figure(optics: NRMOptics) -> Figure:
     """Amplitude transmission and OPD (nm, inside the holes) of an :class:`NRMOptics`."""
     amplitude, opd_m = (np.asarray(a) for a in optics.pupil())
     x, y = np.asarray(optics.grid.x_m), np.asarray(optics.grid.y_m)

@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+if TYPE_CHECKING:
+    from amigo.training.data import History
 
-def loss_curve_figure(history, title: str = "") -> Figure:
+
+def loss_curve_figure(history: History, title: str = "") -> Figure:
     """The calibration losses (per batch step and per epoch) and the validation loss (per
     epoch), chi2/2 per value, against the step; dashed lines where a stage begins.
 

@@ -322,7 +322,7 @@ def saturated_integrations(
     saturated = np.asarray(raw_dn) >= saturation_dn
     if group_dq is not None:
         saturated |= (np.asarray(group_dq).astype(np.uint32) & DQ_SATURATED) != 0
-    return saturated.any(axis=1)
+    return np.asarray(saturated.any(axis=1))
 
 
 def robust_centre_scale(values: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -1100,7 +1100,7 @@ def process_ramps(
     source: RampSource,
     settings: ProcessSettings | None = None,
     pixel_dq: np.ndarray | None = None,
-    progress: Callable[[Iterable[object], int, str], Iterable[object]] | None = None,
+    progress: Callable[[Iterable[Any], int, str], Iterable[Any]] | None = None,
 ) -> SlopeProduct:
     """Process one exposure, streaming over its integrations (see the module docstring).
 
@@ -1182,16 +1182,18 @@ def process_ramps(
         slope_sums.add(slopes, keep[:, 1:])
         n_saturated += saturated_integrations(raw, settings.saturation_dn, dq).sum(axis=0)
 
-    ramps, slopes = ramp_sums.result(), slope_sums.result()
-    ramp_cov, slope_cov = ramps.cov_of_mean(), slopes.cov_of_mean()
+    ramp_m, slope_m = ramp_sums.result(), slope_sums.result()
+    ramp_cov, slope_cov = ramp_m.cov_of_mean(), slope_m.cov_of_mean()
     if settings.covariance_correction:
-        delta_ramp, delta_slope = clipping_influence(ramps.cov, nints, wanted.size, settings.nsigma)
+        delta_ramp, delta_slope = clipping_influence(
+            ramp_m.cov, nints, wanted.size, settings.nsigma
+        )
         ramp_cov, slope_cov = ramp_cov + delta_ramp, slope_cov + delta_slope
-    slope_sup = slopes.support
+    slope_sup = slope_m.support
 
     # Support and noise are judged on the values a fit uses: the slopes, or with one group
     # (no slope) its read, which a fit uses less a known superbias (amigo.model.detector.reset).
-    used_sup, used_cov = (slope_sup, slope_cov) if ngroups > 1 else (ramps.support, ramp_cov)
+    used_sup, used_cov = (slope_sup, slope_cov) if ngroups > 1 else (ramp_m.support, ramp_cov)
     reason = np.zeros((ny, nx), dtype=np.uint8)
     reason[niriss.reference_row_mask(ny, nx)] |= BAD_REFERENCE
     reason[used_sup.min(axis=0) < settings.required_support(nints)] |= BAD_LOW_SUPPORT
@@ -1204,12 +1206,12 @@ def process_ramps(
     reason[no_noise] |= BAD_NO_NOISE
 
     return SlopeProduct(
-        slope_dn=slopes.mean,
+        slope_dn=slope_m.mean,
         slope_cov_dn2=slope_cov,
         slope_support=slope_sup,
-        ramp_dn=ramps.mean,
+        ramp_dn=ramp_m.mean,
         ramp_cov_dn2=ramp_cov,
-        ramp_support=ramps.support,
+        ramp_support=ramp_m.support,
         badpix=reason != 0,
         badpix_reason=reason,
         settings=settings,

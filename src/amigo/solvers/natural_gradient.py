@@ -23,10 +23,12 @@ class FisherMomentum(eqx.Module):
     momentum: float = eqx.field(static=True, default=0.6)
 
     @classmethod
-    def init(cls, params: Any, learning_rate: float = 0.5, momentum: float = 0.6):
+    def init(cls, params: Any, learning_rate: float = 0.5, momentum: float = 0.6) -> FisherMomentum:
         return cls(jax.tree.map(jnp.zeros_like, params), learning_rate, momentum)
 
-    def update(self, params: Any, grads: Any, fisher: Any, floor: float = 1e-30):
+    def update(
+        self, params: Any, grads: Any, fisher: Any, floor: float = 1e-30
+    ) -> tuple[Any, FisherMomentum]:
         """One step; returns ``(new_params, new_optimiser)``."""
         scaled = jax.tree.map(lambda g, f: g / jnp.maximum(f, floor), grads, fisher)
         velocity = jax.tree.map(lambda v, s: self.momentum * v + s, self.velocity, scaled)
@@ -44,7 +46,7 @@ class FisherMomentum(eqx.Module):
         grad: jax.Array,
         preconditioner: jax.Array,
         limit: jax.Array | None = None,
-    ):
+    ) -> tuple[jax.Array, FisherMomentum]:
         """The same step on a flat parameter vector with a full preconditioning matrix
         (the inverse of the damped Fisher matrix): a Gauss-Newton direction. ``limit``
         (same shape) is a trust region: the whole step is shrunk so that no parameter

@@ -81,10 +81,11 @@ def solve_dark_residual(
     gain = model.read.gain_e_per_dn
     for d, p in chosen:
         differences = _ramp_differences(model, p, d, cache)
-        estimate = pipeline_group_slope(differences, d.group_time_s, gain, d.nframes)
+        estimate = np.asarray(
+            pipeline_group_slope(differences, d.group_time_s, gain, d.nframes), np.float64
+        )
         jacobian = offset_jacobian(differences, groups, d.group_time_s, gain, d.nframes)
         white = np.asarray(d.whitening, np.float64)[:, 0, 0].reshape(d.shape)
-        estimate = np.asarray(estimate, np.float64)
         with np.errstate(divide="ignore"):
             variance = np.where(white > 0, 1.0 / white**2, np.inf) + (model_error * estimate) ** 2
         residual = np.asarray(d.slopes_dn[0], np.float64) - estimate

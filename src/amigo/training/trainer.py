@@ -76,7 +76,8 @@ from amigo.errors import InputError
 from amigo.likelihood.slopes import (
     FitStatistics,
     fit_statistics,
-    initial_params,
+    initial_flat,
+    initial_point_source,
 )
 from amigo.model.base import (
     BaseModel,
@@ -169,11 +170,17 @@ class Trainer:
         self.stopped_early = False
 
     # -------------------------------------------------------------- state
+    def _precision(self) -> dict[str, Any]:
+        """The Fisher information of :meth:`compute_fisher`, which comes before any step."""
+        if self.fisher is None:
+            raise RuntimeError("compute_fisher() comes before the first step")
+        return self.fisher
+
     def _initial_state(self, base: BaseModel) -> TrainState:
         s = self.settings
-        cal = tuple(initial_params(base, d) for d in self.data.cal)
-        flats = tuple(initial_params(base, d) for d in self.data.flats)
-        val = tuple(initial_params(base, d) for d in self.data.val)
+        cal = tuple(initial_point_source(base, d) for d in self.data.cal)
+        flats = tuple(initial_flat(base, d) for d in self.data.flats)
+        val = tuple(initial_point_source(base, d) for d in self.data.val)
         network = self._fresh_network(base, 1) if base.linear else base.ramp.network
         return TrainState(
             base=base,
@@ -299,8 +306,8 @@ class Trainer:
         # The dark current: every calibration exposure's pixels (the batch gradient is
         # scaled up to the whole set, so its Fisher is the whole set's too).
         dark = jax.tree.map(jnp.zeros_like, split(base, dark_mask(base)))
-        for p, d in zip(state.cal_params, self.data.cal, strict=True):
-            dark = jax.tree.map(jnp.add, dark, dark_fisher(base, p, d, cache))
+        for q, d in zip(state.cal_params, self.data.cal, strict=True):
+            dark = jax.tree.map(jnp.add, dark, dark_fisher(base, q, d, cache))
         dark = jax.tree.map(lambda f: jnp.where(f > 0, f, jnp.inf), dark)
         self.fisher = {
             "physical": jnp.asarray(inverse, vector.dtype),
@@ -354,8 +361,11 @@ class Trainer:
             loss, values = loss + float(value), values + d.n_values
             grad_base = gb if grad_base is None else jax.tree.map(jnp.add, grad_base, gb)
             grads[i] = gp
+        assert grad_base is not None  # a batch is never empty
         # Source parameters of the exposures in the batch (the others keep their state).
-        moved, moved_opt = state.cal_opt.update(state.cal_params, tuple(grads), self.fisher["cal"])
+        moved, moved_opt = state.cal_opt.update(
+            state.cal_params, tuple(grads), self._precision()["cal"]
+        )
         inside = set(batch)
         cal_params = tuple(moved[i] if i in inside else state.cal_params[i] for i in range(n_cal))
         velocity = tuple(
@@ -371,7 +381,7 @@ class Trainer:
         moved_vector, physical_opt = state.physical_opt.update_vector(
             vector,
             ravel_pytree(g_phys)[0],
-            self.fisher["physical"],
+            self._precision()["physical"],
             ravel_pytree(physical_step_limits(base))[0],
         )
         base = merge(base, unravel(moved_vector), mask)
@@ -383,7 +393,7 @@ class Trainer:
         if use_network:
             mask = dark_mask(base)
             g_dark = jax.tree.map(lambda g: g * scale, split(grad_base, mask))
-            fisher = self.fisher["dark"]
+            fisher = self._precision()["dark"]
             if self.data.level2:
                 g_dark, fisher = self._sensitivity_prior(base, g_dark, fisher)
             dark, dark_opt = dark_opt.update(split(base, mask), g_dark, fisher)
@@ -440,14 +450,15 @@ class Trainer:
             loss, values = loss + float(value), values + d.n_values
             grad_base = gb if grad_base is None else jax.tree.map(jnp.add, grad_base, gb)
             grads.append(gp)
+        assert grad_base is not None  # there are flats (checked above)
         flat_params, flat_opt = state.flat_opt.update(
-            state.flat_params, tuple(grads), self.fisher["flat"]
+            state.flat_params, tuple(grads), self._precision()["flat"]
         )
         mask = pixel_mask(base)
         # A joint Newton step of each pixel's (flat, non-linearity) pair (zero where no
         # flat constrains it), then momentum on it (unit "Fisher": already preconditioned).
         direction = pixel_newton(
-            split(grad_base, mask), self.fisher["pixel"], self.settings.damping
+            split(grad_base, mask), self._precision()["pixel"], self.settings.damping
         )
         # The flat's mean is degenerate with every flux: the flats' levels carry it, the
         # flat's step has none (a common-mode step would jolt every calibrator's flux).
@@ -480,7 +491,7 @@ class Trainer:
             loss, values = loss + float(value), values + d.n_values
             grads.append(gp)
         val_params, val_opt = state.val_opt.update(
-            state.val_params, tuple(grads), self.fisher["val"]
+            state.val_params, tuple(grads), self._precision()["val"]
         )
         self.state = eqx.tree_at(lambda s: (s.val_params, s.val_opt), state, (val_params, val_opt))
         return loss / max(values, 1)

@@ -44,6 +44,8 @@ derived from the SIAF (:func:`amigo.niriss.nominal_geometry_matrix`): rotation
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -52,6 +54,9 @@ from jaxtyping import Array, Float
 
 from amigo import niriss
 from amigo.model.optics.propagation import keys_cubic
+
+if TYPE_CHECKING:
+    from amigo.orientation import Orientation
 
 MAS_PER_ARCSEC = 1000.0
 #: Order of the geometry vector of :meth:`LinearDetector.geometry` (fits and files).
@@ -138,7 +143,8 @@ def _shift_along(image: Array, u: Array, axis: int, reach: int) -> Array:
     weights = keys_cubic(u - taps.reshape((-1,) + (1,) * u.ndim).astype(u.dtype))
     out = jnp.zeros_like(image)
     for i, k in enumerate(taps):
-        shifted = jax.lax.slice_in_dim(padded, reach + k, reach + k + n, axis=axis)
+        start = reach + int(k)
+        shifted = jax.lax.slice_in_dim(padded, start, start + n, axis=axis)
         out = out + weights[i] * shifted
     return out
 
@@ -347,7 +353,7 @@ class LinearDetector(eqx.Module):
         return convolve_ipc(pixels, self.ipc_kernel.astype(pixels.dtype))
 
 
-def sky_to_optical_matrix(orientation, detector: LinearDetector) -> np.ndarray:
+def sky_to_optical_matrix(orientation: Orientation, detector: LinearDetector) -> np.ndarray:
     """(2, 2) matrix: sky offset ``(dRA east, dDec north)`` in mas -> optical offset (mas).
 
     Sky -> detector pixels through the exposure's WCS orientation

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import cast
+from typing import Protocol, cast
 
 import equinox as eqx
 import jax
@@ -184,7 +184,7 @@ def _zernike_factors(j: int) -> tuple[int, int, np.ndarray, np.ndarray]:
 
 def zernike_basis(
     grid: PupilGrid,
-    centres_m: Float[Array, "h 2"],
+    centres_m: Float[Array, "h 2"] | np.ndarray,
     radius_m: Array | float,
     n_modes: int,
     support_m: Array | float | None = None,
@@ -316,9 +316,20 @@ class Aperture(eqx.Module):
         return zernike_basis(grid, centres, radius_factor * self.circumradius_m, n_modes, support)
 
 
+class MaskModel(Protocol):
+    """What the optics reads of a mask: :class:`Aperture`, :class:`StaticAperture` and
+    :class:`amigo.model.base.MovableHoles` have these two methods."""
+
+    def hole_transmissions(
+        self, grid: PupilGrid, softening_px: float = 1.0, supersample: int = 1
+    ) -> Array: ...
+
+    def zernike_basis(self, grid: PupilGrid, n_modes: int, radius_factor: float) -> Array: ...
+
+
 @eqx.filter_jit
 def _render(
-    aperture: Aperture,
+    aperture: MaskModel,
     grid: PupilGrid,
     n_modes: int,
     radius_factor: float,
@@ -347,7 +358,7 @@ class StaticAperture(eqx.Module):
     @classmethod
     def from_aperture(
         cls,
-        aperture: Aperture,
+        aperture: MaskModel,
         grid: PupilGrid,
         n_modes: int,
         radius_factor: float,

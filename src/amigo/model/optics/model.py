@@ -26,11 +26,12 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import numpy.typing as npt
 from jaxtyping import Array, Complex, Float
 
 from amigo import niriss
 from amigo.model.optics import propagation
-from amigo.model.optics.aperture import Aperture, PupilGrid, StaticAperture
+from amigo.model.optics.aperture import Aperture, MaskModel, PupilGrid, StaticAperture
 from amigo.model.optics.spectrum import AbstractSpectrum, LinearSpectrum
 
 ARCSEC_TO_RAD = float(np.pi / (180.0 * 3600.0))
@@ -115,7 +116,8 @@ class NRMOptics(eqx.Module):
     ----------
     aperture
         :class:`~amigo.model.optics.aperture.Aperture` (dynamic: its geometry is fittable) or
-        :class:`~amigo.model.optics.aperture.StaticAperture` (fast, fixed geometry).
+        :class:`~amigo.model.optics.aperture.StaticAperture` (fast, fixed geometry), or
+        any other :class:`~amigo.model.optics.aperture.MaskModel` (a base model's holes).
     zernikes_nm
         (7, n_zernike) Noll Zernike coefficients per hole, rms OPD in nm. The mean
         piston over the holes is removed in :meth:`pupil` (global piston is not
@@ -133,7 +135,7 @@ class NRMOptics(eqx.Module):
         :class:`OpticsConfig`.
     """
 
-    aperture: Aperture | StaticAperture
+    aperture: Aperture | StaticAperture | MaskModel
     zernikes_nm: Float[Array, "7 nz"]
     defocus_nm: Float[Array, ""]
     hole_amplitudes: Float[Array, " 7"]
@@ -344,7 +346,7 @@ class PointSource(eqx.Module):
     def create(
         cls,
         filter_name: str,
-        position_arcsec=(0.0, 0.0),
+        position_arcsec: npt.ArrayLike = (0.0, 0.0),
         flux: float = 1.0,
         n_wavelengths: int = 9,
         slope_per_um: float = 0.0,

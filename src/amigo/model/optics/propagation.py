@@ -19,6 +19,7 @@ from typing import cast
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import DTypeLike
 from jaxtyping import Array, Complex, Float
 
 #: Defocus is parameterised as the Noll Z4 coefficient (rms OPD) over a circle of this
@@ -26,7 +27,7 @@ from jaxtyping import Array, Complex, Float
 SQRT3 = float(np.sqrt(3.0))
 
 
-def centred_axis(n: int, pitch: float | Array, dtype=None) -> Array:
+def centred_axis(n: int, pitch: float | Array, dtype: DTypeLike | None = None) -> Array:
     """(n,) coordinates ``(k - (n - 1) / 2) * pitch`` of ``n`` pixel centres."""
     return (jnp.arange(n, dtype=dtype) - 0.5 * (n - 1)) * pitch
 

@@ -61,7 +61,9 @@ class LinearSpectrum(AbstractSpectrum):
     taper_per_um2: Float[Array, ""] | float = 0.0
 
     @classmethod
-    def from_filter(cls, name: str, n_wavelengths: int = 9, slope_per_um: float = 0.0):
+    def from_filter(
+        cls, name: str, n_wavelengths: int = 9, slope_per_um: float = 0.0
+    ) -> LinearSpectrum:
         """Spectrum for an AMI filter sampled at ``n_wavelengths`` bins (default 9)."""
         bins = niriss.filter_bins(name, n_wavelengths)
         return cls(
