@@ -40,7 +40,7 @@ from amigo.processing.ramps import ArraySource, ProcessSettings, SlopeProduct, p
 from amigo.simulation import detector as simulator_detector
 from amigo.simulation.detector import DetectorConfig, RampSimulator, draw_detector
 from amigo.simulation.illumination import AnalyticNRM
-from amigo.simulation.scene import REFERENCE_PIXEL_XY, DetectorScene, PointSource
+from amigo.simulation.scene import REFERENCE_PIXEL_XY, DetectorScene, DetectorSource
 from amigo.simulation.state import StateSpread, draw_instrument_state
 
 FAINT_DN = 20.0
@@ -115,7 +115,7 @@ def main() -> None:
     state = draw_instrument_state(np.random.default_rng(args.seed), StateSpread())
     x0, y0 = REFERENCE_PIXEL_XY
     unit = AnalyticNRM(n_wavelengths=9).render(
-        DetectorScene((PointSource(x0 + 0.12, y0 - 0.27, 1.0),)), args.filter, state, 4
+        DetectorScene((DetectorSource(x0 + 0.12, y0 - 0.27, 1.0),)), args.filter, state, 4
     )
     pixels = unit.reshape(80, 4, 80, 4).sum(axis=(1, 3))
     config = DetectorConfig()

@@ -37,7 +37,7 @@ from amigo.model.detector.linear import bin_pixels
 from amigo.simulation.optics_illumination import OpticalModelIllumination
 from amigo.simulation.run import REFERENCE_PIXEL_XY
 from amigo.simulation.scenarios import load_scenario
-from amigo.simulation.scene import DetectorScene, PointSource
+from amigo.simulation.scene import DetectorScene, DetectorSource
 from amigo.simulation.state import draw_instrument_state
 
 READ_VARIANCE_E2 = 300.0
@@ -46,7 +46,7 @@ READ_VARIANCE_E2 = 300.0
 def reference(spec, state) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
     """Noiseless data (e- over the exposure) and its noise, from the simulator's optics."""
     xy = (REFERENCE_PIXEL_XY[0] + spec.offset_pix[0], REFERENCE_PIXEL_XY[1] + spec.offset_pix[1])
-    scene = DetectorScene((PointSource(*xy, 1.0),))
+    scene = DetectorScene((DetectorSource(*xy, 1.0),))
     image = bin_pixels(OpticalModelIllumination().render(scene, spec.filter, state, 4), 4)
     image = image / image.sum()
     total = spec.nints_full * spec.peak_dn * niriss.GAIN_E_PER_DN / image.max()

@@ -21,7 +21,7 @@ from amigo.simulation.detector import (
     one_over_f_columns,
 )
 from amigo.simulation.illumination import AnalyticNRM
-from amigo.simulation.scene import DetectorScene, PointSource
+from amigo.simulation.scene import DetectorScene, DetectorSource
 from amigo.simulation.state import InstrumentState
 
 TG = niriss.GROUP_TIME_S
@@ -147,7 +147,7 @@ def _width(image):
 def psf_rate():
     """A jittered F430M NRM image (3 wavelengths, 4x) with unit total rate."""
     state = InstrumentState(**{**InstrumentState.perfect().__dict__, "jitter_mas": 21.4})
-    scene = DetectorScene((PointSource(45.2, 40.3, 1.0),))
+    scene = DetectorScene((DetectorSource(45.2, 40.3, 1.0),))
     return AnalyticNRM(n_wavelengths=3).render(scene, "F430M", state, 4)
 
 

@@ -15,7 +15,7 @@ from amigo.simulation.illumination import (
     nrm_intensity,
     polygon_fourier_transform,
 )
-from amigo.simulation.scene import DetectorScene, PointSource
+from amigo.simulation.scene import DetectorScene, DetectorSource
 from amigo.simulation.state import InstrumentState
 
 HEX_AREA = 1.5 * np.sqrt(3.0) * (0.80 / np.sqrt(3.0)) ** 2
@@ -93,7 +93,7 @@ def test_defocus_maps_to_hole_piston_and_tilt():
 
 def test_subpixel_integration_is_exact_for_the_band_limited_image():
     state = InstrumentState.perfect()
-    scene = DetectorScene((PointSource(40.3, 38.7, 1.0),))
+    scene = DetectorScene((DetectorSource(40.3, 38.7, 1.0),))
     model = AnalyticNRM(n_wavelengths=1)
     coarse = model.render(scene, "F380M", state, 2).reshape(80, 2, 80, 2).sum(axis=(1, 3))
     fine = model.render(scene, "F380M", state, 6).reshape(80, 6, 80, 6).sum(axis=(1, 3))
@@ -107,7 +107,7 @@ def test_jitter_and_integration_conserve_flux_and_uniform_fills_evenly():
     samples = rng.uniform(size=(64, 64))
     assert integrate_subpixels(samples, 3.0).sum() == pytest.approx(samples.sum(), rel=1e-12)
     flat = UniformIllumination().render(
-        DetectorScene((PointSource(1, 2, 6400.0),)), "F480M", InstrumentState.perfect(), 3
+        DetectorScene((DetectorSource(1, 2, 6400.0),)), "F480M", InstrumentState.perfect(), 3
     )
     assert flat.shape == (240, 240)
     np.testing.assert_allclose(flat.reshape(80, 3, 80, 3).sum(axis=(1, 3)), 1.0)
@@ -130,7 +130,7 @@ def test_project_optics_and_analytic_model_agree_for_piston_tilt_and_hole_positi
         hole_shift_m=rng.normal(0.0, 3e-3, (7, 2)),
         jitter_mas=20.0,
     )
-    scene = DetectorScene((PointSource(44.3, 41.6, 1.0), PointSource(49.1, 37.2, 0.3)))
+    scene = DetectorScene((DetectorSource(44.3, 41.6, 1.0), DetectorSource(49.1, 37.2, 0.3)))
     optics = OpticalModelIllumination(n_wavelengths=3, pupil_npix=256).render(
         scene, "F480M", state, 4
     )

@@ -8,7 +8,7 @@ import pytest
 from amigo.errors import InputError
 from amigo.orientation import Orientation, separation_pa
 from amigo.simulation.scenarios import builtin_names, load_scenario, parse_scenario
-from amigo.simulation.scene import Companion, Target, detector_scene, dither_offsets
+from amigo.simulation.scene import SkyCompanion, Target, detector_scene, dither_offsets
 
 MINIMAL = """
 name = "mini"
@@ -89,7 +89,7 @@ def test_companions_are_placed_through_the_orientation():
         "T",
         10.0,
         -20.0,
-        (Companion(250.0, 37.0, {"F380M": 2.0}), Companion(80.0, 290.0, {"F380M": 5.0})),
+        (SkyCompanion(250.0, 37.0, {"F380M": 2.0}), SkyCompanion(80.0, 290.0, {"F380M": 5.0})),
     )
     scene = detector_scene(target, "F380M", orientation, (40.0, 41.0), 1000.0)
     primary, *companions = scene.sources

@@ -90,7 +90,7 @@ from amigo.model.image import (
 )
 from amigo.progress import step
 
-ROLES = ("science", "calibrator")
+FIT_ROLES = ("science", "calibrator")
 
 
 @dataclass(frozen=True)
@@ -115,8 +115,8 @@ class FitExposure:
     image: ImageData
 
     def __post_init__(self) -> None:
-        if self.role not in ROLES:
-            raise ValueError(f"role must be one of {ROLES}, got {self.role!r}")
+        if self.role not in FIT_ROLES:
+            raise ValueError(f"role must be one of {FIT_ROLES}, got {self.role!r}")
 
 
 @dataclass(frozen=True)

@@ -45,7 +45,7 @@ from amigo.likelihood.pixels import ImageData, SlopeNoise, auto_structure
 from amigo.model.base import BaseModel, PupilCache
 from amigo.model.detector.pipeline_slope import pipeline_group_slope
 
-ROLES = ("calibrator", "flat", "validation")
+TRAINING_ROLES = ("calibrator", "flat", "validation")
 
 
 class SlopeData(eqx.Module):
@@ -95,8 +95,8 @@ class SlopeData(eqx.Module):
         where the file averages enough integrations, the pooled estimate otherwise (as
         ``amigo fit``, :func:`~amigo.likelihood.pixels.auto_structure`); ``diagonal=True``
         ignores the covariances between a pixel's slopes."""
-        if role not in ROLES:
-            raise ValueError(f"role {role!r} not in {ROLES}")
+        if role not in TRAINING_ROLES:
+            raise ValueError(f"role {role!r} not in {TRAINING_ROLES}")
         path = product.path or "<calslope>"
         m, ny, nx = product.slope_dn.shape
         if m < 1:
@@ -141,8 +141,8 @@ class SlopeData(eqx.Module):
         A flat field cannot be level-2 (the pipeline has divided it out).
         """
         meta = exposure.meta
-        if role not in ROLES:
-            raise ValueError(f"role {role!r} not in {ROLES}")
+        if role not in TRAINING_ROLES:
+            raise ValueError(f"role {role!r} not in {TRAINING_ROLES}")
         if role == "flat":
             raise InputError(meta.path, "a flat field must be a calslope file, not level-2")
         if not meta.in_dn_per_s:

@@ -28,20 +28,26 @@ from amigo.simulation.detector import (
 from amigo.simulation.illumination import AnalyticNRM, Illumination, UniformIllumination
 from amigo.simulation.run import simulate_scenario
 from amigo.simulation.scenarios import Scenario, builtin_names, load_scenario, parse_scenario
-from amigo.simulation.scene import Companion, DetectorScene, PointSource, Target, detector_scene
+from amigo.simulation.scene import (
+    DetectorScene,
+    DetectorSource,
+    SkyCompanion,
+    Target,
+    detector_scene,
+)
 from amigo.simulation.state import InstrumentState, StateSpread, draw_instrument_state
 
 __all__ = [
     "AnalyticNRM",
-    "Companion",
     "DetectorConfig",
     "DetectorRealisation",
     "DetectorScene",
+    "DetectorSource",
     "Illumination",
     "InstrumentState",
-    "PointSource",
     "RampSimulator",
     "Scenario",
+    "SkyCompanion",
     "StateSpread",
     "Target",
     "UniformIllumination",

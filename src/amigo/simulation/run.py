@@ -25,7 +25,7 @@ from amigo.simulation.detector import DetectorConfig, RampSimulator, draw_detect
 from amigo.simulation.illumination import AnalyticNRM, Illumination, UniformIllumination
 from amigo.simulation.optics_illumination import OpticalModelIllumination
 from amigo.simulation.scenarios import ExposureSpec, Scenario
-from amigo.simulation.scene import REFERENCE_PIXEL_XY, DetectorScene, PointSource, detector_scene
+from amigo.simulation.scene import REFERENCE_PIXEL_XY, DetectorScene, DetectorSource, detector_scene
 from amigo.simulation.state import InstrumentState, draw_instrument_state
 from amigo.simulation.writer import (
     UncalWriter,
@@ -103,7 +103,7 @@ def simulate_exposure(
         REFERENCE_PIXEL_XY[1] + spec.offset_pix[1],
     )
     if spec.role == "flat":
-        scene = DetectorScene((PointSource(*primary_xy, 1.0),))
+        scene = DetectorScene((DetectorSource(*primary_xy, 1.0),))
         model: Illumination = UniformIllumination()
     else:
         assert spec.target is not None

@@ -19,10 +19,10 @@ from typing import Any
 from amigo import niriss
 from amigo.errors import InputError
 from amigo.simulation.detector import DetectorConfig
-from amigo.simulation.scene import Companion, Target, dither_offsets
+from amigo.simulation.scene import SkyCompanion, Target, dither_offsets
 from amigo.simulation.state import StateSpread
 
-ROLES = ("science", "calibrator", "flat")
+EXPOSURE_ROLES = ("science", "calibrator", "flat")
 ILLUMINATIONS = ("auto", "analytic", "optics")
 
 
@@ -153,10 +153,10 @@ def _check_keys(table: Mapping[str, Any], allowed: set[str], where: str) -> None
         raise ValueError(f"unknown key(s) {unknown} in {where}; allowed: {sorted(allowed)}")
 
 
-def _companion(table: Mapping[str, Any], where: str) -> Companion:
+def _companion(table: Mapping[str, Any], where: str) -> SkyCompanion:
     _check_keys(table, _COMPANION_KEYS, where)
     dmag = {niriss.check_filter(k): float(v) for k, v in dict(table["dmag"]).items()}
-    return Companion(sep_mas=float(table["sep_mas"]), pa_deg=float(table["pa_deg"]), dmag=dmag)
+    return SkyCompanion(sep_mas=float(table["sep_mas"]), pa_deg=float(table["pa_deg"]), dmag=dmag)
 
 
 def _target(table: Mapping[str, Any], index: int) -> Target:
@@ -195,8 +195,8 @@ def _exposures(
     where = f"[[exposures]] #{index + 1}"
     _check_keys(table, _EXPOSURE_KEYS, where)
     role = str(table.get("role", "science"))
-    if role not in ROLES:
-        raise ValueError(f"role {role!r} in {where}; expected one of {ROLES}")
+    if role not in EXPOSURE_ROLES:
+        raise ValueError(f"role {role!r} in {where}; expected one of {EXPOSURE_ROLES}")
     target = None
     if role != "flat":
         name = str(table["target"])

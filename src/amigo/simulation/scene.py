@@ -1,10 +1,10 @@
 """Scenes on the sky and their placement on the SUB80 detector.
 
-A :class:`Target` is a primary star plus any number of point :class:`Companion` s given on
-the sky (separation in mas, position angle in degrees east of north, delta-magnitude per
-filter). :func:`detector_scene` places them on the detector through
-:class:`amigo.orientation.Orientation`, the same orientation whose keywords are written
-into the simulated file, so the file's own header (and its FITS WCS) maps every source
+A :class:`Target` is a primary star plus any number of point companions
+(:class:`SkyCompanion`) given on the sky (separation in mas, position angle in degrees
+east of north, delta-magnitude per filter). :func:`detector_scene` places them on the
+detector through :class:`amigo.orientation.Orientation`, the same orientation whose
+keywords are written into the simulated file, so the file's own header (and its FITS WCS) maps every source
 back to its sky position.
 
 Pixel coordinates are 0-based NumPy indices of SUB80 with pixel ``(y, x)`` centred on
@@ -36,7 +36,7 @@ DITHER_PATTERNS: dict[str, tuple[tuple[float, float], ...]] = {
 
 
 @dataclass(frozen=True)
-class Companion:
+class SkyCompanion:
     """A point companion on the sky.
 
     Attributes
@@ -83,11 +83,11 @@ class Target:
     catalog_name: str
     ra_deg: float
     dec_deg: float
-    companions: tuple[Companion, ...] = field(default_factory=tuple)
+    companions: tuple[SkyCompanion, ...] = field(default_factory=tuple)
 
 
 @dataclass(frozen=True)
-class PointSource:
+class DetectorSource:
     """A point source on the detector.
 
     Attributes
@@ -108,12 +108,12 @@ class PointSource:
 class DetectorScene:
     """The sources of one exposure in detector coordinates (what an illumination renders)."""
 
-    sources: tuple[PointSource, ...]
+    sources: tuple[DetectorSource, ...]
 
     def scaled(self, factor: float) -> DetectorScene:
         """The same scene with every photon rate multiplied by ``factor``."""
         return DetectorScene(
-            tuple(PointSource(s.x_pix, s.y_pix, s.photons_per_s * factor) for s in self.sources)
+            tuple(DetectorSource(s.x_pix, s.y_pix, s.photons_per_s * factor) for s in self.sources)
         )
 
 
@@ -140,12 +140,12 @@ def detector_scene(
         Photon rate of the primary; companions get ``primary * 10**(-0.4 dmag)``.
     """
     x0, y0 = primary_xy_pix
-    sources = [PointSource(float(x0), float(y0), float(primary_photons_per_s))]
+    sources = [DetectorSource(float(x0), float(y0), float(primary_photons_per_s))]
     for companion in target.companions:
         dra, ddec = companion.offset_mas()
         dx, dy = orientation.sky_to_detector(dra, ddec)
         sources.append(
-            PointSource(
+            DetectorSource(
                 float(x0 + dx),
                 float(y0 + dy),
                 float(primary_photons_per_s * companion.flux_ratio(filter_name)),
