@@ -4,8 +4,8 @@ A :class:`Target` is a primary star plus any number of point companions
 (:class:`SkyCompanion`) given on the sky (separation in mas, position angle in degrees
 east of north, delta-magnitude per filter). :func:`detector_scene` places them on the
 detector through :class:`amigo.orientation.Orientation`, the same orientation whose
-keywords are written into the simulated file, so the file's own header (and its FITS WCS) maps every source
-back to its sky position.
+keywords are written into the simulated file, so the file's own header (and its FITS
+WCS) maps every source back to its sky position.
 
 Pixel coordinates are 0-based NumPy indices of SUB80 with pixel ``(y, x)`` centred on
 the integer coordinates ``(y, x)``; arrays are indexed ``[y, x]``.
