@@ -35,6 +35,7 @@ import os
 from collections.abc import Sequence
 from typing import Any
 
+from amigo.cachedir import enable_compilation_cache
 from amigo.pipeline._basis import BasisReport, bases
 from amigo.pipeline._detect import DetectResult, detect
 from amigo.pipeline._fit import FitResult, fit
@@ -43,6 +44,10 @@ from amigo.pipeline._run import RunResult, run
 from amigo.pipeline._train import TrainResult, train
 
 PathLike = str | os.PathLike[str]
+
+# Compiled programs persist between processes for the API as for the commands (the cache
+# folder of :mod:`amigo.cachedir`; ``JAX_COMPILATION_CACHE_DIR=""`` turns it off).
+enable_compilation_cache()
 
 __all__ = [
     "BasisReport",

@@ -1,0 +1,209 @@
+"""Where the time and memory of ``amigo fit`` and ``amigo detect`` go, per stage, cold and warm.
+
+Runs the commands on the real COM 1093 level-2 files (AB Dor, obs 12, against HD 37093,
+obs 15; one exposure each per filter), each in a fresh process, twice: *cold* (an empty
+cache folder: no compiled programs, no latent bases) and *warm* (the same folder again,
+``--force``: what a user's second target costs). For every run it prints the stages of the
+command, with the wall seconds of each, the part of them spent in XLA's compiler, and the
+process's peak memory (resident set).
+
+    python benchmarks/profile_fit.py [--filters F480M F430M F380M] [--out DIR] [--no-detect]
+                                     [--no-hmc]
+
+A stage is what the command announces on stderr (``amigo.progress``) until its next line:
+the line's kind (basis, Jacobians, Levenberg-Marquardt steps, Hessians, ...) names the
+time that follows it. Compilation is read from JAX's compile log (``jax_log_compiles``)
+and charged to the stage in which it happened.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import logging
+import os
+import platform
+import re
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+DATA = Path(os.environ.get("AMIGO_SHARED", Path(__file__).resolve().parents[2] / "shared"))
+DATA = DATA / "data" / "jwst" / "com1093"
+EXPOSURE = {"F480M": "03102", "F430M": "03103", "F380M": "03104"}
+
+#: (stage, pattern of the progress line that begins it), first match wins.
+STAGES: tuple[tuple[str, str], ...] = (
+    ("startup and reading", r"^(amigo|reading|fit:|run:)"),
+    ("latent basis", r"basis"),
+    ("Jacobians", r"Jacobian of"),
+    ("Levenberg-Marquardt steps", r"Gauss-Newton|chord steps|float64|damped step"),
+    ("natural gradient", r"Fisher information|iteration \d|loss rose"),
+    ("detector model", r"detector"),
+    ("Hessians", r"Hessian of|kernel Jacobians"),
+    ("DISCOs and files", r"^wrote "),
+    ("observables", r"observables, \d+ uv points"),
+    ("HMC", r"NUTS"),
+    ("contrast limits", r"contrast limits"),
+)
+_COMPILED = re.compile(r"Finished XLA compilation of (\S+) in ([0-9.eE+-]+) sec")
+
+
+def stage_of(line: str) -> str | None:
+    for name, pattern in STAGES:
+        if re.search(pattern, line):
+            return name
+    return None
+
+
+class _Stamped:
+    """stderr that keeps every line with the time it was written (and still shows it)."""
+
+    def __init__(self, stream, start: float) -> None:
+        self.stream, self.start, self.lines, self._part = stream, start, [], ""
+
+    def write(self, text: str) -> int:
+        self.stream.write(text)
+        self._part += text
+        *done, self._part = self._part.split("\n")
+        now = time.perf_counter() - self.start
+        self.lines.extend((now, line) for line in done if line.strip())
+        return len(text)
+
+    def flush(self) -> None:
+        self.stream.flush()
+
+    def isatty(self) -> bool:
+        return False
+
+
+class _Compiles(logging.Handler):
+    def __init__(self, start: float) -> None:
+        super().__init__(level=logging.DEBUG)
+        self.start, self.events = start, []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        found = _COMPILED.match(record.getMessage())
+        if found:
+            self.events.append((time.perf_counter() - self.start, float(found.group(2))))
+
+
+def child(argv: list[str], report: Path) -> None:
+    """Run one ``amigo`` command in this process and write its timeline to ``report``."""
+    start = time.perf_counter()
+    stamped = _Stamped(sys.stderr, start)
+    sys.stderr = stamped
+    import jax
+
+    from amigo.cli import main as amigo
+
+    jax.config.update("jax_log_compiles", True)
+    compiles = _Compiles(start)
+    for name in ("jax._src.dispatch", "jax._src.interpreters.pxla", "jax._src.compiler"):
+        logger = logging.getLogger(name)
+        logger.addHandler(compiles)
+        logger.setLevel(logging.DEBUG)
+        logger.propagate = False
+    stamped.lines.append((time.perf_counter() - start, "amigo started"))
+    status = 0
+    try:
+        amigo(argv)
+    except SystemExit as exit_:
+        status = int(exit_.code or 0)
+    wall = time.perf_counter() - start
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
+    report.write_text(
+        json.dumps(
+            {
+                "argv": argv,
+                "status": status,
+                "wall_s": wall,
+                "peak_mb": peak_mb,
+                "lines": stamped.lines,
+                "compiles": compiles.events,
+            }
+        )
+    )
+
+
+def stages(run: dict) -> list[tuple[str, float, float]]:
+    """(stage, wall s, compile s) in order of first appearance."""
+    marks = [(t, stage_of(line)) for t, line in run["lines"]]
+    marks = [(t, s) for t, s in marks if s is not None]
+    bounds = [*marks, (run["wall_s"], None)]
+    table: dict[str, list[float]] = {}
+    for (t0, name), (t1, _) in itertools.pairwise(bounds):
+        assert name is not None
+        row = table.setdefault(name, [0.0, 0.0])
+        row[0] += t1 - t0
+        row[1] += sum(s for t, s in run["compiles"] if t0 <= t < t1)
+    return [(name, wall, comp) for name, (wall, comp) in table.items()]
+
+
+def run_command(argv: list[str], cache: Path, label: str) -> dict:
+    with tempfile.TemporaryDirectory() as folder:
+        report = Path(folder) / "report.json"
+        env = {**os.environ, "AMIGO_CACHE_DIR": str(cache), "JAX_PLATFORMS": "cpu"}
+        env.pop("JAX_COMPILATION_CACHE_DIR", None)
+        cmd = [sys.executable, __file__, "--child", str(report), "--", *argv]
+        print(f"[{label}] amigo {' '.join(argv)}", flush=True)
+        subprocess.run(cmd, env=env, check=True, stderr=subprocess.DEVNULL)
+        return json.loads(report.read_text())
+
+
+def print_run(label: str, run: dict) -> None:
+    print(f"\n{label}: amigo {run['argv'][0]} (exit {run['status']})")
+    print(f"{'stage':30s} {'wall s':>8s} {'compile s':>10s} {'run s':>8s}")
+    for name, wall, comp in stages(run):
+        print(f"{name:30s} {wall:8.1f} {comp:10.1f} {wall - comp:8.1f}")
+    total_compile = sum(s for _, s in run["compiles"])
+    print(
+        f"{'all':30s} {run['wall_s']:8.1f} {total_compile:10.1f} {run['wall_s'] - total_compile:8.1f}"
+    )
+    print(f"peak memory (resident): {run['peak_mb']:.0f} MB")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--filters", nargs="+", default=list(EXPOSURE), choices=list(EXPOSURE))
+    parser.add_argument("--out", type=Path, default=None, help="output folder (default: temp)")
+    parser.add_argument("--no-detect", action="store_true", help="profile amigo fit only")
+    parser.add_argument("--no-hmc", action="store_true", help="amigo detect --no-hmc")
+    parser.add_argument("--child", type=Path, default=None, help=argparse.SUPPRESS)
+    parser.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.child is not None:
+        child([a for a in args.rest if a != "--"], args.child)
+        return
+    if not DATA.is_dir():
+        sys.exit(f"no COM 1093 files at {DATA} (set AMIGO_SHARED)")
+    sci = [DATA / f"jw01093012001_{EXPOSURE[f]}_00001_nis_cal.fits" for f in args.filters]
+    cal = [DATA / f"jw01093015001_{EXPOSURE[f]}_00001_nis_cal.fits" for f in args.filters]
+    with tempfile.TemporaryDirectory() as scratch:
+        out = args.out or Path(scratch) / "out"
+        cache = Path(scratch) / "cache"
+        fit = ["fit", "--sci", *map(str, sci), "--cal", *map(str, cal), "--out", str(out)]
+        extra = ["--force", *(["--no-hmc"] if args.no_hmc else [])]
+        runs = []
+        for label in ("cold", "warm"):
+            runs.append((f"{label} fit", run_command([*fit, "--force"], cache, label)))
+            if not args.no_detect:
+                calvis = sorted(out.glob("*_calvis.fits"))
+                detect = ["detect", *map(str, calvis), "--out", str(out / "detect"), *extra]
+                runs.append((f"{label} detect", run_command(detect, cache, label)))
+    import jax
+
+    print(
+        f"\nmachine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+        f"JAX {jax.__version__} on {jax.devices()[0].platform}; filters {' '.join(args.filters)}"
+    )
+    for label, run in runs:
+        print_run(label, run)
+
+
+if __name__ == "__main__":
+    main()
