@@ -581,17 +581,33 @@ def test_band_taper_narrows_the_band_and_keeps_it_normalised():
 
 
 def test_zernike_orders_and_radial_polynomials_against_independent_forms():
-    """Noll's ordering agrees with dLux's for j = 1..66; the radial polynomials equal the
-    Jacobi-polynomial form R_n^m(rho) = (-1)^s rho^|m| P_s^(|m|, 0)(1 - 2 rho^2), s =
-    (n - |m|)/2, to 1e-12 (dLux's float32 factorials differ by up to 1.4e-3 at n = 10)."""
-    import dLux.utils as dlu
+    """Noll's ordering agrees with his definition for j = 1..66 (Noll 1976: modes by radial
+    order n, then by |m| upwards, each |m| > 0 twice; an even j carries the cosine (m > 0),
+    an odd j the sine (m < 0)) and with his table for j = 1..22; the radial polynomials
+    equal the Jacobi-polynomial form R_n^m(rho) = (-1)^s rho^|m| P_s^(|m|, 0)(1 - 2 rho^2),
+    s = (n - |m|)/2, to 1e-12."""
     from scipy.special import eval_jacobi
 
     from amigo.model.optics.aperture import _zernike_factors, noll_indices
 
+    # Noll (1976), Table 1: (n, m) of j = 1..22, m < 0 for the sine modes.
+    table = [(0, 0), (1, 1), (1, -1), (2, 0), (2, -2), (2, 2), (3, -1), (3, 1), (3, -3),
+             (3, 3), (4, 0), (4, 2), (4, -2), (4, 4), (4, -4), (5, 1), (5, -1), (5, 3),
+             (5, -3), (5, 5), (5, -5), (6, 0)]  # fmt: skip
+    assert [noll_indices(j) for j in range(1, 23)] == table
+
+    def by_definition(j: int) -> tuple[int, int]:
+        n = 0
+        while (n + 1) * (n + 2) // 2 < j:
+            n += 1
+        first = n * (n + 1) // 2 + 1  # the first j of radial order n
+        orders = sorted(a for a in range(n % 2, n + 1, 2) for _ in range(1 if a == 0 else 2))
+        a = orders[j - first]
+        return n, 0 if a == 0 else (a if j % 2 == 0 else -a)
+
     rho = np.linspace(0.0, 1.0, 21)
     for j in range(1, 67):
-        assert noll_indices(j) == tuple(int(v) for v in dlu.noll_indices(j)), j
+        assert noll_indices(j) == by_definition(j), j
         n, m, c, k = _zernike_factors(j)
         radial = np.sum(c * rho[:, None] ** (n - 2 * k), axis=1)
         s = (n - abs(m)) // 2

@@ -651,8 +651,8 @@ class BaseModel(eqx.Module):
 
 
 def _basis(grid: PupilGrid, centres: np.ndarray, radius: float, n: int) -> Array:
-    """The Zernike basis, compiled (evaluated op by op it takes seconds); dLux's Noll
-    index helper needs concrete integers, hence the compile-time evaluation."""
+    """The Zernike basis, evaluated once as a constant of the pupil grid (op by op it
+    takes seconds)."""
     with jax.ensure_compile_time_eval():
         return zernike_basis(grid, centres, radius, n)
 

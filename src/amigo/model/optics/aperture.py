@@ -32,7 +32,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from dLux import utils as dlu
+from jax import lax
 from jaxtyping import Array, Float
 
 from amigo import niriss
@@ -161,9 +161,9 @@ def _zernike_factors(j: int) -> tuple[int, int, np.ndarray, np.ndarray]:
     """``(n, m, c, k)`` of Noll mode ``j``: the radial polynomial is
     ``R(rho) = sum_i c_i rho^(n - 2 k_i)`` with
     ``c_k = (-1)^k (n - k)! / (k! ((n + |m|)/2 - k)! ((n - |m|)/2 - k)!)``, the
-    un-normalised form that :func:`dLux.utils.eval_radial` expects (the sqrt(n + 1)
-    normalisation is in ``eval_azimuthal``). Plain integers: computed this way once per
-    mode it costs microseconds, where dLux's traced factorials took seconds per mode."""
+    un-normalised form that :func:`_radial` evaluates (the sqrt(n + 1) normalisation is
+    in :func:`_azimuthal`). Plain integers: computed this way once per mode it costs
+    microseconds, where factorials traced by JAX took seconds per mode."""
     n, m = noll_indices(j)
     a = abs(m)
     k = np.arange((n - a) // 2 + 1)
@@ -180,6 +180,22 @@ def _zernike_factors(j: int) -> tuple[int, int, np.ndarray, np.ndarray]:
         ]
     )
     return n, m, c, k.astype(float)
+
+
+def _radial(rho: Array, n: int, c: np.ndarray, k: np.ndarray) -> Array:
+    """``R(rho) = sum_i c_i rho^(n - 2 k_i)`` on a (ny, nx) grid of ``rho`` (unit: the
+    normalisation radius)."""
+    powers = lax.pow(rho[:, :, None], (abs(n) - 2 * k)[None, None, :])
+    return (c * powers).sum(axis=2)
+
+
+def _azimuthal(theta: Array, n: int, m: int) -> Array:
+    """The angular factor with the unit-rms normalisation on the disc: ``sqrt(n + 1)``
+    times ``1`` (``m = 0``), ``sqrt(2) cos(m theta)`` (``m > 0``) or ``sqrt(2)
+    sin(|m| theta)`` (``m < 0``): Noll (1976)."""
+    norm = math.sqrt(n + 1) * (math.sqrt(2.0) if m != 0 else 1.0)
+    trig = jnp.cos if m >= 0 else jnp.sin
+    return norm * trig(abs(m) * theta)
 
 
 def zernike_basis(
@@ -200,13 +216,14 @@ def zernike_basis(
     support = radius_m if support_m is None else support_m
 
     def one_hole(centre):
-        rho, theta = dlu.cart2polar(jnp.stack([x - centre[0], y - centre[1]]) / radius_m)
+        dx, dy = jnp.stack([x - centre[0], y - centre[1]]) / radius_m
+        rho, theta = jnp.hypot(dx, dy), jnp.arctan2(dy, dx)
         inside = rho * radius_m <= support
         return jnp.stack(
             [
                 inside
-                * dlu.eval_radial(rho, n, c.astype(rho.dtype), k.astype(rho.dtype))
-                * dlu.eval_azimuthal(theta, n, m)
+                * _radial(rho, n, c.astype(rho.dtype), k.astype(rho.dtype))
+                * _azimuthal(theta, n, m)
                 for n, m, c, k in factors
             ]
         )
