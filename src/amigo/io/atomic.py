@@ -29,7 +29,8 @@ OUTPUT_ERRNOS = frozenset(
 def unwritable(path: str | os.PathLike[str] | None, error: OSError) -> InputError:
     """The one line for an output that cannot be written (``error.errno`` in
     :data:`OUTPUT_ERRNOS`), naming ``path``."""
-    return InputError(path, f"cannot be written ({os.strerror(error.errno)})")
+    reason = os.strerror(error.errno) if error.errno is not None else str(error)
+    return InputError(path, f"cannot be written ({reason})")
 
 
 @contextlib.contextmanager
