@@ -172,3 +172,30 @@ def test_discos_leave_out_directions_of_no_variance_and_fail_when_none_is_left()
         obs.discos(np.zeros(m), c_sci, np.zeros(m), -c_sci, kernel, to_knots)
     with pytest.raises(NumericalFailure, match="not finite"):
         obs.discos(np.full(m, np.nan), c_sci, np.zeros(m), c_cal, kernel, to_knots)
+
+
+def test_disco_signs_follow_the_data_not_the_eigensolver(monkeypatch):
+    """An eigenvector's sign is arbitrary: whatever signs the eigensolver returns, each
+    DISCO row's largest entry is positive, so a rerun whose last bits differ (and whose
+    solver flips a vector) writes the same values."""
+    rng = np.random.default_rng(8)
+    m_a, m_p, n_knots = 10, 9, 30
+    to_knots = np.eye(m_a + m_p, 2 * n_knots)
+    kernel = obs.build_kernel(rng.normal(size=(m_a + m_p, 3)), m_a)
+    x_sci, x_cal = rng.normal(size=m_a + m_p), rng.normal(size=m_a + m_p)
+    c_sci, c_cal = _spd(rng, m_a + m_p, 1e-3), _spd(rng, m_a + m_p, 1e-3)
+    first = obs.discos(x_sci, c_sci, x_cal, c_cal, kernel, to_knots)
+    rows = first.latent_matrix
+    largest = rows[np.arange(len(rows)), np.argmax(np.abs(rows), axis=1)]
+    assert np.all(largest > 0)
+
+    eigh = np.linalg.eigh
+
+    def flipped(matrix):
+        values, vectors = eigh(matrix)
+        return values, -vectors  # the other, equally valid, sign of every eigenvector
+
+    monkeypatch.setattr(obs.np.linalg, "eigh", flipped)
+    second = obs.discos(x_sci, c_sci, x_cal, c_cal, kernel, to_knots)
+    np.testing.assert_allclose(second.values, first.values, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(second.latent_matrix, first.latent_matrix, atol=1e-14)

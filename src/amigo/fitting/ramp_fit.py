@@ -436,7 +436,16 @@ def fit_through_detector(
         last = round_ == detector.max_rounds or config.newton.max_iterations == 0
         if changes[-1] < detector.tolerance or last:
             break  # the data now carry the correction at the final parameters
-        newton = levenberg_marquardt(fit, result.params, refit, f"{label} round {round_}")
+        # The last round's float64 Fisher matrix is exact at its parameters: each stage
+        # starts from it (chord steps at once) instead of recomputing it in float32.
+        newton = levenberg_marquardt(
+            fit,
+            result.params,
+            refit,
+            f"{label} round {round_}",
+            result.fisher,
+            result.exact_exposures,
+        )
         result = FilterFitResult(
             params=newton.params,
             converged=newton.converged,

@@ -284,6 +284,20 @@ class Discos:
         return float(r @ r)
 
 
+def row_signs(matrix: np.ndarray) -> np.ndarray:
+    """(n,) +-1 that make the largest-magnitude entry of each row of ``matrix`` positive.
+
+    The DISCOs' convention: an eigenvector's sign is arbitrary, and without one a change
+    in the last bits of a fit (another machine, another release) could flip a DISCO and
+    its row together, products equivalent but not comparable value by value.
+    """
+    matrix = np.asarray(matrix)
+    if matrix.size == 0:
+        return np.ones(matrix.shape[0])
+    largest = matrix[np.arange(matrix.shape[0]), np.argmax(np.abs(matrix), axis=1)]
+    return np.where(largest < 0, -1.0, 1.0)
+
+
 def discos(
     science: np.ndarray,
     science_cov: np.ndarray,
@@ -322,6 +336,7 @@ def discos(
     require_finite("DISCOs", "kernel covariance entries", cov)
     with numerical("DISCO decorrelation"):
         transform, variances = decorrelation(cov, kernel.n_amp)
+    transform = transform * row_signs(transform @ k)[:, None]
     kinds = np.array(["amplitude"] * kernel.n_amp + ["phase"] * (k.shape[0] - kernel.n_amp))
     keep = np.isfinite(variances) & (variances > 0.0)
     if not keep.any():

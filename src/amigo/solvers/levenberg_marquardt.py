@@ -145,10 +145,26 @@ class Solution:
     decrement: float
     history: list[float]
     fisher: np.ndarray | None
+    #: Fall of the loss over the last iteration (0 when its normal equations only
+    #: confirmed convergence).
+    last_fall: float = 0.0
 
 
-def minimise(problem: Problem, vector: np.ndarray, config: Settings, label: str) -> Solution:
-    """Levenberg-Marquardt with chord steps from ``vector`` (see module notes)."""
+def minimise(
+    problem: Problem,
+    vector: np.ndarray,
+    config: Settings,
+    label: str,
+    fisher: np.ndarray | None = None,
+) -> Solution:
+    """Levenberg-Marquardt with chord steps from ``vector`` (see module notes).
+
+    ``fisher``: the float64 Fisher matrix of this problem's model *at* ``vector``, when
+    the caller has it (a refit of the same model to corrected data: ``F = J^T W J`` does
+    not depend on the data). The first iteration then takes it instead of new Jacobians,
+    with a float64 gradient: already converged if its decrement is below the tolerance,
+    else its chord steps start at once.
+    """
     n_groups = float(problem.n_groups)
     loss = problem.loss(vector)
     history = [loss]
@@ -157,7 +173,7 @@ def minimise(problem: Problem, vector: np.ndarray, config: Settings, label: str)
     estimate = np.inf  # decrement predicted with the last Fisher matrix
     converged = False
     iteration = chords = 0
-    fisher = None
+    given = fisher is not None
     exact = False  # whether `fisher` is float64 and was evaluated at `vector`
 
     def tolerance() -> float:
@@ -187,16 +203,26 @@ def minimise(problem: Problem, vector: np.ndarray, config: Settings, label: str)
             loss = problem.loss(vector)
             history.append(loss)
 
+    start_loss = loss
     for iteration in range(1, config.max_iterations + 1):
-        if estimate < tolerance():
-            to_float64()  # these Jacobians are expected to confirm convergence
-        fisher, grad = problem.normal_equations(vector, label)
+        if given and iteration == 1:
+            assert fisher is not None  # given
+            # The caller's matrix is exact at `vector`: only the gradient is new.
+            to_float64()
+            grad = problem.gradient(vector)
+            source = "the given Fisher matrix"
+        else:
+            if estimate < tolerance():
+                to_float64()  # these Jacobians are expected to confirm convergence
+            fisher, grad = problem.normal_equations(vector, label)
+            source = "new Jacobians"
         exact = problem.float64
+        start_loss = loss  # after any switch to float64: a fall, not a rounding change
         solver = FisherSolve(fisher)
         decrement = float(grad @ solver(grad)) / n_groups
         step(
             f"{label}: Gauss-Newton {iteration}: chi2 {2 * loss:.2f}, "
-            f"Newton decrement {decrement:.3g} per exposure"
+            f"Newton decrement {decrement:.3g} per exposure ({source})"
         )
         if decrement < tolerance():
             converged = True
@@ -235,4 +261,5 @@ def minimise(problem: Problem, vector: np.ndarray, config: Settings, label: str)
         decrement=decrement,
         history=history,
         fisher=fisher if (converged and exact) else None,
+        last_fall=start_loss - loss,
     )
