@@ -144,14 +144,21 @@ def stages(run: dict) -> list[tuple[str, float, float]]:
     return [(name, wall, comp) for name, (wall, comp) in table.items()]
 
 
-def run_command(argv: list[str], cache: Path, label: str) -> dict:
+def run_command(argv: list[str], cache: Path, label: str, platform_: str = "cpu") -> dict:
     with tempfile.TemporaryDirectory() as folder:
         report = Path(folder) / "report.json"
-        env = {**os.environ, "AMIGO_CACHE_DIR": str(cache), "JAX_PLATFORMS": "cpu"}
+        env = {**os.environ, "AMIGO_CACHE_DIR": str(cache)}
+        if platform_ == "cpu":
+            env["JAX_PLATFORMS"] = "cpu"
+        else:  # what amigo does by itself: a GPU when there is one
+            env.pop("JAX_PLATFORMS", None)
         env.pop("JAX_COMPILATION_CACHE_DIR", None)
         cmd = [sys.executable, __file__, "--child", str(report), "--", *argv]
         print(f"[{label}] amigo {' '.join(argv)}", flush=True)
-        subprocess.run(cmd, env=env, check=True, stderr=subprocess.DEVNULL)
+        done = subprocess.run(cmd, env=env, stderr=subprocess.PIPE, text=True)
+        if done.returncode != 0 or not report.is_file():
+            tail = "\n".join(done.stderr.splitlines()[-40:])
+            sys.exit(f"amigo {argv[0]} failed (exit {done.returncode}):\n{tail}")
         return json.loads(report.read_text())
 
 
@@ -173,6 +180,20 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=None, help="output folder (default: temp)")
     parser.add_argument("--no-detect", action="store_true", help="profile amigo fit only")
     parser.add_argument("--no-hmc", action="store_true", help="amigo detect --no-hmc")
+    parser.add_argument(
+        "--platform",
+        choices=("cpu", "any"),
+        default="cpu",
+        help="cpu: JAX on the CPU (the reference figures); any: what amigo picks (a GPU "
+        "when there is one)",
+    )
+    parser.add_argument(
+        "--reference",
+        type=Path,
+        default=None,
+        help="an output folder of an earlier run of the same files: report how far this "
+        "run's results moved, in units of their errors",
+    )
     parser.add_argument("--child", type=Path, default=None, help=argparse.SUPPRESS)
     parser.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -188,21 +209,72 @@ def main() -> None:
         cache = Path(scratch) / "cache"
         fit = ["fit", "--sci", *map(str, sci), "--cal", *map(str, cal), "--out", str(out)]
         extra = ["--force", *(["--no-hmc"] if args.no_hmc else [])]
-        runs = []
+        print(machine(args.platform), f"filters {' '.join(args.filters)}", flush=True)
         for label in ("cold", "warm"):
-            runs.append((f"{label} fit", run_command([*fit, "--force"], cache, label)))
+            # Each table as soon as its run ends: a run cut short still reports the others.
+            run = run_command([*fit, "--force"], cache, label, args.platform)
+            print_run(f"{label} fit", run)
             if not args.no_detect:
                 calvis = sorted(out.glob("*_calvis.fits"))
                 detect = ["detect", *map(str, calvis), "--out", str(out / "detect"), *extra]
-                runs.append((f"{label} detect", run_command(detect, cache, label)))
-    import jax
+                print_run(f"{label} detect", run_command(detect, cache, label, args.platform))
+            sys.stdout.flush()
+        if args.reference is not None:
+            print()
+            compare(out, args.reference)
 
-    print(
-        f"\nmachine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
-        f"JAX {jax.__version__} on {jax.devices()[0].platform}; filters {' '.join(args.filters)}"
+
+def machine(platform_: str) -> str:
+    """The machine, as the tables' header names it (JAX's device in a child process)."""
+    env = {**os.environ, **({"JAX_PLATFORMS": "cpu"} if platform_ == "cpu" else {})}
+    if platform_ != "cpu":
+        env.pop("JAX_PLATFORMS", None)
+    code = "import jax; d = jax.devices()[0]; print(jax.__version__, d.platform, d.device_kind)"
+    found = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True
+    ).stdout.split(maxsplit=2)
+    return (
+        f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+        f"JAX {found[0]} on {found[1]} ({found[2].strip()});"
     )
-    for label, run in runs:
-        print_run(label, run)
+
+
+def compare(out: Path, reference: Path) -> None:
+    """How far the results in ``out`` moved from those in ``reference``, in units of their
+    errors: the fitted geometry and jitter (``fit_summary.json``), every DISCO (signs
+    aligned by the row convention, :func:`amigo.observables.kernel.row_signs`) and the
+    companions' separation, PA and contrast (``detect/companions.json``)."""
+    import numpy as np
+
+    from amigo.io.calvis import read_calvis
+    from amigo.observables.kernel import row_signs
+
+    print(f"results against {reference} (|difference| / error)")
+    new, old = (json.loads((d / "fit_summary.json").read_text()) for d in (out, reference))
+    worst: dict[str, float] = {}
+    for a, b in zip(new["exposures"], old["exposures"], strict=True):
+        for key, value in a.items():
+            error = b.get(f"{key}_err")
+            if isinstance(value, float) and isinstance(error, float) and error > 0:
+                worst[key] = max(worst.get(key, 0.0), abs(value - b[key]) / error)
+    for key, z in worst.items():
+        print(f"  {key:30s} max {z:.4f}")
+    for path in sorted(out.glob("*_calvis.fits")):
+        a, b = read_calvis(path), read_calvis(reference / path.name)
+        va, vb = a.values * row_signs(a.disco_matrix), b.values * row_signs(b.disco_matrix)
+        z = np.abs(va - vb) / b.errors
+        print(f"  {path.name:30s} DISCOs: max {z.max():.4f}, rms {np.sqrt(np.mean(z * z)):.4f}")
+    found = [
+        json.loads((d / "detect" / "companions.json").read_text()).get("companions", [])
+        for d in (out, reference)
+    ]
+    for a, b in zip(*found, strict=False):
+        pairs = [("sep_mas", a["sep_mas"], b["sep_mas"], b["sep_err_mas"]),
+                 ("pa_deg", a["pa_deg"], b["pa_deg"], b["pa_err_deg"])]  # fmt: skip
+        pairs += [(f"dmag {f}", a["dmag"][f], v, b["dmag_err"][f]) for f, v in b["dmag"].items()]
+        for key, x, y, error in pairs:
+            if error:
+                print(f"  companion {b['id']} {key:19s} {abs(x - y) / error:.4f}")
 
 
 if __name__ == "__main__":

@@ -6,8 +6,8 @@ detections. Importing :mod:`amigo` is cheap: JAX is only imported by the modules
 model the instrument.
 
 The Python API: ``amigo.open``, ``amigo.process``, ``amigo.fit``, ``amigo.detect``,
-``amigo.simulate``, ``amigo.run`` and ``amigo.train`` (:mod:`amigo.pipeline`, where examples
-are).
+``amigo.simulate``, ``amigo.run``, ``amigo.run_manifest`` and ``amigo.train``
+(:mod:`amigo.pipeline`, where examples are).
 """
 
 from typing import Any
@@ -17,7 +17,7 @@ from amigo.errors import AmigoError, InputError, NumericalFailure
 
 #: The Python API (:mod:`amigo.pipeline`), imported on first use so that ``import amigo``
 #: stays cheap.
-API = ("open", "process", "fit", "detect", "simulate", "run", "train")
+API = ("open", "process", "fit", "detect", "simulate", "run", "run_manifest", "train")
 
 __all__ = ["AmigoError", "InputError", "NumericalFailure", "__version__", *API]
 

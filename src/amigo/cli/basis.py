@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import click
@@ -35,7 +34,6 @@ def command(filters: tuple[str, ...], model: Path | None, plots: Path | None) ->
     spectrum with the truncation marked. Bases are cached (see docs/fit.md), so `amigo fit`
     does not rebuild them.
     """
-    os.environ.setdefault("JAX_PLATFORMS", "cpu")
     from amigo.pipeline import bases
 
     for report in bases(filters, model=model, plots=plots):

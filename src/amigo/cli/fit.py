@@ -19,14 +19,14 @@ from amigo.cli.options import ManyValues
 FC = TypeVar("FC", bound=Callable[..., Any])
 
 
-def exposures_option(name: str, text: str) -> Callable[[FC], FC]:
-    """The required ``--sci``/``--cal`` option of ``fit`` and ``run``: several files after
-    one flag (``--sci A B C``, as a shell glob gives them) or the flag repeated."""
+def exposures_option(name: str, text: str, required: bool = True) -> Callable[[FC], FC]:
+    """The ``--sci``/``--cal`` option of ``fit`` and ``run``: several files after one flag
+    (``--sci A B C``, as a shell glob gives them) or the flag repeated."""
     return click.option(
         f"--{name}",
         name,
         cls=ManyValues,
-        required=True,
+        required=required,
         type=click.Path(path_type=Path),
         help=text,
     )

@@ -4,6 +4,10 @@ Everything is written directly under ``DIR``, with the names of the individual c
 (docs/interfaces): ``<stem>_calslope.fits`` (``amigo process``), the calvis, OIFITS,
 ``fit_summary.json`` and ``plots/`` (``amigo fit``), ``companions.json``,
 ``contrast_limits.csv`` and the detection figures (``amigo detect``).
+
+``amigo run --manifest targets.toml --out DIR [--workers N | --scheduler ADDRESS]``: every
+target of the manifest (:mod:`amigo.io.manifest`) into ``DIR/<name>/``, in parallel on
+Dask distributed, with a summary table (:mod:`amigo.pipeline._manifest`).
 """
 
 from __future__ import annotations
@@ -17,9 +21,36 @@ from amigo.cli.fit import exposures_option, model_options, superbias_option
 
 @click.command("run")
 @exposures_option(
-    "sci", "Raw science ramps (_uncal.fits; several after one flag, or the flag repeated)."
+    "sci",
+    "Raw science ramps (_uncal.fits; several after one flag, or the flag repeated).",
+    required=False,
 )
-@exposures_option("cal", "Raw calibrator ramps (_uncal.fits; several after one flag, or repeated).")
+@exposures_option(
+    "cal",
+    "Raw calibrator ramps (_uncal.fits; several after one flag, or repeated).",
+    required=False,
+)
+@click.option(
+    "--manifest",
+    type=click.Path(path_type=Path),
+    default=None,
+    help="A TOML list of science/calibrator sets (instead of --sci/--cal): each target "
+    "runs into OUT/<name>/, in parallel on Dask (docs/interfaces.md).",
+)
+@click.option(
+    "--workers",
+    type=click.IntRange(min=1),
+    default=None,
+    help="With --manifest: worker processes of the local Dask cluster [default: one per "
+    "two CPU cores, at most one per target].",
+)
+@click.option(
+    "--scheduler",
+    default=None,
+    metavar="ADDRESS",
+    help="With --manifest: run on this existing Dask scheduler (e.g. tcp://host:8786, a "
+    "dask-jobqueue cluster's) instead of a local cluster.",
+)
 @click.option("--out", "out", required=True, type=click.Path(path_type=Path), help="Output folder.")
 @model_options
 @click.option("--rmax-mas", type=float, default=1000.0, show_default=True, help="Search radius.")
@@ -48,16 +79,52 @@ def command(
     superbias: tuple[Path, ...] = (),
     no_first_group: bool = False,
     force: bool = False,
+    manifest: Path | None = None,
+    workers: int | None = None,
+    scheduler: str | None = None,
 ) -> int:
     """Raw ramps to companions: amigo process, amigo fit and amigo detect in one go.
 
     All outputs go directly under OUT, named as by the individual commands. Exit status
-    as amigo fit's (3: some filters without products, 4: none).
+    as amigo fit's (3: some filters without products, 4: none). With --manifest, each
+    target into OUT/<name>/ (3: some targets failed, 4: all).
     """
     if no_first_group and superbias:
         raise click.BadParameter(
             "cannot be combined with --no-first-group", param_hint="--superbias"
         )
+    if manifest is not None:
+        if sci or cal or superbias:
+            raise click.BadParameter(
+                "give the exposures in the manifest, not also with --sci/--cal/--superbias",
+                param_hint="--manifest",
+            )
+        if workers is not None and scheduler is not None:
+            raise click.BadParameter("cannot be combined with --scheduler", param_hint="--workers")
+        from amigo.pipeline import run_manifest
+
+        done = run_manifest(
+            manifest,
+            out,
+            workers=workers,
+            scheduler=scheduler,
+            force=force,
+            model=None if model is None else str(model),
+            detector=detector,
+            knots=knots,
+            knot_spacing=knot_spacing,
+            rmax_mas=rmax_mas,
+            hmc=not no_hmc,
+            first_group=not no_first_group,
+        )
+        click.echo(done.table())
+        click.echo(f"summary: {out / 'manifest_summary.json'}")
+        return done.status
+    if workers is not None or scheduler is not None:
+        raise click.BadParameter("only with --manifest", param_hint="--workers/--scheduler")
+    for name, given in (("--sci", sci), ("--cal", cal)):
+        if not given:
+            raise click.UsageError(f"Missing option '{name}' (or give --manifest).")
     from amigo.pipeline import run
 
     result = run(

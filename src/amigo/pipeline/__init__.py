@@ -25,7 +25,8 @@ stderr, raise :class:`~amigo.errors.InputError` for a bad input, and return what
 
 From raw ramps: ``amigo.simulate("demo", "raw")`` writes simulated ones,
 ``amigo.process(uncal_files, "out")`` reduces them to calslope files, and
-``amigo.run(sci, cal, "out")`` does process, fit and detect in one go;
+``amigo.run(sci, cal, "out")`` does process, fit and detect in one go,
+``amigo.run_manifest("targets.toml", "out")`` many targets in parallel on Dask;
 ``amigo.train(cal_files, "model.npz")`` trains a base model on calibration exposures.
 """
 
@@ -39,6 +40,7 @@ from amigo.cachedir import enable_compilation_cache
 from amigo.pipeline._basis import BasisReport, bases
 from amigo.pipeline._detect import DetectResult, detect
 from amigo.pipeline._fit import FitResult, fit
+from amigo.pipeline._manifest import ManifestResult, TargetOutcome, run_manifest
 from amigo.pipeline._process import ProcessResult, process
 from amigo.pipeline._run import RunResult, run
 from amigo.pipeline._train import TrainResult, train
@@ -53,8 +55,10 @@ __all__ = [
     "BasisReport",
     "DetectResult",
     "FitResult",
+    "ManifestResult",
     "ProcessResult",
     "RunResult",
+    "TargetOutcome",
     "TrainResult",
     "bases",
     "detect",
@@ -62,6 +66,7 @@ __all__ = [
     "open",
     "process",
     "run",
+    "run_manifest",
     "simulate",
     "train",
 ]

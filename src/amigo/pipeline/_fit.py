@@ -10,7 +10,6 @@ a previous run left complete for the same inputs (:mod:`amigo.pipeline.outcome`)
 from __future__ import annotations
 
 import json
-import os
 from collections import defaultdict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -141,7 +140,6 @@ def fit(
     ``.plot_residuals()``). Numerical failures end their filter, not the call
     (``.status`` 3 or 4, docs/reliability.md).
     """
-    os.environ.setdefault("JAX_PLATFORMS", "cpu")
     sci_paths, cal_paths = tuple(map(Path, sci)), tuple(map(Path, cal))
     superbias_paths = tuple(map(Path, superbias))
     out = Path(out)

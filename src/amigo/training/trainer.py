@@ -59,6 +59,7 @@ import functools
 import platform
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import asdict
 from datetime import UTC, datetime
 from pathlib import Path
@@ -116,6 +117,7 @@ from amigo.training.groups import (
     seen_by,
     split,
 )
+from amigo.training.parallel import batch_loss_and_grads, data_mesh
 
 # ---------------------------------------------------------------------------- the trainer
 
@@ -136,9 +138,12 @@ class Trainer:
         config: BaseModelConfig | None = None,
         cache: PupilCache | None = None,
         initial: BaseModel | None = None,
+        devices: Sequence[Any] | None = None,
     ) -> None:
         self.data = data
         self.settings = settings
+        # Batches are data-parallel over these (default: every device JAX sees).
+        self.mesh = data_mesh(devices)
         if (initial is None) != (settings.init is None):
             raise ValueError("settings.init names the initial model: give both or neither")
         where = "--cal" if initial is None else settings.init
@@ -347,19 +352,24 @@ class Trainer:
         per slope value before the step."""
         state, base = self.state, self.state.base
         n_cal = len(self.data.cal)
-        grad_base, loss, values = None, 0.0, 0
+        loss, values = 0.0, 0
         grads = [jax.tree.map(jnp.zeros_like, p) for p in state.cal_params]
-        for i in batch:
-            d = self.data.cal[i]
-            value, (gb, gp) = loss_and_grad(base, state.cal_params[i], d, self.cache)
+        # Every exposure's loss and gradients; on several devices, data-parallel.
+        batch_values, grad_base, batch_grads = batch_loss_and_grads(
+            base,
+            [state.cal_params[i] for i in batch],
+            [self.data.cal[i] for i in batch],
+            self.cache,
+            self.mesh,
+        )
+        for i, value, gp in zip(batch, batch_values, batch_grads, strict=True):
             if not np.isfinite(float(value)):
                 # e.g. a detector geometry beyond the resampling's reach (NaN images)
                 raise FloatingPointError(
                     f"training diverged at step {self.step + 1}: the loss of calibration "
                     f"exposure {i} is not finite"
                 )
-            loss, values = loss + float(value), values + d.n_values
-            grad_base = gb if grad_base is None else jax.tree.map(jnp.add, grad_base, gb)
+            loss, values = loss + float(value), values + self.data.cal[i].n_values
             grads[i] = gp
         assert grad_base is not None  # a batch is never empty
         # Source parameters of the exposures in the batch (the others keep their state).

@@ -1,0 +1,213 @@
+"""``amigo run --manifest``: many targets on Dask distributed (issue 25, docs/interfaces.md).
+
+Fast: a manifest's mistakes are one line naming the manifest (exit status 2).
+Slow: four small simulated targets through a local Dask cluster of two workers give the
+same products as four serial runs (every JSON number but wall times, byte for byte);
+killed half way and run again, the cluster runs only the targets that had not finished.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from jwst_files import nominal_star, write_level2
+
+
+def _main(args: list[str]) -> int:
+    from amigo.cli import main
+
+    try:
+        main(args)
+    except SystemExit as exit_:
+        return int(exit_.code or 0)
+    return 0
+
+
+@pytest.fixture
+def files(tmp_path) -> dict[str, Path]:
+    folder = tmp_path / "in"
+    folder.mkdir()
+    paths = {}
+    for name in ("a_cal.fits", "b_cal.fits", "c_cal.fits"):
+        paths[name] = folder / name
+        paths[name].write_bytes(b"")  # existence is all the manifest checks
+    return paths
+
+
+def _write(path: Path, text: str) -> Path:
+    path.write_text(text)
+    return path
+
+
+@pytest.mark.parametrize(
+    ("text", "problem"),
+    [
+        ("[[target]\n", "is not valid TOML"),
+        ("[options]\nhmc = false\n", "has no [[target]] table"),
+        ('[[target]]\nsci = ["a_cal.fits"]\n', "target 1: cal must be a non-empty list"),
+        (
+            '[[target]]\nsci = ["a_cal.fits"]\ncal = ["nope_cal.fits"]\n',
+            "nope_cal.fits does not exist",
+        ),
+        (
+            '[[target]]\nsci = ["a_cal.fits"]\ncal = ["b_cal.fits"]\nrmax = 3\n',
+            "unknown key 'rmax'",
+        ),
+        (
+            '[[target]]\nsci = ["a_cal.fits"]\ncal = ["b_cal.fits"]\nknots = "many"\n',
+            "knots must be a int",
+        ),
+        (
+            '[[target]]\nname = "x"\nsci = ["a_cal.fits"]\ncal = ["b_cal.fits"]\n'
+            '[[target]]\nname = "x"\nsci = ["c_cal.fits"]\ncal = ["b_cal.fits"]\n',
+            "a target named 'x' comes earlier",
+        ),
+        (
+            '[[target]]\nname = "../up"\nsci = ["a_cal.fits"]\ncal = ["b_cal.fits"]\n',
+            "must be letters, digits",
+        ),
+        ("[extra]\n", "unknown table 'extra'"),
+    ],
+)
+def test_manifest_mistakes_are_one_line_naming_the_manifest(files, text, problem, capsys):
+    manifest = _write(files["a_cal.fits"].parent / "targets.toml", text)
+    out = files["a_cal.fits"].parent.parent / "out"
+    assert _main(["run", "--manifest", str(manifest), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "targets.toml" in err[0] and problem in err[0], err
+    assert "Traceback" not in err[0]
+    assert not out.exists()  # nothing started
+
+
+def test_a_manifest_reads_paths_relative_to_itself_and_merges_options(files):
+    from amigo.io.manifest import read_manifest
+
+    manifest = _write(
+        files["a_cal.fits"].parent / "targets.toml",
+        "[options]\nrmax_mas = 500\nhmc = false\n"
+        '[[target]]\nsci = ["a_cal.fits"]\ncal = ["b_cal.fits", "c_cal.fits"]\n'
+        '[[target]]\nname = "second"\nsci = "c_cal.fits"\ncal = ["b_cal.fits"]\nhmc = true\n',
+    )
+    first, second = read_manifest(manifest)
+    assert first.name == "a" and second.name == "second"
+    assert first.cal == (files["b_cal.fits"].resolve(), files["c_cal.fits"].resolve())
+    assert first.options == {"rmax_mas": 500.0, "hmc": False}
+    assert second.options == {"rmax_mas": 500.0, "hmc": True}
+
+
+def test_manifest_and_exposures_exclude_each_other(files, tmp_path, capsys):
+    manifest = _write(tmp_path / "m.toml", '[[target]]\nsci = ["x"]\ncal = ["y"]\n')
+    args = ["run", "--manifest", str(manifest), "--sci", str(files["a_cal.fits"])]
+    assert _main([*args, "--out", str(tmp_path / "o")]) == 2
+    assert "--manifest" in capsys.readouterr().err
+    assert _main(["run", "--out", str(tmp_path / "o")]) == 2
+    assert "--sci" in capsys.readouterr().err
+    assert _main(["run", "--sci", "a", "--cal", "b", "--workers", "2", "--out", "o"]) == 2
+    assert "only with --manifest" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------------- slow
+N_TARGETS = 4
+#: Small and fast: a 3-wavelength instrument, a coarse uv grid, no NUTS, a short search.
+OPTIONS = "[options]\nknots = 27\nknot_spacing = 0.5\nhmc = false\nrmax_mas = 300.0\n"
+
+
+@pytest.fixture(scope="module")
+def program(tmp_path_factory) -> Path:
+    """Four science stars (different noise) against one calibrator, F480M level-2 images
+    through amigo's nominal instrument; the manifest and the instrument file beside them."""
+    from amigo.model.image import Instrument, save_instrument
+
+    folder = tmp_path_factory.mktemp("program")
+    save_instrument(Instrument.nominal(n_wavelengths=3), folder / "nominal.eqx")
+    rng = np.random.default_rng(11)
+    image = nominal_star("F480M")
+    error = np.sqrt(np.maximum(image, 0.0) / 80.0 + 4.0)
+
+    def write(name: str, target: str, observation: str) -> str:
+        noisy = image + error * rng.standard_normal(image.shape)
+        overrides = {"FILTER": "F480M", "TARGPROP": target, "OBSERVTN": observation}
+        write_level2(folder / name, noisy, error, overrides=overrides)
+        return name
+
+    cal = write("cal_cal.fits", "CALSTAR", "090")
+    lines = [OPTIONS, 'model = "nominal.eqx"\n']
+    for k in range(N_TARGETS):
+        sci = write(f"sci{k}_cal.fits", f"STAR-{k}", f"00{k + 1}")
+        lines.append(f'[[target]]\nname = "t{k}"\nsci = ["{sci}"]\ncal = ["{cal}"]\n')
+    (folder / "targets.toml").write_text("".join(lines))
+    return folder
+
+
+def _amigo(*args: object, **kwargs) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-m", "amigo", *map(str, args)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "JAX_PLATFORMS": "cpu"},
+        **kwargs,
+    )
+
+
+def _numbers(document, wall=("seconds",)) -> object:
+    """The JSON document without its wall times (the only numbers that may differ)."""
+    if isinstance(document, dict):
+        return {k: _numbers(v) for k, v in document.items() if k not in wall}
+    if isinstance(document, list):
+        return [_numbers(v) for v in document]
+    return document
+
+
+def _products(folder: Path) -> dict[str, object]:
+    names = ("fit_summary.json", "companions.json")
+    return {name: _numbers(json.loads((folder / name).read_text())) for name in names}
+
+
+@pytest.mark.slow
+def test_a_manifest_on_two_dask_workers_equals_serial_runs_and_resumes(program, tmp_path):
+    model = program / "nominal.eqx"
+    options = ["--model", model, "--knots", "27", "--knot-spacing", "0.5"]
+    serial = tmp_path / "serial"
+    for k in range(N_TARGETS):
+        folder = serial / f"t{k}"
+        fit = ["fit", "--sci", program / f"sci{k}_cal.fits", "--cal", program / "cal_cal.fits"]
+        assert _main([*map(str, fit), "--out", str(folder), *map(str, options)]) == 0
+        calvis = sorted(map(str, folder.glob("*_calvis.fits")))
+        detect = ["detect", *calvis, "--out", str(folder), "--no-hmc", "--rmax-mas", "300"]
+        assert _main(detect) == 0
+
+    out = tmp_path / "dask"
+    manifest = program / "targets.toml"
+    # Killed once the first target has finished: the others are half way or not begun.
+    job = _amigo("run", "--manifest", manifest, "--out", out, "--workers", 2,
+                 start_new_session=True)  # fmt: skip
+    start = time.monotonic()
+    while not list(out.glob("*/target.json")):
+        assert job.poll() is None, job.communicate()
+        assert time.monotonic() - start < 600, "no target finished"
+        time.sleep(0.2)
+    os.killpg(job.pid, signal.SIGKILL)  # the client, its scheduler and its workers
+    job.communicate()
+    finished = {p.parent.name for p in out.glob("*/target.json")}
+    assert 1 <= len(finished) < N_TARGETS
+
+    rerun = _amigo("run", "--manifest", manifest, "--out", out, "--workers", 2)
+    stdout, stderr = rerun.communicate(timeout=900)
+    assert rerun.returncode == 0, stderr
+    summary = json.loads((out / "manifest_summary.json").read_text())
+    states = {t["name"]: t["state"] for t in summary["targets"]}
+    assert {n for n, s in states.items() if s == "skipped"} == finished
+    assert {n for n, s in states.items() if s == "done"} == set(states) - finished
+    assert "skipped" in stdout and "t0" in stdout  # the table
+    for k in range(N_TARGETS):
+        assert _products(out / f"t{k}") == _products(serial / f"t{k}"), f"t{k}"
