@@ -241,13 +241,12 @@ def machine(platform_: str) -> str:
 
 def compare(out: Path, reference: Path) -> None:
     """How far the results in ``out`` moved from those in ``reference``, in units of their
-    errors: the fitted geometry and jitter (``fit_summary.json``), every DISCO (signs
-    aligned by the row convention, :func:`amigo.observables.kernel.row_signs`) and the
+    errors: the fitted geometry and jitter (``fit_summary.json``), every DISCO (each row's
+    sign aligned with the reference's) and the
     companions' separation, PA and contrast (``detect/companions.json``)."""
     import numpy as np
 
     from amigo.io.calvis import read_calvis
-    from amigo.observables.kernel import row_signs
 
     print(f"results against {reference} (|difference| / error)")
     new, old = (json.loads((d / "fit_summary.json").read_text()) for d in (out, reference))
@@ -261,8 +260,11 @@ def compare(out: Path, reference: Path) -> None:
         print(f"  {key:30s} max {z:.4f}")
     for path in sorted(out.glob("*_calvis.fits")):
         a, b = read_calvis(path), read_calvis(reference / path.name)
-        va, vb = a.values * row_signs(a.disco_matrix), b.values * row_signs(b.disco_matrix)
-        z = np.abs(va - vb) / b.errors
+        # A DISCO and its row change sign together; where a row's largest entries are
+        # nearly tied, the sign convention can pick either: align each row to the
+        # reference's.
+        same = np.sign(np.sum(a.disco_matrix * b.disco_matrix, axis=1))
+        z = np.abs(same * a.values - b.values) / b.errors
         print(f"  {path.name:30s} DISCOs: max {z.max():.4f}, rms {np.sqrt(np.mean(z * z)):.4f}")
     found = [
         json.loads((d / "detect" / "companions.json").read_text()).get("companions", [])

@@ -153,3 +153,63 @@ def test_wavefront_prior_adds_exactly_its_gaussian_term(tmp_path, monkeypatch):
     science = _Problem(fit, params, np.array([1]), s)
     assert not np.any(science.prior_precision)
     assert science.loss(vector) == pytest.approx(_Problem(fit, params, np.array([1])).loss(vector))
+
+
+class _Curve:
+    """``y = a exp(-b x) + c`` fitted to noisy samples: a small nonlinear least-squares
+    :class:`~amigo.solvers.levenberg_marquardt.Problem` that counts its Jacobians."""
+
+    def __init__(self) -> None:
+        rng = np.random.default_rng(4)
+        self.x = np.linspace(0.0, 4.0, 40)
+        self.y = 2.0 * np.exp(-1.3 * self.x) + 0.5 + 0.01 * rng.normal(size=self.x.size)
+        self.n_values, self.n_groups, self.float64 = float(self.x.size), 1, False
+        self.jacobians: list[bool] = []  # the precision of each
+
+    def residuals(self, v):
+        return (self.y - (v[0] * np.exp(-v[1] * self.x) + v[2])) / 0.01
+
+    def jacobian(self, v):
+        e = np.exp(-v[1] * self.x)
+        return -np.column_stack([e, -v[0] * self.x * e, np.ones_like(e)]) / 0.01
+
+    def loss(self, v):
+        return 0.5 * float(np.sum(self.residuals(v) ** 2))
+
+    def gradient(self, v):
+        return -self.jacobian(v).T @ self.residuals(v)
+
+    def normal_equations(self, v, label):
+        self.jacobians.append(self.float64)
+        j = self.jacobian(v)
+        return j.T @ j, -j.T @ self.residuals(v)
+
+
+class _Settings:
+    max_iterations, tolerance, damping, chord_steps, float64_check = 12, 1e-6, 1e-3, 20, True
+
+
+def test_a_given_fisher_matrix_saves_jacobians_and_changes_no_optimum():
+    """From the exact matrix at the optimum: converged with no new Jacobians. From an
+    approximate one (another point): chord steps, then new Jacobians confirm, and the
+    optimum is the one found without it."""
+    from amigo.solvers.levenberg_marquardt import minimise
+
+    start = np.array([1.0, 1.0, 0.0])
+    plain = _Curve()
+    reference = minimise(plain, start, _Settings(), "plain")
+    assert reference.converged and reference.fisher is not None
+
+    exact = _Curve()
+    again = minimise(exact, reference.vector, _Settings(), "exact", reference.fisher)
+    assert again.converged and exact.jacobians == []
+    np.testing.assert_array_equal(again.fisher, reference.fisher)
+
+    stale = _Curve()
+    near = reference.vector * np.array([1.05, 0.95, 1.1])
+    approximate = stale.normal_equations(near, "")[0]
+    stale.jacobians.clear()
+    found = minimise(stale, start, _Settings(), "approximate", approximate, exact=False)
+    assert found.converged and found.fisher is not None
+    assert stale.jacobians and stale.jacobians[-1]  # confirmed by float64 Jacobians
+    np.testing.assert_allclose(found.vector, reference.vector, rtol=1e-5)

@@ -194,6 +194,9 @@ class FilterFitResult:
         ``exact_exposures``, whose convergence the Levenberg-Marquardt finish confirmed
         with float64 Jacobians there (``None`` and ``()`` if none):
         :func:`latent_information` reads their latent Hessians from it.
+    last_fisher
+        The Levenberg-Marquardt finish's last Fisher matrix (float32 or float64, at or
+        near ``params``; ``None`` without that finish): where a refit's chord steps start.
     """
 
     params: FitParams
@@ -205,6 +208,7 @@ class FilterFitResult:
     seconds: float
     fisher: np.ndarray | None = None
     exact_exposures: tuple[int, ...] = ()
+    last_fisher: np.ndarray | None = None
 
 
 class FilterFit:
@@ -565,12 +569,14 @@ class FilterFit:
             best, n_polish = self.polish(best, precond, config.polish_steps)
             iteration += n_polish
         fisher: np.ndarray | None = None
+        last_fisher: np.ndarray | None = None
         exact: tuple[int, ...] = ()
         final_loss: float | Array
         if config.newton.max_iterations > 0:
             # The full-Fisher finish decides convergence (see amigo.fitting.newton).
             newton = levenberg_marquardt(self, best, config.newton, label)
             best, converged, fisher = newton.params, newton.converged, newton.fisher
+            last_fisher = newton.last_fisher
             exact = newton.exact_exposures
             iteration += newton.iterations
             history.extend(newton.loss_history[1:])
@@ -598,6 +604,7 @@ class FilterFit:
             seconds=time.perf_counter() - start,
             fisher=fisher,
             exact_exposures=exact,
+            last_fisher=last_fisher,
         )
 
     def polish(

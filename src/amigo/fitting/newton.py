@@ -178,6 +178,9 @@ class NewtonResult:
     exact_exposures: tuple[int, ...] = ()
     loss: float = float("nan")
     loss_change: float = float("nan")
+    #: The last Fisher matrix of every stage (float32 or float64, at or near ``params``),
+    #: summed: what a refit's first chord steps can take (:func:`levenberg_marquardt`).
+    last_fisher: np.ndarray | None = None
 
 
 # ------------------------------------------------------------------------------ layout
@@ -683,6 +686,7 @@ def levenberg_marquardt(
     label: str = "fit",
     fisher: np.ndarray | None = None,
     exact_exposures: tuple[int, ...] = (),
+    approximate: np.ndarray | None = None,
 ) -> NewtonResult:
     """Damped Gauss-Newton iterations from ``params`` until the Newton decrement is small.
 
@@ -703,7 +707,9 @@ def levenberg_marquardt(
     ``params`` (:attr:`NewtonResult.fisher`) and the exposures it covers. A refit of the
     same model to corrected data (the full detector's rounds) starts every stage whose
     exposures it covers from it instead of from new Jacobians (the Fisher matrix depends
-    on the parameters and the noise, not on the data).
+    on the parameters and the noise, not on the data). ``approximate``: else, a previous
+    result's :attr:`NewtonResult.last_fisher` (float32 Jacobians, near ``params``), which
+    steers every stage's first chord steps before new Jacobians confirm.
     """
     config = NewtonConfig() if config is None else config
     start = time.perf_counter()
@@ -718,6 +724,7 @@ def levenberg_marquardt(
     converged, iterations, chords, change = True, 0, 0, 0.0
     decrement = 0.0
     total = np.zeros((layout.size, layout.size))
+    last = np.zeros((layout.size, layout.size))
     exact: list[int] = []
     cal_loss = 0.0
     for members, stage_label in stages:
@@ -732,10 +739,15 @@ def levenberg_marquardt(
             config.jitter_prior_mas,
             config.band_taper_prior,
         )
-        given = None
+        given, exact_given = None, True
+        indices = _stage_indices(layout, fit, members)
         if fisher is not None and set(members.tolist()) <= set(exact_exposures):
-            given = _restricted(fisher, _stage_indices(layout, fit, members))
-        result = minimise(problem, vector, config, stage_label, given)
+            given = _restricted(fisher, indices)
+        elif approximate is not None:
+            given, exact_given = _restricted(approximate, indices), False
+        result = minimise(problem, vector, config, stage_label, given, exact_given)
+        if result.last_fisher is not None:
+            last += result.last_fisher
         vector = result.vector
         converged &= result.converged
         iterations += result.iterations
@@ -761,4 +773,5 @@ def levenberg_marquardt(
         # holds the loss of all exposures.
         loss=float(history[-1]),
         loss_change=float(change),
+        last_fisher=last,
     )

@@ -413,7 +413,15 @@ def fit_through_detector(
     corrections = detector.corrections(fit, fit.initial_params())
     step(f"{label}: {detector.mode} detector: correction at the starting point computed")
     fit = fit.with_exposures(detector.corrected(exposures, corrections))
-    result = fit.fit(config, label=label)
+    # The first round is provisional: the next correction moves the data, so its optimum
+    # is confirmed by the round that settles the correction, not here (float32 Jacobians
+    # only: float64 ones cost twice as much and their Fisher matrix would be stale).
+    provisional = config
+    if detector.max_rounds > 0 and config.newton.max_iterations > 0:
+        provisional = dataclasses.replace(
+            config, newton=dataclasses.replace(config.newton, float64_check=False)
+        )
+    result = fit.fit(provisional, label=label)
     for name in detector.check_dark_patterns(fit, result.params):
         amplitude, error = detector.pattern_amplitudes[name]
         step(
@@ -434,10 +442,13 @@ def fit_through_detector(
         fit = fit.with_exposures(detector.corrected(exposures, corrections))
         step(f"{label}: detector round {round_}: correction changed by {changes[-1]:.3g} sigma")
         last = round_ == detector.max_rounds or config.newton.max_iterations == 0
-        if changes[-1] < detector.tolerance or last:
+        settled = changes[-1] < detector.tolerance or last
+        confirmed = result.fisher is not None or not config.newton.float64_check
+        if settled and confirmed:
             break  # the data now carry the correction at the final parameters
-        # The last round's float64 Fisher matrix is exact at its parameters: each stage
-        # starts from it (chord steps at once) instead of recomputing it in float32.
+        # The last round's Fisher matrix steers this one's first steps: float64 and exact
+        # at its parameters (then convergence may need no new Jacobians at all), or the
+        # provisional round's float32 one.
         newton = levenberg_marquardt(
             fit,
             result.params,
@@ -445,6 +456,7 @@ def fit_through_detector(
             f"{label} round {round_}",
             result.fisher,
             result.exact_exposures,
+            None if result.fisher is not None else result.last_fisher,
         )
         result = FilterFitResult(
             params=newton.params,
@@ -458,6 +470,7 @@ def fit_through_detector(
             # corrected data: it stays valid for the final round's fit.
             fisher=newton.fisher,
             exact_exposures=newton.exact_exposures,
+            last_fisher=newton.last_fisher,
         )
     converged = bool(changes) and changes[-1] < detector.tolerance
     record = DetectorRecord(

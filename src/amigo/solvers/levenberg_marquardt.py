@@ -148,6 +148,8 @@ class Solution:
     #: Fall of the loss over the last iteration (0 when its normal equations only
     #: confirmed convergence).
     last_fall: float = 0.0
+    #: The last Fisher matrix used (float32 or float64; at or near the final vector).
+    last_fisher: np.ndarray | None = None
 
 
 def minimise(
@@ -156,14 +158,16 @@ def minimise(
     config: Settings,
     label: str,
     fisher: np.ndarray | None = None,
+    exact: bool = True,
 ) -> Solution:
     """Levenberg-Marquardt with chord steps from ``vector`` (see module notes).
 
-    ``fisher``: the float64 Fisher matrix of this problem's model *at* ``vector``, when
-    the caller has it (a refit of the same model to corrected data: ``F = J^T W J`` does
-    not depend on the data). The first iteration then takes it instead of new Jacobians,
-    with a float64 gradient: already converged if its decrement is below the tolerance,
-    else its chord steps start at once.
+    ``fisher``: a Fisher matrix of this problem's model that the caller has (a refit of
+    the same model to corrected data: ``F = J^T W J`` does not depend on the data). The
+    first iteration takes it instead of new Jacobians. ``exact``: it is the float64 matrix
+    *at* ``vector``; then the first gradient is float64 too, and convergence may be
+    declared at once. Otherwise (float32 Jacobians, or another point) it only steers the
+    first chord steps, and new Jacobians confirm.
     """
     n_groups = float(problem.n_groups)
     loss = problem.loss(vector)
@@ -173,7 +177,7 @@ def minimise(
     estimate = np.inf  # decrement predicted with the last Fisher matrix
     converged = False
     iteration = chords = 0
-    given = fisher is not None
+    given, given_exact = fisher is not None, exact
     exact = False  # whether `fisher` is float64 and was evaluated at `vector`
 
     def tolerance() -> float:
@@ -207,16 +211,17 @@ def minimise(
     for iteration in range(1, config.max_iterations + 1):
         if given and iteration == 1:
             assert fisher is not None  # given
-            # The caller's matrix is exact at `vector`: only the gradient is new.
-            to_float64()
+            if given_exact:  # exact at `vector`: only the gradient is new (in float64)
+                to_float64()
             grad = problem.gradient(vector)
+            exact = problem.float64 and given_exact
             source = "the given Fisher matrix"
         else:
             if estimate < tolerance():
                 to_float64()  # these Jacobians are expected to confirm convergence
             fisher, grad = problem.normal_equations(vector, label)
+            exact = problem.float64
             source = "new Jacobians"
-        exact = problem.float64
         start_loss = loss  # after any switch to float64: a fall, not a rounding change
         solver = FisherSolve(fisher)
         decrement = float(grad @ solver(grad)) / n_groups
@@ -225,8 +230,12 @@ def minimise(
             f"Newton decrement {decrement:.3g} per exposure ({source})"
         )
         if decrement < tolerance():
-            converged = True
-            break
+            if not (given and iteration == 1 and not given_exact):
+                converged = True
+                break
+            # An approximate matrix's decrement is an estimate: new Jacobians confirm.
+            estimate = decrement
+            continue
         if damped_step(solver, grad) is None:
             if problem.float64 or not config.float64_check:
                 step(f"{label}: no damped step lowers the loss; stopping")
@@ -262,4 +271,5 @@ def minimise(
         history=history,
         fisher=fisher if (converged and exact) else None,
         last_fall=start_loss - loss,
+        last_fisher=fisher,
     )
