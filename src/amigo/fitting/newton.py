@@ -163,8 +163,10 @@ class NewtonResult:
     the fall of ``L`` per exposure over the last iteration of the last stage.
 
     ``fisher`` is the float64 Fisher matrix ``F`` of the global vector (:class:`Layout`)
-    evaluated exactly at ``params``, summed over the exposures ``exact_exposures``: those
-    of the stages whose convergence float64 Jacobians confirmed (``None`` if none).
+    from the float64 Jacobians that confirmed convergence, summed over the exposures
+    ``exact_exposures`` of those stages (``None`` if none): evaluated one undamped
+    Gauss-Newton step (a fraction of a sigma) before ``params``
+    (:func:`amigo.solvers.levenberg_marquardt.minimise`).
     """
 
     params: FitParams
@@ -703,8 +705,8 @@ def levenberg_marquardt(
     ``loss_history`` is ``L`` of the calibrators' stage, then ``L`` of all exposures
     during the science stage.
 
-    ``fisher`` and ``exact_exposures``: a previous result's float64 Fisher matrix *at*
-    ``params`` (:attr:`NewtonResult.fisher`) and the exposures it covers. A refit of the
+    ``fisher`` and ``exact_exposures``: a previous result's float64 Fisher matrix at (one
+    final step from) ``params`` (:attr:`NewtonResult.fisher`) and the exposures it covers. A refit of the
     same model to corrected data (the full detector's rounds) starts every stage whose
     exposures it covers from it instead of from new Jacobians (the Fisher matrix depends
     on the parameters and the noise, not on the data). ``approximate``: else, a previous

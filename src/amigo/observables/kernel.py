@@ -336,7 +336,8 @@ def discos(
     require_finite("DISCOs", "kernel covariance entries", cov)
     with numerical("DISCO decorrelation"):
         transform, variances = decorrelation(cov, kernel.n_amp)
-    transform = transform * row_signs(transform @ k)[:, None]
+    # The sign convention on the rows as the calvis file stores them (knot space).
+    transform = transform * row_signs(transform @ k @ latent_to_knots)[:, None]
     kinds = np.array(["amplitude"] * kernel.n_amp + ["phase"] * (k.shape[0] - kernel.n_amp))
     keep = np.isfinite(variances) & (variances > 0.0)
     if not keep.any():

@@ -22,8 +22,10 @@ fraction of a second), the solver keeps the last Fisher matrix and takes up to
 ``settings.chord_steps`` steps with fresh gradients only (the frozen-Jacobian, or chord,
 Gauss-Newton method; it converges linearly at the rate at which ``F`` changes). When a
 chord step's decrement estimate falls below the tolerance, the next normal equations are
-asked for in float64 (``problem.float64 = True``): if they confirm convergence, that exact
-Fisher matrix at the final point is returned with the solution.
+asked for in float64 (``problem.float64 = True``): if they confirm convergence, one last
+undamped step is taken with that exact matrix (a loss evaluation: it brings the vector
+quadratically close to the optimum, which the tolerance alone leaves up to ~1 sigma away
+along one direction), and the matrix is returned with the solution.
 """
 
 from __future__ import annotations
@@ -135,8 +137,10 @@ def marginal_errors(fisher: np.ndarray | None, indices: np.ndarray) -> np.ndarra
 
 @dataclass
 class Solution:
-    """Outcome of :func:`minimise`: the final vector, and ``fisher`` (float64, at the
-    final vector) when float64 normal equations confirmed convergence, else ``None``."""
+    """Outcome of :func:`minimise`: the final vector, and ``fisher`` when float64 normal
+    equations confirmed convergence, else ``None``: the matrix at the point where they
+    were evaluated, from which the final vector is one undamped Gauss-Newton step (inside
+    the tolerance: a fraction of a sigma, over which the matrix does not change)."""
 
     vector: np.ndarray
     converged: bool
@@ -199,6 +203,22 @@ def minimise(
             damping *= 4.0
         return None
 
+    def final_step(solver, grad) -> None:
+        """The undamped Gauss-Newton step with the exact matrix that confirmed convergence.
+
+        The tolerance lets the vector stop up to ~1 sigma from the optimum along one
+        direction (a decrement of 1), so where it stops depends on the path: on a GPU
+        and on a CPU the same fit landed 0.55 sigma apart in one jitter. One more step
+        with the float64 matrix, at the cost of one loss, lands quadratically close to
+        the optimum (the matrix barely changes over a sigma), so the result no longer
+        depends on the machine that found it."""
+        nonlocal vector, loss
+        trial = vector + solver(grad, 0.0)
+        trial_loss = problem.loss(trial)
+        if np.isfinite(trial_loss) and trial_loss <= loss:
+            vector, loss = trial, trial_loss
+            history.append(loss)
+
     def to_float64() -> None:
         """From here on the model runs in float64 (the loss is re-evaluated in it)."""
         nonlocal loss
@@ -232,6 +252,8 @@ def minimise(
         if decrement < tolerance():
             if not (given and iteration == 1 and not given_exact):
                 converged = True
+                if exact:
+                    final_step(solver, grad)
                 break
             # An approximate matrix's decrement is an estimate: new Jacobians confirm.
             estimate = decrement
