@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from cli_runs import amigo_status
 from jwst_files import nominal_star, write_level2
 
 pytestmark = pytest.mark.slow
@@ -88,16 +89,6 @@ def _args(inputs: dict[str, Path], out: Path, flagged: bool) -> list[str]:
     ]
 
 
-def _main(args: list[str]) -> int:
-    from amigo.cli import main
-
-    try:
-        main(args)
-    except SystemExit as exit_:
-        return int(exit_.code or 0)
-    return 0
-
-
 def _products(out: Path) -> dict[str, bytes]:
     return {p.name: p.read_bytes() for p in sorted(out.glob("*_calvis.fits"))} | {
         p.name: p.read_bytes() for p in sorted(out.glob("*.oifits"))
@@ -117,7 +108,7 @@ def test_failures_are_reported_per_filter_and_runs_resume(inputs, tmp_path, monk
 
     # 1. F430M fails, F480M is fitted without its calibrator that has no usable pixel
     monkeypatch.setattr(amigo.observables.extract, "latent_information", singular_in_f430m)
-    assert _main(_args(inputs, out, flagged=True)) == 3
+    assert amigo_status(_args(inputs, out, flagged=True)) == 3
     err = capsys.readouterr().err
     assert "flagged_F480M_cal.fits: only 0 usable pixels" in err
     assert "F430M: failed (latent Hessians: LinAlgError: Singular matrix)" in err
@@ -141,7 +132,9 @@ def test_failures_are_reported_per_filter_and_runs_resume(inputs, tmp_path, monk
 
     # 2. the same command: F480M kept as it is, F430M fitted
     monkeypatch.setattr(amigo.observables.extract, "latent_information", real)
-    assert _main(_args(inputs, out, flagged=True)) == 3  # the flagged calibrator is still out
+    assert (
+        amigo_status(_args(inputs, out, flagged=True)) == 3
+    )  # the flagged calibrator is still out
     err = capsys.readouterr().err
     assert "F480M: products up to date" in err and "F430M: products up to date" not in err
     summary = json.loads((out / "fit_summary.json").read_text())
@@ -173,7 +166,7 @@ def test_failures_are_reported_per_filter_and_runs_resume(inputs, tmp_path, monk
         process.wait()
     partial = _products(resumed)
     assert sorted(partial) == ["STAR-sci_F430M.oifits", "STAR-sci_F430M_calvis.fits"]
-    assert _main(_args(inputs, resumed, flagged=False)) == 0
+    assert amigo_status(_args(inputs, resumed, flagged=False)) == 0
     assert "F430M: products up to date" in capsys.readouterr().err
     assert _products(resumed) == uninterrupted
 

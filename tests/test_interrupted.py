@@ -4,7 +4,6 @@ and ends with the products of an uninterrupted run (docs/reliability.md)."""
 
 from __future__ import annotations
 
-import os
 import signal
 import subprocess
 import sys
@@ -14,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from cli_runs import amigo_child
 from jwst_files import write_uncal
 
 NFILES = 4
@@ -31,16 +31,6 @@ def ramps(tmp_path_factory) -> list[Path]:
         counts = 10000.0 + np.cumsum(rng.poisson(np.broadcast_to(rate, (120, 5, 80, 80))), axis=1)
         paths.append(write_uncal(folder / f"jw0{k}_uncal.fits", np.minimum(counts, 65535)))
     return paths
-
-
-def _amigo(*args: object) -> subprocess.Popen:
-    return subprocess.Popen(
-        [sys.executable, "-m", "amigo", *map(str, args)],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env={**os.environ, "JAX_PLATFORMS": "cpu"},
-    )
 
 
 def _wait_for_products(out: Path, count: int, timeout: float = 120.0) -> None:
@@ -75,7 +65,7 @@ def test_a_killed_process_run_resumes_to_the_same_products(how, ramps, tmp_path)
 
     out = tmp_path / "out"
     out.mkdir()
-    job = _amigo("process", *ramps, "--out", out)
+    job = amigo_child("process", *ramps, "--out", out)
     _wait_for_products(out, 1)
     job.send_signal(how)
     _, stderr = job.communicate(timeout=60)

@@ -11,25 +11,14 @@ from __future__ import annotations
 import json
 import os
 import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from cli_runs import amigo_child, amigo_status
 from jwst_files import nominal_star, write_level2
-
-
-def _main(args: list[str]) -> int:
-    from amigo.cli import main
-
-    try:
-        main(args)
-    except SystemExit as exit_:
-        return int(exit_.code or 0)
-    return 0
 
 
 @pytest.fixture
@@ -81,7 +70,7 @@ def _write(path: Path, text: str) -> Path:
 def test_manifest_mistakes_are_one_line_naming_the_manifest(files, text, problem, capsys):
     manifest = _write(files["a_cal.fits"].parent / "targets.toml", text)
     out = files["a_cal.fits"].parent.parent / "out"
-    assert _main(["run", "--manifest", str(manifest), "--out", str(out)]) == 2
+    assert amigo_status(["run", "--manifest", str(manifest), "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "targets.toml" in err[0] and problem in err[0], err
     assert "Traceback" not in err[0]
@@ -107,11 +96,11 @@ def test_a_manifest_reads_paths_relative_to_itself_and_merges_options(files):
 def test_manifest_and_exposures_exclude_each_other(files, tmp_path, capsys):
     manifest = _write(tmp_path / "m.toml", '[[target]]\nsci = ["x"]\ncal = ["y"]\n')
     args = ["run", "--manifest", str(manifest), "--sci", str(files["a_cal.fits"])]
-    assert _main([*args, "--out", str(tmp_path / "o")]) == 2
+    assert amigo_status([*args, "--out", str(tmp_path / "o")]) == 2
     assert "--manifest" in capsys.readouterr().err
-    assert _main(["run", "--out", str(tmp_path / "o")]) == 2
+    assert amigo_status(["run", "--out", str(tmp_path / "o")]) == 2
     assert "--sci" in capsys.readouterr().err
-    assert _main(["run", "--sci", "a", "--cal", "b", "--workers", "2", "--out", "o"]) == 2
+    assert amigo_status(["run", "--sci", "a", "--cal", "b", "--workers", "2", "--out", "o"]) == 2
     assert "only with --manifest" in capsys.readouterr().err
 
 
@@ -148,17 +137,6 @@ def program(tmp_path_factory) -> Path:
     return folder
 
 
-def _amigo(*args: object, **kwargs) -> subprocess.Popen:
-    return subprocess.Popen(
-        [sys.executable, "-m", "amigo", *map(str, args)],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env={**os.environ, "JAX_PLATFORMS": "cpu"},
-        **kwargs,
-    )
-
-
 def _numbers(document, wall=("seconds",)) -> object:
     """The JSON document without its wall times (the only numbers that may differ)."""
     if isinstance(document, dict):
@@ -181,15 +159,15 @@ def test_a_manifest_on_two_dask_workers_equals_serial_runs_and_resumes(program, 
     for k in range(N_TARGETS):
         folder = serial / f"t{k}"
         fit = ["fit", "--sci", program / f"sci{k}_cal.fits", "--cal", program / "cal_cal.fits"]
-        assert _main([*map(str, fit), "--out", str(folder), *map(str, options)]) == 0
+        assert amigo_status([*map(str, fit), "--out", str(folder), *map(str, options)]) == 0
         calvis = sorted(map(str, folder.glob("*_calvis.fits")))
         detect = ["detect", *calvis, "--out", str(folder), "--no-hmc", "--rmax-mas", "300"]
-        assert _main(detect) == 0
+        assert amigo_status(detect) == 0
 
     out = tmp_path / "dask"
     manifest = program / "targets.toml"
     # Killed once the first target has finished: the others are half way or not begun.
-    job = _amigo("run", "--manifest", manifest, "--out", out, "--workers", 2,
+    job = amigo_child("run", "--manifest", manifest, "--out", out, "--workers", 2,
                  start_new_session=True)  # fmt: skip
     start = time.monotonic()
     while not list(out.glob("*/target.json")):
@@ -201,7 +179,7 @@ def test_a_manifest_on_two_dask_workers_equals_serial_runs_and_resumes(program, 
     finished = {p.parent.name for p in out.glob("*/target.json")}
     assert 1 <= len(finished) < N_TARGETS
 
-    rerun = _amigo("run", "--manifest", manifest, "--out", out, "--workers", 2)
+    rerun = amigo_child("run", "--manifest", manifest, "--out", out, "--workers", 2)
     stdout, stderr = rerun.communicate(timeout=900)
     assert rerun.returncode == 0, stderr
     summary = json.loads((out / "manifest_summary.json").read_text())
