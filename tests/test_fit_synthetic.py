@@ -124,9 +124,11 @@ def test_synthetic_single_and_binary(tmp_path, monkeypatch):
 
     # The latent Hessians the products rest on, read from the solver's float64
     # confirmation, are those a direct float64 evaluation at the optimum gives, here for
-    # the calibrator and the binary (one exposure per target: H = J^T W J). The solver's
-    # point is float64; the returned parameters are float32, and rounding log-flux ~ 17 to
-    # float32 (spacing 2e-6) moves the flux, which scales the Hessian, by ~1e-6: hence 1e-5.
+    # the calibrator and the binary (one exposure per target: H = J^T W J). They were
+    # evaluated one final Gauss-Newton step (a fraction of a sigma) before the returned
+    # parameters (amigo.solvers.levenberg_marquardt.minimise): entries agree to ~3e-5 of
+    # the largest (1e-4 asked), and the errors they give to ~1.2e-4 (1e-3 asked). (Before
+    # that step: to 1e-5, the rounding of float32 parameters.)
     result = product.result
     assert result.fisher is not None and set(result.exact_exposures) == {0, 1, 2}
     fit = product.fit
@@ -138,4 +140,6 @@ def test_synthetic_single_and_binary(tmp_path, monkeypatch):
             jac = jac.reshape(len(jac), -1)
             direct = (jac * weight[e].ravel()) @ jac.T
             reused = product.information.hessian[fit.source_index[e]]
-            np.testing.assert_allclose(reused, direct, rtol=1e-5, atol=1e-5 * np.abs(direct).max())
+            np.testing.assert_allclose(reused, direct, rtol=1e-4, atol=1e-4 * np.abs(direct).max())
+            errors = [np.sqrt(np.diag(np.linalg.pinv(h, rcond=1e-12))) for h in (reused, direct)]
+            np.testing.assert_allclose(errors[0], errors[1], rtol=1e-3)
