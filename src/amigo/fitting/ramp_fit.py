@@ -413,15 +413,11 @@ def fit_through_detector(
     corrections = detector.corrections(fit, fit.initial_params())
     step(f"{label}: {detector.mode} detector: correction at the starting point computed")
     fit = fit.with_exposures(detector.corrected(exposures, corrections))
-    # The first round is provisional: the next correction moves the data, so its optimum
-    # is confirmed by the round that settles the correction, not here (float32 Jacobians
-    # only: float64 ones cost twice as much and their Fisher matrix would be stale).
-    provisional = config
-    if detector.max_rounds > 0 and config.newton.max_iterations > 0:
-        provisional = dataclasses.replace(
-            config, newton=dataclasses.replace(config.newton, float64_check=False)
-        )
-    result = fit.fit(provisional, label=label)
+    # Every round is confirmed in float64. (A first round on float32 Jacobians only, whose
+    # optimum the next correction moves anyway, saved ~18 s per filter, but the data's
+    # correction follows the path of the fits: on the simulated demo the companion landed
+    # 0.3 sigma away, both runs converged to a tolerance of 0.01.)
+    result = fit.fit(config, label=label)
     for name in detector.check_dark_patterns(fit, result.params):
         amplitude, error = detector.pattern_amplitudes[name]
         step(
