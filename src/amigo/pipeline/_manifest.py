@@ -131,15 +131,27 @@ def _identity(target: Target, settings: Mapping[str, Any]) -> dict[str, Any]:
     }
 
 
+def _record(target: Target, out: Path) -> dict[str, Any] | None:
+    """The ``target.json`` an earlier run left in ``out/<name>/`` (``None``: none, or
+    unreadable)."""
+    try:
+        record = json.loads((out / target.name / TARGET_RECORD).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    return record if isinstance(record, dict) else None
+
+
 def finished(target: Target, out: Path, defaults: Mapping[str, Any]) -> bool:
     """Whether ``out/<name>/target.json`` says an earlier run finished this target with
     status 0 for the same inputs, options and amigo version."""
-    try:
-        record = json.loads((out / target.name / TARGET_RECORD).read_text(encoding="utf-8"))
-        identity = _identity(target, _settings(target, defaults))
-    except (OSError, ValueError):
+    record = _record(target, out)
+    if record is None or record.get("status") != 0:
         return False
-    return record.get("status") == 0 and record.get("identity") == identity
+    try:
+        identity = _identity(target, _settings(target, defaults))
+    except OSError:  # an input gone since the manifest was read
+        return False
+    return record.get("identity") == identity
 
 
 def run_target(
@@ -292,11 +304,7 @@ def run_manifest(
 
 def _found(out: Path, target: Target) -> int | None:
     """Companions recorded by a finished target."""
-    try:
-        record = json.loads((out / target.name / TARGET_RECORD).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return None
-    found = record.get("companions")
+    found = (_record(target, out) or {}).get("companions")
     return found if isinstance(found, int) else None
 
 
