@@ -16,7 +16,7 @@ from pathlib import Path
 #: Programs that compile faster than this are not written to the persistent cache (JAX's
 #: own default): the cache holds the fits' and the training's large programs, which take
 #: tens of seconds to minutes to compile on a laptop CPU, not every small array operation.
-MIN_COMPILE_TIME_S = 1.0
+MIN_COMPILE_TIME_S = 0.0
 
 
 def cache_dir() -> Path:

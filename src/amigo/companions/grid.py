@@ -234,9 +234,14 @@ def _solve_position_linear(blocks, background, scales, r0, phasors, n_steps):
     for block, num, den, scale, e in zip(
         blocks, background.numerators, background.denominators, scales, phasors, strict=True
     ):
-        ratio = e / num
-        k = jnp.arange(1, SERIES_TERMS + 1)[:, None]
-        series = (-1.0) ** (k + 1) / k * (ratio[None, :] ** k - den ** (-k))  # (K, n_uv)
+        # Powers by repeated products: a power with a traced exponent is exp(k log z),
+        # several times the cost of the whole series.
+        ratio, inverse = e / num, 1.0 / den
+        ratio_k, inverse_k, series_k = ratio, inverse, []
+        for k in range(1, SERIES_TERMS + 1):
+            series_k.append((-1.0) ** (k + 1) / k * (ratio_k - inverse_k))
+            ratio_k, inverse_k = ratio_k * ratio, inverse_k * inverse
+        series = jnp.stack(series_k)  # (K, n_uv)
         log_terms = jnp.concatenate([series.real, series.imag], axis=1)  # (K, 2 n_uv)
         terms.append((log_terms @ block.design.T) / (block.errors * scale))  # (K, n_obs)
     m = jnp.concatenate(terms, axis=1)
