@@ -10,7 +10,7 @@ from scipy import optimize, stats
 
 from amigo.companions import observables as obs
 from amigo.companions.fit import block_residuals
-from amigo.companions.grid import Grid, contrast_grid, sigma_from_chi2
+from amigo.companions.grid import Grid, contrast_grid, grid_statistics, sigma_from_chi2
 from amigo.companions.limits import (
     COMBINED,
     absil_limit,
@@ -73,6 +73,41 @@ def test_grid_contrast_is_the_chi2_minimum(tmp_path, kind):
             + _chi2(dataset, position, solution.x - h, background)
         ) / h**2
         assert m.sigma[iy, ix] == pytest.approx((curvature / 2) ** -0.5, rel=2e-2)
+
+
+def test_grid_solved_again_for_new_error_scales(tmp_path):
+    """The search solves a grid again for new error scales from the statistics it made
+    once (no product with the DISCO matrix): each point then equals a brute-force
+    minimisation of the chi2 with the amplitude and phase groups scaled differently."""
+    rng = np.random.default_rng(13)
+    path = write_sim_calvis(tmp_path / "s_F430M_calvis.fits", "F430M", [(250.0, 150.0, 0.01)], rng)
+    dataset = obs.Dataset.from_blocks([obs.load(path)])
+    assert dataset.n_groups == 2
+    grid = Grid.square(500.0, 100.0)
+    statistics = grid_statistics(dataset, grid)
+    contrast_grid(dataset, grid, statistics=statistics)  # unit scales first, as the search
+    scales = np.array([1.7, 0.6])
+    m = contrast_grid(dataset, grid, group_scales=scales, statistics=statistics).maps[0]
+    fresh = contrast_grid(dataset, grid, group_scales=scales).maps[0]
+    np.testing.assert_allclose(m.dchi2, fresh.dchi2, rtol=1e-12, atol=1e-12)
+    (scale_vector,) = dataset.scale_vectors(scales)
+
+    def chi2(position, c):
+        (r,) = block_residuals(dataset, jnp.asarray([position], float), jnp.full((1, 1), c))
+        return float(jnp.sum((r / scale_vector) ** 2))
+
+    chi2_0 = chi2((0.0, 0.0), 0.0)
+    assert m.chi2_background == pytest.approx(chi2_0, rel=1e-12)
+    for iy, ix in [(7, 8), (3, 1), (5, 9)]:
+        position = (grid.x_mas[ix], grid.y_mas[iy])
+        solution = optimize.minimize_scalar(
+            lambda c, p=position: chi2(p, c),
+            bounds=(-0.3, 0.3),
+            method="bounded",
+            options={"xatol": 1e-10},
+        )
+        assert m.contrast[iy, ix] == pytest.approx(solution.x, abs=1e-6 + 1e-4 * abs(solution.x))
+        assert m.dchi2[iy, ix] == pytest.approx(chi2_0 - solution.fun, rel=1e-5, abs=1e-6)
 
 
 def test_combined_map_is_the_grey_companions_chi2_minimum(tmp_path):

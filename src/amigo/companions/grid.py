@@ -221,18 +221,22 @@ def _solve_position(blocks, background, scales, r0, phasors, n_steps):
 SERIES_TERMS = 3
 
 
-def _solve_position_linear(blocks, background, scales, r0, phasors, n_steps):
-    """Linear observables (y = D log V): expand log V in powers of c, then Gauss-Newton.
+def _series_statistics(blocks, background, r0, phasors, onehot):
+    """Linear observables (y = D log V): the series of log V in powers of c, reduced to
+    the inner products its Gauss-Newton solution needs.
 
     ``log V(c) = log(N + c e) - log(D + c) = log V(0) + sum_k (-1)^(k+1)/k c^k
     [(e/N)^k - D^-k]``, converging for ``c |e/N| < 1``; with 3 terms the relative error of
     the model is about c^3 / 4: 2.5e-4 at c = 0.1, 7e-3 at c = 0.3 (the grid only starts
-    the exact fits). Each block then needs one product of its matrix with 3 vectors
-    instead of two per Gauss-Newton step.
+    the exact fits). With ``m_k = D t_k / error`` (the whitened image of the k-th term),
+    the residual is ``r(c) = r0 + sum_k c^k m_k`` and everything the solver needs is, per
+    group ``g`` of observables (the onehot columns): ``A_g = m_k . m_l`` (K, K) and
+    ``b_g = m_k . r0`` (K,). These do not depend on the groups' error scales, which
+    only weight them: a new set of scales costs no product with the observable matrices.
     """
     terms = []
-    for block, num, den, scale, e in zip(
-        blocks, background.numerators, background.denominators, scales, phasors, strict=True
+    for block, num, den, e in zip(
+        blocks, background.numerators, background.denominators, phasors, strict=True
     ):
         # Powers by repeated products: a power with a traced exponent is exp(k log z),
         # several times the cost of the whole series.
@@ -243,16 +247,60 @@ def _solve_position_linear(blocks, background, scales, r0, phasors, n_steps):
             ratio_k, inverse_k = ratio_k * ratio, inverse_k * inverse
         series = jnp.stack(series_k)  # (K, n_uv)
         log_terms = jnp.concatenate([series.real, series.imag], axis=1)  # (K, 2 n_uv)
-        terms.append((log_terms @ block.design.T) / (block.errors * scale))  # (K, n_obs)
+        terms.append((log_terms @ block.design.T) / block.errors)  # (K, n_obs)
     m = jnp.concatenate(terms, axis=1)
-    powers = jnp.arange(1, SERIES_TERMS + 1)
+    gram = jnp.einsum("ko,lo,og->gkl", m, m, onehot)
+    cross = jnp.einsum("ko,o,og->gk", m, r0, onehot)
+    return gram, cross
 
-    def residual_and_jacobian(c):
-        r = r0 + jnp.sum(c ** powers[:, None] * m, axis=0)
-        j = jnp.sum((powers * c ** (powers - 1))[:, None] * m, axis=0)
-        return r, j
 
-    return _gauss_newton(residual_and_jacobian, r0, n_steps)
+def _solve_statistics(gram, cross, weights, n_steps):
+    """Gauss-Newton on the series model from its inner products, vectorised over positions.
+
+    ``gram`` (..., G, K, K), ``cross`` (..., G, K): :func:`_series_statistics` per
+    position; ``weights`` (G,) ``1 / scale^2`` of each group. Returns (c, sigma, dchi2)
+    (...,): the same steps as :func:`_gauss_newton`, with ``j . j``, ``j . r`` and the chi2
+    gain written through the inner products (``r = r0 + sum_k c^k m_k``,
+    ``j = sum_k k c^(k-1) m_k``).
+    """
+    a = np.einsum("...gkl,g->...kl", gram, weights)
+    b = np.einsum("...gk,g->...k", cross, weights)
+    powers = np.arange(1, SERIES_TERMS + 1)
+    lo, hi = CONTRAST_BOUNDS
+
+    def moments(c):
+        p = c[..., None] ** powers  # (..., K) c^k
+        dp = powers * c[..., None] ** (powers - 1)  # (..., K) k c^(k-1)
+        curvature = np.einsum("...k,...kl,...l->...", dp, a, dp)
+        slope = np.einsum("...k,...k->...", dp, b + np.einsum("...kl,...l->...k", a, p))
+        return p, curvature, slope
+
+    c = np.zeros(a.shape[:-2])
+    for _ in range(n_steps):
+        _, curvature, slope = moments(c)
+        # At the origin the companion is the primary (no signal, zero curvature): stay at 0.
+        safe = np.where(curvature > 0, curvature, 1.0)
+        c = np.clip(c - np.where(curvature > 0, slope / safe, 0.0), lo, hi)
+    p, curvature, _ = moments(c)
+    with np.errstate(divide="ignore"):
+        sigma = np.where(
+            curvature > 0, 1.0 / np.sqrt(np.where(curvature > 0, curvature, 1.0)), np.inf
+        )
+    # chi2(0) - chi2(c) = -(2 p . b + p A p): small terms only, no cancellation.
+    dchi2 = -(2.0 * np.einsum("...k,...k->...", p, b) + np.einsum("...k,...kl,...l->...", p, a, p))
+    return c, sigma, dchi2
+
+
+@eqx.filter_jit
+def _chunk_statistics(blocks, background, r0, onehot, x_phasors, y_phasors):
+    # e[j, i, u] = sum_l w_l exp_x[i, u, l] exp_y[j, u, l]  (weights folded into x_phasors)
+    phasors = tuple(
+        jnp.einsum("iul,jul->jiu", ex, ey) for ex, ey in zip(x_phasors, y_phasors, strict=True)
+    )
+    n_y, n_i = phasors[0].shape[:2]
+    flat = tuple(p.reshape(n_y * n_i, -1) for p in phasors)
+    gram, cross = jax.vmap(lambda *e: _series_statistics(blocks, background, r0, e, onehot))(*flat)
+    return gram.reshape(n_y, n_i, *gram.shape[1:]), cross.reshape(n_y, n_i, *cross.shape[1:])
 
 
 @eqx.filter_jit
@@ -263,10 +311,137 @@ def _solve_chunk(blocks, background, scales, r0, x_phasors, y_phasors, n_steps):
     )
     n_y, n_i = phasors[0].shape[:2]
     flat = tuple(p.reshape(n_y * n_i, -1) for p in phasors)
-    solver = _solve_position_linear if all(b.linear for b in blocks) else _solve_position
-    solve = jax.vmap(lambda *e: solver(blocks, background, scales, r0, e, n_steps))
+    solve = jax.vmap(lambda *e: _solve_position(blocks, background, scales, r0, e, n_steps))
     c, sigma, dchi2 = solve(*flat)
     return (c.reshape(n_y, n_i), sigma.reshape(n_y, n_i), dchi2.reshape(n_y, n_i))
+
+
+@dataclass(frozen=True)
+class _FilterScene:
+    """One filter's blocks with a fixed background scene, ready for the grid."""
+
+    blocks: tuple[Observables, ...]
+    background: _Background
+    residuals: tuple[jax.Array, ...]  # per block, whitened, unit error scales
+    x_phasors: tuple[np.ndarray, ...]  # (n_x, n_uv, n_wl), band weights folded in
+    y_phasors: tuple[jax.Array, ...]  # (n_y, n_uv, n_wl)
+    groups: np.ndarray  # (n_obs,) the dataset's group index of each observable
+
+    @property
+    def linear(self) -> bool:
+        return all(b.linear for b in self.blocks)
+
+
+def _filter_scene(
+    dataset: Dataset, f: int, grid: Grid, offsets: np.ndarray, flux: np.ndarray, diameter: float
+) -> _FilterScene:
+    index = [i for i in range(len(dataset.blocks)) if dataset.filter_index(i) == f]
+    blocks = tuple(dataset.blocks[i] for i in index)
+    terms = [
+        scene_terms(
+            jnp.asarray(b.uv_m),
+            jnp.asarray(b.wavelengths_m),
+            jnp.asarray(b.weights),
+            jnp.asarray(offsets),
+            jnp.asarray(flux[:, f]),
+            diameter,
+        )
+        for b in blocks
+    ]
+    return _FilterScene(
+        blocks=blocks,
+        background=_Background(tuple(t[0] for t in terms), tuple(t[1] for t in terms)),
+        residuals=tuple(b.residuals(t[0] / t[1]) for b, t in zip(blocks, terms, strict=True)),
+        x_phasors=tuple(
+            _axis_phasors(b, grid.x_mas, 0) * np.asarray(b.weights)[None] for b in blocks
+        ),
+        y_phasors=tuple(jnp.asarray(_axis_phasors(b, grid.y_mas, 1)) for b in blocks),
+        groups=np.concatenate([dataset.group_index(i) for i in index]),
+    )
+
+
+def _over_columns(function, scene: _FilterScene, grid: Grid, chunk_columns: int | None):
+    """``function(x_phasors_chunk)`` over chunks of grid columns, outputs joined on axis 1.
+
+    Chunks hold about 2e5 uv-point evaluations (``chunk_columns`` columns if given); the
+    last is padded so that one compiled shape serves every chunk."""
+    n_uv = sum(b.n_uv for b in scene.blocks)
+    n_x = grid.x_mas.size
+    step = chunk_columns or max(1, min(n_x, int(2e5 // (n_uv * grid.y_mas.size)) or 1))
+    outputs = []
+    for start in range(0, n_x, step):
+        stop = min(start + step, n_x)
+        pad = step - (stop - start)
+        chunk = tuple(
+            jnp.asarray(np.pad(x[start:stop], ((0, pad), (0, 0), (0, 0)))) for x in scene.x_phasors
+        )
+        outputs.append([np.asarray(a)[:, : stop - start] for a in function(chunk)])
+    return tuple(np.concatenate(parts, axis=1) for parts in zip(*outputs, strict=True))
+
+
+@dataclass(frozen=True)
+class FilterStatistics:
+    """What the grid search of one filter's linear (calvis) observables needs, for one
+    background scene and any error scales (:func:`_series_statistics`).
+
+    ``gram`` (n_y, n_x, G, K, K) and ``cross`` (n_y, n_x, G, K) per position and group;
+    ``background`` (G,) each group's chi2 of the background scene; ``groups`` (G,) the
+    dataset's index of each group; all with unit error scales.
+    """
+
+    gram: np.ndarray
+    cross: np.ndarray
+    background: np.ndarray
+    groups: np.ndarray
+    n_obs: int
+    iwa_mas: float
+
+
+def grid_statistics(
+    dataset: Dataset,
+    grid: Grid,
+    offsets_mas: np.ndarray | None = None,
+    contrasts: np.ndarray | None = None,
+    primary_diameter_mas: float = 0.0,
+    chunk_columns: int | None = None,
+) -> tuple[FilterStatistics | None, ...]:
+    """Per filter, the grid's :class:`FilterStatistics` for a background scene (``None``
+    for a filter with non-linear observables, e.g. OIFITS, solved exactly each time).
+
+    The expensive part of :func:`contrast_grid` (a product of every position's series
+    with the observable matrices); pass it to :func:`contrast_grid` to solve the grid
+    again for other error scales.
+    """
+    offsets = np.zeros((0, 2)) if offsets_mas is None else np.asarray(offsets_mas, float)
+    flux = np.zeros((0, dataset.n_filters)) if contrasts is None else np.asarray(contrasts, float)
+    out: list[FilterStatistics | None] = []
+    for f in range(dataset.n_filters):
+        scene = _filter_scene(dataset, f, grid, offsets, flux, primary_diameter_mas)
+        if not scene.linear:
+            out.append(None)
+            continue
+        groups = np.unique(scene.groups)
+        onehot = jnp.asarray((scene.groups[:, None] == groups[None, :]).astype(float))
+        r0 = jnp.concatenate(scene.residuals)
+        gram, cross = _over_columns(
+            lambda xs, sc=scene, r=r0, o=onehot: _chunk_statistics(
+                sc.blocks, sc.background, r, o, xs, sc.y_phasors
+            ),
+            scene,
+            grid,
+            chunk_columns,
+        )
+        out.append(
+            FilterStatistics(
+                gram=gram,
+                cross=cross,
+                background=np.asarray(jnp.einsum("o,o,og->g", r0, r0, onehot)),
+                groups=groups,
+                n_obs=int(r0.size),
+                iwa_mas=inner_working_angle_mas(scene.blocks),
+            )
+        )
+    return tuple(out)
 
 
 def contrast_grid(
@@ -278,6 +453,7 @@ def contrast_grid(
     primary_diameter_mas: float = 0.0,
     n_steps: int = 3,
     chunk_columns: int | None = None,
+    statistics: tuple[FilterStatistics | None, ...] | None = None,
 ) -> GridResult:
     """Solve the contrast of one more companion at every grid position, per filter.
 
@@ -298,53 +474,52 @@ def contrast_grid(
         Gauss-Newton steps per position (3 reaches 1e-6 relative accuracy for c < 0.1).
     chunk_columns
         Grid columns per jitted call (default: about 2e5 uv-point evaluations per call).
+    statistics
+        :func:`grid_statistics` of the same dataset, grid and background (computed here
+        when ``None``).
     """
     offsets = np.zeros((0, 2)) if offsets_mas is None else np.asarray(offsets_mas, float)
     flux = np.zeros((0, dataset.n_filters)) if contrasts is None else np.asarray(contrasts, float)
     scales_all = np.ones(dataset.n_groups) if group_scales is None else np.asarray(group_scales)
-    scale_vectors = dataset.scale_vectors(scales_all)
+    if statistics is None:
+        statistics = grid_statistics(
+            dataset, grid, offsets, flux, primary_diameter_mas, chunk_columns
+        )
     maps = []
     for f, name in enumerate(dataset.filters):
-        index = [i for i in range(len(dataset.blocks)) if dataset.filter_index(i) == f]
-        blocks = tuple(dataset.blocks[i] for i in index)
-        scales = tuple(scale_vectors[i] for i in index)
-        terms = [
-            scene_terms(
-                jnp.asarray(b.uv_m),
-                jnp.asarray(b.wavelengths_m),
-                jnp.asarray(b.weights),
-                jnp.asarray(offsets),
-                jnp.asarray(flux[:, f]),
-                primary_diameter_mas,
+        known = statistics[f]
+        if known is not None:
+            weights = 1.0 / scales_all[known.groups] ** 2
+            c, sigma, dchi2 = _solve_statistics(known.gram, known.cross, weights, n_steps)
+            chi2_background, n_obs, iwa = (
+                float(known.background @ weights),
+                known.n_obs,
+                known.iwa_mas,
             )
-            for b in blocks
-        ]
-        background = _Background(tuple(t[0] for t in terms), tuple(t[1] for t in terms))
-        r0 = jnp.concatenate(
-            [b.residuals(t[0] / t[1]) / s for b, t, s in zip(blocks, terms, scales, strict=True)]
-        )
-        y_ph = tuple(jnp.asarray(_axis_phasors(b, grid.y_mas, 1)) for b in blocks)
-        x_ph = tuple(_axis_phasors(b, grid.x_mas, 0) * np.asarray(b.weights)[None] for b in blocks)
-        n_uv = sum(b.n_uv for b in blocks)
-        n_x = grid.x_mas.size
-        step = chunk_columns or max(1, min(n_x, int(2e5 // (n_uv * grid.y_mas.size)) or 1))
-        outputs = []
-        for start in range(0, n_x, step):
-            stop = min(start + step, n_x)
-            pad = step - (stop - start)  # keep one compiled shape for every chunk
-            xs = tuple(jnp.asarray(np.pad(x[start:stop], ((0, pad), (0, 0), (0, 0)))) for x in x_ph)
-            c, sigma, dchi2 = _solve_chunk(blocks, background, scales, r0, xs, y_ph, n_steps)
-            outputs.append([np.asarray(a)[:, : stop - start] for a in (c, sigma, dchi2)])
-        c, sigma, dchi2 = (np.concatenate([o[k] for o in outputs], axis=1) for k in range(3))
+        else:
+            scene = _filter_scene(dataset, f, grid, offsets, flux, primary_diameter_mas)
+            ends = np.cumsum([b.n_obs for b in scene.blocks])[:-1]
+            scales = tuple(jnp.asarray(x) for x in np.split(scales_all[scene.groups], ends))
+            r0 = jnp.concatenate([r / x for r, x in zip(scene.residuals, scales, strict=True)])
+            c, sigma, dchi2 = _over_columns(
+                lambda xs, sc=scene, s=scales, r=r0: _solve_chunk(
+                    sc.blocks, sc.background, s, r, xs, sc.y_phasors, n_steps
+                ),
+                scene,
+                grid,
+                chunk_columns,
+            )
+            chi2_background, n_obs = float(jnp.sum(r0**2)), int(r0.size)
+            iwa = inner_working_angle_mas(scene.blocks)
         maps.append(
             ContrastMap(
                 filter_name=name,
                 contrast=c,
                 sigma=sigma,
                 dchi2=dchi2,
-                chi2_background=float(jnp.sum(r0**2)),
-                n_obs=int(r0.size),
-                iwa_mas=inner_working_angle_mas(blocks),
+                chi2_background=chi2_background,
+                n_obs=n_obs,
+                iwa_mas=iwa,
             )
         )
     iwa = max(m.iwa_mas for m in maps)

@@ -39,6 +39,7 @@ from amigo.companions.grid import (
     GridResult,
     contrast_grid,
     default_step_mas,
+    grid_statistics,
     inner_working_angle_mas,
 )
 from amigo.companions.limits import ContrastCurve, contrast_limits, photon_limit_dmag
@@ -230,8 +231,13 @@ def _search_one(
     scales = np.ones(dataset.n_groups)
     diameter = settings.primary_diameter_mas
     candidates: list[_Candidate] = []
+    # The grid's products with the observable matrices depend on the background scene,
+    # not on the error scales: made once, solved again for each set of scales.
+    statistics = grid_statistics(dataset, grid, offsets, 10.0**log10c, diameter)
     for _ in range(3):  # error scales depend on the candidate, the candidate on the scales
-        result = contrast_grid(dataset, grid, offsets, 10.0**log10c, scales, diameter)
+        result = contrast_grid(
+            dataset, grid, offsets, 10.0**log10c, scales, diameter, statistics=statistics
+        )
         if k:
             chi2_before = _chi2(dataset, offsets, log10c, scales, diameter)
         else:
