@@ -46,7 +46,8 @@ STAGES: tuple[tuple[str, str], ...] = (
     ("detector model", r"detector"),
     ("Hessians", r"Hessian of|kernel Jacobians"),
     ("DISCOs and files", r"^wrote "),
-    ("observables", r"observables, \d+ uv points"),
+    ("reading observables", r"observables, \d+ uv points"),
+    ("grid search and companion fits", r"^grid search \d|best candidate"),
     ("HMC", r"NUTS"),
     ("contrast limits", r"contrast limits"),
 )
