@@ -251,7 +251,7 @@ def detection_run(solver: str) -> None:
 
 def detection() -> list[list[str]]:
     """Whole detections with each solver, as ``amigo detect`` runs them: in a fresh process
-    with JAX's persistent compilation cache (amigo's default, 1 s threshold), first with an
+    with JAX's persistent compilation cache (every program kept, as amigo's default), first with an
     empty cache, then again with the programs the first run left on disk."""
     rows = []
     for solver in ("amigo", "optimistix"):
@@ -259,7 +259,7 @@ def detection() -> list[list[str]]:
             env = dict(
                 os.environ,
                 AMIGO_BENCH_XLA_CACHE=cache,
-                JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="1",
+                JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
             )
             command = [sys.executable, str(Path(__file__)), "--detect-with", solver]
             runs = [

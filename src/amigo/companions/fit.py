@@ -143,19 +143,11 @@ def _flat_residual(flat, args):
     return _total_residual(dataset, offsets, log10c, scale_vectors, diameter)
 
 
+@eqx.filter_jit
 def _residual_and_jacobian(flat, args):
     """Residual vector and its Jacobian (forward mode: few parameters, many residuals)."""
     jacobian, residual = jax.jacfwd(lambda y: (_flat_residual(y, args),) * 2, has_aux=True)(flat)
     return residual, jacobian
-
-
-@eqx.filter_jit
-def _batch_residual_and_jacobian(flats, args):
-    """:func:`_residual_and_jacobian` of several starts (B, p) at once: (B, n), (B, n, p).
-
-    Each block's observable matrix is then read once for all starts (the products with it
-    are what a call costs, and they are bound by memory traffic)."""
-    return jax.vmap(lambda y: _residual_and_jacobian(y, args))(flats)
 
 
 def levenberg_marquardt(
@@ -163,72 +155,39 @@ def levenberg_marquardt(
     x0: np.ndarray,
     max_steps: int = 200,
     rtol: float = 1e-10,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Minimise ``|r(x)|^2`` by Levenberg-Marquardt with Marquardt's diagonal scaling, for
-    several independent problems at once.
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
+    """Minimise ``|r(x)|^2`` by Levenberg-Marquardt with Marquardt's diagonal scaling.
 
-    ``function(X) -> (R, J)`` with ``X`` (B, p), ``R`` (B, n), ``J`` (B, n, p): problem
-    ``b`` is ``r_b(x) = R[b]`` at ``x = X[b]``. A small host-side loop around one jitted
-    residual+Jacobian call: the problems have at most a few tens of parameters, and
-    compiling this is much cheaper than compiling a general solver. Every problem follows
-    its own damping and stops on its own (the finished ones ride along unchanged, so that
-    the batch keeps one compiled shape). Returns ``(X, R, J, converged)``, the last (B,)
-    booleans: the relative chi2 decrease fell below ``rtol``.
+    ``function(x) -> (r, J)``. A small host-side loop around one jitted residual+Jacobian
+    call: the problems have at most a few tens of parameters, and compiling this is much
+    cheaper than compiling a general solver. Returns ``(x, r, J, converged)``; converged
+    means the relative chi2 decrease fell below ``rtol``.
     """
-    x = np.array(x0, dtype=float, ndmin=2)
-    r, j = _evaluate(function, x, np.arange(x.shape[0]))
-    chi2 = np.einsum("bn,bn->b", r, r)
-    n_problems = x.shape[0]
-    damping = np.full(n_problems, 1e-3)
-    active = np.ones(n_problems, dtype=bool)
-    converged = np.zeros(n_problems, dtype=bool)
+    x = np.asarray(x0, dtype=float)
+    r, j = (np.asarray(a) for a in function(x))
+    chi2 = float(r @ r)
+    damping = 1e-3
     for _ in range(max_steps):
-        if not active.any():
-            break
-        trial = x.copy()
-        solved = np.zeros(n_problems, dtype=bool)
-        for b in np.flatnonzero(active):
-            fisher = j[b].T @ j[b]
-            scale = np.maximum(np.diag(fisher), 1e-30)
-            try:
-                trial[b] = x[b] + np.linalg.solve(
-                    fisher + damping[b] * np.diag(scale), -(j[b].T @ r[b])
-                )
-                solved[b] = True
-            except np.linalg.LinAlgError:
-                damping[b] *= 10.0
-        rows = np.flatnonzero(solved)
-        if not rows.size:
+        fisher = j.T @ j
+        scale = np.maximum(np.diag(fisher), 1e-30)
+        try:
+            step = np.linalg.solve(fisher + damping * np.diag(scale), -(j.T @ r))
+        except np.linalg.LinAlgError:
+            damping *= 10.0
             continue
-        r_new, j_new = _evaluate(function, trial, rows)
-        chi2_new = np.einsum("bn,bn->b", r_new, r_new)
-        for i, b in enumerate(rows):
-            if np.isfinite(chi2_new[i]) and chi2_new[i] <= chi2[b]:
-                gain = chi2[b] - chi2_new[i]
-                x[b], r[b], j[b], chi2[b] = trial[b], r_new[i], j_new[i], chi2_new[i]
-                damping[b] = max(damping[b] / 3.0, 1e-12)
-                if gain <= rtol * max(chi2[b], 1.0):
-                    active[b], converged[b] = False, True
-            else:
-                damping[b] *= 4.0
-                if damping[b] > 1e10:  # no downhill step left: a (local) minimum
-                    active[b], converged[b] = False, True
-    return x, r, j, converged
-
-
-def _evaluate(
-    function: Callable[[np.ndarray], tuple[Any, Any]], x: np.ndarray, rows: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """``function`` at the rows ``rows`` of ``x`` only, as (len(rows), n) and
-    (len(rows), n, p) NumPy copies.
-
-    The rows are padded (with copies of the first) to a power of two: problems that have
-    finished cost nothing, and a handful of batch shapes are compiled, not one per count.
-    """
-    size = 1 << int(rows.size - 1).bit_length()
-    padded = np.concatenate([rows, np.full(size - rows.size, rows[0])])
-    r, j = function(x[padded])
-    return np.array(r)[: rows.size], np.array(j)[: rows.size]
+        r_new, j_new = (np.asarray(a) for a in function(x + step))
+        chi2_new = float(r_new @ r_new)
+        if np.isfinite(chi2_new) and chi2_new <= chi2:
+            x, r, j = x + step, r_new, j_new
+            gain, chi2 = chi2 - chi2_new, chi2_new
+            damping = max(damping / 3.0, 1e-12)
+            if gain <= rtol * max(chi2, 1.0):
+                return x, r, j, True
+        else:
+            damping *= 4.0
+            if damping > 1e10:
+                return x, r, j, True  # no downhill step left: a (local) minimum
+    return x, r, j, False
 
 
 def fit_companions(
@@ -248,58 +207,29 @@ def fit_companions(
     group_scales
         (n_groups,) fixed error scales (``None``: ones).
     """
-    (result,) = fit_companions_from(
-        dataset,
-        np.asarray(offsets_mas, dtype=float).reshape(1, -1, 2),
-        np.asarray(log10_contrasts, dtype=float).reshape(1, -1, dataset.n_filters),
-        group_scales,
-        primary_diameter_mas,
-        max_steps,
-    )
-    return result
-
-
-def fit_companions_from(
-    dataset: Dataset,
-    offsets_mas: np.ndarray,
-    log10_contrasts: np.ndarray,
-    group_scales: np.ndarray | None = None,
-    primary_diameter_mas: float = 0.0,
-    max_steps: int = 200,
-) -> list[CompanionFitResult]:
-    """:func:`fit_companions` from several starting points at once, one result per start.
-
-    ``offsets_mas`` (B, K, 2) and ``log10_contrasts`` (B, K, F): ``B`` starts of the same
-    number ``K`` of companions (e.g. a grid's candidate peaks), fitted independently but
-    evaluated together, which costs a fraction of ``B`` separate fits.
-    """
     scales = np.ones(dataset.n_groups) if group_scales is None else np.asarray(group_scales)
-    scale_vectors = tuple(jnp.asarray(v) for v in dataset.scale_vectors(scales))
-    offsets0 = np.asarray(offsets_mas, dtype=float)
-    n_starts, k = offsets0.shape[:2]
+    scale_vectors = dataset.scale_vectors(scales)
+    offsets0 = np.asarray(offsets_mas, dtype=float).reshape(-1, 2)
     log10c0 = np.clip(
-        np.asarray(log10_contrasts, dtype=float).reshape(n_starts, k, -1),
+        np.asarray(log10_contrasts, dtype=float).reshape(offsets0.shape[0], -1),
         LOG10_CONTRAST_FLOOR + 1,
         -1e-3,
     )
+    k = offsets0.shape[0]
     args = (dataset, scale_vectors, k, float(primary_diameter_mas))
-    y0 = np.concatenate([offsets0.reshape(n_starts, -1), log10c0.reshape(n_starts, -1)], axis=1)
+    y0 = np.concatenate([offsets0.ravel(), log10c0.ravel()])
     best, residual, jacobian, converged = levenberg_marquardt(
-        lambda y: _batch_residual_and_jacobian(jnp.asarray(y), args), y0, max_steps
+        lambda y: _residual_and_jacobian(jnp.asarray(y), args), y0, max_steps
     )
-    results = []
-    for y, r, j, done in zip(best, residual, jacobian, converged, strict=True):
-        results.append(
-            CompanionFitResult(
-                offsets_mas=y[: 2 * k].reshape(k, 2),
-                log10_contrasts=np.clip(y[2 * k :].reshape(k, -1), LOG10_CONTRAST_FLOOR, 0.0),
-                covariance=np.linalg.pinv(j.T @ j, rcond=1e-12, hermitian=True),
-                chi2=float(r @ r),
-                group_scales=scales,
-                converged=bool(done),
-            )
-        )
-    return results
+    covariance = np.linalg.pinv(jacobian.T @ jacobian, rcond=1e-12, hermitian=True)
+    return CompanionFitResult(
+        offsets_mas=best[: 2 * k].reshape(k, 2),
+        log10_contrasts=np.clip(best[2 * k :].reshape(k, -1), LOG10_CONTRAST_FLOOR, 0.0),
+        covariance=covariance,
+        chi2=float(residual @ residual),
+        group_scales=scales,
+        converged=converged,
+    )
 
 
 def scaled_chi2(

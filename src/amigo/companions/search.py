@@ -242,23 +242,21 @@ def _search_one(
             chi2_before = _chi2(dataset, offsets, log10c, scales, diameter)
         else:
             chi2_before = fitting.background_chi2(dataset, scales, diameter)
-        starts = []
+        candidates = []
         for x, y, _ in result.peaks(settings.n_candidates):
             iy = int(np.argmin(np.abs(grid.y_mas - y)))
             ix = int(np.argmin(np.abs(grid.x_mas - x)))
             start = [np.log10(max(m.contrast[iy, ix], m.sigma[iy, ix], 1e-8)) for m in result.maps]
-            starts.append((np.vstack([offsets, [[x, y]]]), np.vstack([log10c, [start]])))
-        if not starts:
+            trial = fitting.fit_companions(
+                dataset,
+                np.vstack([offsets, [[x, y]]]),
+                np.vstack([log10c, [start]]),
+                scales,
+                diameter,
+            )
+            candidates.append(_Candidate(trial, chi2_before - trial.chi2, scales))
+        if not candidates:
             return result, []
-        # All peaks refined together (one evaluation of the model for all of them per step).
-        trials = fitting.fit_companions_from(
-            dataset,
-            np.stack([s[0] for s in starts]),
-            np.stack([s[1] for s in starts]),
-            scales,
-            diameter,
-        )
-        candidates = [_Candidate(t, chi2_before - t.chi2, scales) for t in trials]
         candidates.sort(key=lambda c: -c.dchi2)
         best = candidates[0].fit
         new_scales = np.maximum(
