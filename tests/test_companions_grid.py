@@ -36,6 +36,13 @@ def _chi2(dataset, position, contrast, background=None):
     return float(sum(jnp.sum(x**2) for x in r))
 
 
+def _minimum(chi2):
+    """Brute-force minimum of a chi2 over one flux ratio in (-0.3, 0.3) (SciPy, bounded)."""
+    return optimize.minimize_scalar(
+        chi2, bounds=(-0.3, 0.3), method="bounded", options={"xatol": 1e-10}
+    )
+
+
 @pytest.mark.parametrize("kind", ["calvis", "oifits"])
 def test_grid_contrast_is_the_chi2_minimum(tmp_path, kind):
     """Each grid point's contrast, error and chi2 gain equal a brute-force 1-D minimisation."""
@@ -57,12 +64,7 @@ def test_grid_contrast_is_the_chi2_minimum(tmp_path, kind):
     chi2_0 = _chi2(dataset, (0.0, 0.0), 0.0, background)
     for iy, ix in [(7, 8), (3, 1), (5, 9), (1, 4)]:
         position = (grid.x_mas[ix], grid.y_mas[iy])
-        solution = optimize.minimize_scalar(
-            lambda c, p=position: _chi2(dataset, p, c, background),
-            bounds=(-0.3, 0.3),
-            method="bounded",
-            options={"xatol": 1e-10},
-        )
+        solution = _minimum(lambda c, p=position: _chi2(dataset, p, c, background))
         assert m.contrast[iy, ix] == pytest.approx(solution.x, abs=1e-6 + 1e-4 * abs(solution.x))
         assert m.dchi2[iy, ix] == pytest.approx(chi2_0 - solution.fun, rel=1e-5, abs=1e-6)
         # sigma = (d2 chi2 / dc2 / 2)^-1/2 by finite differences.
@@ -100,12 +102,7 @@ def test_grid_solved_again_for_new_error_scales(tmp_path):
     assert m.chi2_background == pytest.approx(chi2_0, rel=1e-12)
     for iy, ix in [(7, 8), (3, 1), (5, 9)]:
         position = (grid.x_mas[ix], grid.y_mas[iy])
-        solution = optimize.minimize_scalar(
-            lambda c, p=position: chi2(p, c),
-            bounds=(-0.3, 0.3),
-            method="bounded",
-            options={"xatol": 1e-10},
-        )
+        solution = _minimum(lambda c, p=position: chi2(p, c))
         assert m.contrast[iy, ix] == pytest.approx(solution.x, abs=1e-6 + 1e-4 * abs(solution.x))
         assert m.dchi2[iy, ix] == pytest.approx(chi2_0 - solution.fun, rel=1e-5, abs=1e-6)
 
@@ -131,12 +128,7 @@ def test_combined_map_is_the_grey_companions_chi2_minimum(tmp_path):
     chi2_0 = chi2((0.0, 0.0), 0.0)
     for iy, ix in [(7, 8), (3, 1), (5, 9)]:
         position = (grid.x_mas[ix], grid.y_mas[iy])
-        solution = optimize.minimize_scalar(
-            lambda c, p=position: chi2(p, c),
-            bounds=(-0.3, 0.3),
-            method="bounded",
-            options={"xatol": 1e-10},
-        )
+        solution = _minimum(lambda c, p=position: chi2(p, c))
         assert combined.contrast[iy, ix] == pytest.approx(solution.x, abs=2e-5)
         # Each filter's chi2 taken as quadratic in c about its own minimum: 0.2 % here.
         assert combined.dchi2[iy, ix] == pytest.approx(chi2_0 - solution.fun, rel=5e-3, abs=1e-3)
