@@ -14,7 +14,11 @@ error (from the Gauss-Newton curvature) and ``dchi2 = chi2(background) - chi2(c)
 Speed: the band-averaged phasors factorise over the grid axes,
 ``e(x, y) = sum_l w_l exp(-2 pi i b_x x / l) exp(-2 pi i b_y y / l)``, so no complex
 exponential is evaluated per grid point; positions are processed in column chunks by
-one jitted, vmapped solver.
+one jitted, vmapped program. For linear observables (calvis files) that program only
+makes each position's inner products per group of observables
+(:func:`grid_statistics`), which do not depend on the groups' error scales: the search
+makes them once per background scene and solves the grid again for each set of scales
+in NumPy.
 """
 
 from __future__ import annotations
