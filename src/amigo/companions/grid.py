@@ -286,10 +286,7 @@ def _solve_statistics(gram, cross, weights, n_steps):
         safe = np.where(curvature > 0, curvature, 1.0)
         c = np.clip(c - np.where(curvature > 0, slope / safe, 0.0), lo, hi)
     p, curvature, _ = moments(c)
-    with np.errstate(divide="ignore"):
-        sigma = np.where(
-            curvature > 0, 1.0 / np.sqrt(np.where(curvature > 0, curvature, 1.0)), np.inf
-        )
+    sigma = np.where(curvature > 0, 1.0 / np.sqrt(np.where(curvature > 0, curvature, 1.0)), np.inf)
     # chi2(0) - chi2(c) = -(2 p . b + p A p): small terms only, no cancellation.
     dchi2 = -(2.0 * np.einsum("...k,...k->...", p, b) + np.einsum("...k,...kl,...l->...", p, a, p))
     return c, sigma, dchi2
@@ -331,15 +328,16 @@ class _FilterScene:
     y_phasors: tuple[jax.Array, ...]  # (n_y, n_uv, n_wl)
     groups: np.ndarray  # (n_obs,) the dataset's group index of each observable
 
-    @property
-    def linear(self) -> bool:
-        return all(b.linear for b in self.blocks)
+
+def _filter_blocks(dataset: Dataset, f: int) -> list[int]:
+    """Indices of the blocks of filter ``f``."""
+    return [i for i in range(len(dataset.blocks)) if dataset.filter_index(i) == f]
 
 
 def _filter_scene(
     dataset: Dataset, f: int, grid: Grid, offsets: np.ndarray, flux: np.ndarray, diameter: float
 ) -> _FilterScene:
-    index = [i for i in range(len(dataset.blocks)) if dataset.filter_index(i) == f]
+    index = _filter_blocks(dataset, f)
     blocks = tuple(dataset.blocks[i] for i in index)
     terms = [
         scene_terms(
@@ -420,10 +418,10 @@ def grid_statistics(
     flux = np.zeros((0, dataset.n_filters)) if contrasts is None else np.asarray(contrasts, float)
     out: list[FilterStatistics | None] = []
     for f in range(dataset.n_filters):
-        scene = _filter_scene(dataset, f, grid, offsets, flux, primary_diameter_mas)
-        if not scene.linear:
-            out.append(None)
+        if not all(dataset.blocks[i].linear for i in _filter_blocks(dataset, f)):
+            out.append(None)  # contrast_grid builds this filter's scene and solves it exactly
             continue
+        scene = _filter_scene(dataset, f, grid, offsets, flux, primary_diameter_mas)
         groups = np.unique(scene.groups)
         onehot = jnp.asarray((scene.groups[:, None] == groups[None, :]).astype(float))
         r0 = jnp.concatenate(scene.residuals)
