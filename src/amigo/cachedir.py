@@ -13,9 +13,11 @@ import os
 import sys
 from pathlib import Path
 
-#: Programs that compile faster than this are not written to the persistent cache (JAX's
-#: own default): the cache holds the fits' and the training's large programs, which take
-#: tens of seconds to minutes to compile on a laptop CPU, not every small array operation.
+#: Programs that compile faster than this are not written to the persistent cache. 0: every
+#: program is kept. JAX's own default (1 s) left the many small programs of a fit and a
+#: detection (one companion's fit, the solver's pieces, eager array operations) to be
+#: compiled again in each run: 15 s of a warm `amigo fit`, 8 s of `amigo detect` on a 2-core
+#: CPU (docs/performance.md), for a cache that grows by a few MB.
 MIN_COMPILE_TIME_S = 0.0
 
 
