@@ -29,6 +29,13 @@ if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
     os.environ["JAX_COMPILATION_CACHE_DIR"] = _JAX_CACHE
     os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 
+# What the `amigo` command sets before JAX starts (amigo.runtime): the tests that run a
+# command in this process and compare it with a child process (the Dask manifest) then
+# run under the same XLA flags.
+from amigo.runtime import reproducible_cpu  # noqa: E402  (imports neither JAX nor NumPy)
+
+reproducible_cpu()
+
 
 #: Tests slower than this are named, with their time, as they finish (a CI log that is cut
 #: off at its time limit still shows where the time went; --durations prints only at the end).
