@@ -8,8 +8,10 @@ always bitwise reproducible: on a 2-core CPU under load, the first evaluation of
 gradient in a new process differed in its last bits from the later ones (same inputs,
 same compiled program) in 2 of 16 fits started two at a time (2026-11-27; ``amigo run
 --manifest`` then gave a target's products 0.05 sigma away from a serial run's). With the
-products computed on one thread each, 30 of 30 such fits gave identical bits. The other parallel parts
-of a program (its loops and fusions) still use every core.
+products computed on one thread each, 30 of 30 such fits gave identical bits. The other
+parallel parts of a program (its loops and fusions) still use every core. On 2 cores
+this costs no time (docs/performance.md); on a many-core CPU the products may be slower:
+``XLA_FLAGS=--xla_cpu_multi_thread_eigen=true`` trades the reproducibility back.
 
 This module imports neither JAX nor NumPy, so that the command line can set the flag
 before JAX reads its environment.
