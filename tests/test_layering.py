@@ -18,7 +18,14 @@ SRC = Path(__file__).resolve().parents[1] / "src"
 
 #: Layers, lowest first; each is a list of packages or modules (prefixes of dotted names).
 LAYERS: tuple[tuple[str, ...], ...] = (
-    ("amigo._version", "amigo.errors", "amigo.progress", "amigo.cachedir", "amigo.niriss"),
+    (
+        "amigo._version",
+        "amigo.errors",
+        "amigo.progress",
+        "amigo.cachedir",
+        "amigo.runtime",
+        "amigo.niriss",
+    ),
     ("amigo.orientation",),
     ("amigo.io",),
     ("amigo.processing",),
