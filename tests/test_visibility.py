@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -128,3 +129,23 @@ def test_broadband_injection_equals_the_weighted_monochromatic_images():
         injector.broadband(jnp.asarray(psfs, jnp.float32), jnp.asarray(weights), *args)
     )
     np.testing.assert_allclose(got, expected, atol=1e-6 * expected.max())
+
+
+def test_the_band_image_is_numpys_inverse_transform_of_the_shifted_band():
+    # The pruned transform (columns outside the band and rows outside the kept corner
+    # skipped) against NumPy's full irfft2 of the zero-padded band, in float64.
+    n = 96
+    with jax.enable_x64(True):
+        injector = Injector.build(UVGrid(), np.array([4.3e-6]), PIXEL_RAD, n, dtype=np.float64)
+    rows, nx_band, size = np.asarray(injector.rows), injector.nx_band, injector.fft_size
+    rng = np.random.default_rng(3)
+    band = rng.normal(size=(len(rows), nx_band)) + 1j * rng.normal(size=(len(rows), nx_band))
+    shift = np.array([0.7, -1.2])  # (dx, dy) in samples
+    full = np.zeros((size, size // 2 + 1), complex)
+    full[rows, :nx_band] = band
+    ramp_y = np.exp(-2j * np.pi * np.fft.fftfreq(size) * shift[1])
+    ramp_x = np.exp(-2j * np.pi * np.fft.rfftfreq(size) * shift[0])
+    expected = np.fft.irfft2(full * ramp_y[:, None] * ramp_x[None, :], s=(size, size))[:n, :n]
+    with jax.enable_x64(True):
+        got = np.asarray(injector._band_image(jnp.asarray(band), jnp.asarray(shift)))
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-14 * np.abs(expected).max())
