@@ -139,6 +139,24 @@ def test_jitter_adds_its_variance_and_conserves_flux():
         assert np.abs(out - wider).max() < 1e-6 * wider.max()
 
 
+def test_the_jitter_matrix_on_both_axes_is_the_two_dimensional_blur():
+    # M X M^T against the 2-D padded transforms, and against the analytic wider Gaussian.
+    rng = np.random.default_rng(5)
+    image = rng.normal(size=(48, 48))
+    for jitter_arcsec in (0.0, 0.021, 0.08):
+        detector = LinearDetector.create(jitter_arcsec=jitter_arcsec)
+        m = np.asarray(detector.jitter_matrix(48, jnp.float64))
+        blurred = np.asarray(detector.jitter(jnp.asarray(image)))
+        np.testing.assert_allclose(m @ image @ m.T, blurred, rtol=0, atol=1e-13)
+    sigma = 0.08 * 3 / niriss.PIXEL_SCALE_ARCSEC  # samples of the 3x grid
+    point = np.zeros(48)
+    point[24] = 1.0
+    d = np.arange(48) - 24
+    analytic = np.exp(-0.5 * d**2 / sigma**2) / np.sqrt(2 * np.pi * sigma**2)
+    # Sampled Gaussian of a band-limited point: equal where sigma >> 1 sample (here 3.7).
+    assert np.abs(m @ point - analytic).max() < 1e-6
+
+
 def test_zero_jitter_is_finite_with_a_finite_gradient():
     """A detector with jitter 0 returns the unblurred image (the old spatial blur divided
     by sigma and returned NaN), and its derivative in the jitter is finite (0 there)."""

@@ -280,6 +280,17 @@ def test_fir_taps_and_transfer():
     assert cubic_upsample_taps().shape == (5,)
 
 
+@pytest.mark.parametrize("method", ["fir", "cubic", "none"])
+def test_the_integration_matrix_on_both_axes_is_the_separable_filter(method):
+    from amigo.model.optics.propagation import integration_matrix
+
+    image = np.random.default_rng(2).normal(size=(30, 30))
+    f = integration_matrix(30, method)
+    with jax.enable_x64(True):
+        filtered = np.asarray(integrate_pixels(jnp.asarray(image), method))
+    np.testing.assert_allclose(f @ image @ f.T, filtered, rtol=0, atol=1e-14)
+
+
 # ------------------------------------------------------------------------------------
 # Sign conventions: tilt, Zernikes, position, defocus
 # ------------------------------------------------------------------------------------

@@ -149,3 +149,53 @@ def test_the_band_image_is_numpys_inverse_transform_of_the_shifted_band():
     with jax.enable_x64(True):
         got = np.asarray(injector._band_image(jnp.asarray(band), jnp.asarray(shift)))
     np.testing.assert_allclose(got, expected, rtol=0, atol=1e-14 * np.abs(expected).max())
+
+
+def test_the_band_axes_are_the_inverse_transform_of_the_band_as_two_products():
+    # Re(E_y band E_x^T) against NumPy's irfft2 of the shifted, zero-padded band, on a
+    # window (start, size) of the image, in float64.
+    n, start, size = 96, 7, 80
+    with jax.enable_x64(True):
+        injector = Injector.build(UVGrid(), np.array([4.3e-6]), PIXEL_RAD, n, dtype=np.float64)
+        e_y, e_x = injector.band_axes(jnp.asarray([0.7, -1.2]), start, size, jnp.float64)
+    rows, nx_band, fft = np.asarray(injector.rows), injector.nx_band, injector.fft_size
+    rng = np.random.default_rng(4)
+    band = rng.normal(size=(len(rows), nx_band)) + 1j * rng.normal(size=(len(rows), nx_band))
+    full = np.zeros((fft, fft // 2 + 1), complex)
+    full[rows, :nx_band] = band
+    ramp_y = np.exp(-2j * np.pi * np.fft.fftfreq(fft) * -1.2)
+    ramp_x = np.exp(-2j * np.pi * np.fft.rfftfreq(fft) * 0.7)
+    expected = np.fft.irfft2(full * ramp_y[:, None] * ramp_x[None, :], s=(fft, fft))
+    expected = expected[start : start + size, start : start + size]
+    got = np.real(np.asarray(e_y) @ band @ np.asarray(e_x).T)
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-14 * np.abs(expected).max())
+
+
+def test_the_jittered_illuminance_is_the_detectors_blur_of_the_illuminance():
+    # The fit's path (point source by FFTs, visibilities by the composed per-axis
+    # matrices) against the plain one (broadband image, crop, sub-pixel integration,
+    # the detector's 2-D jitter), float64, with visibilities, a shift and a jitter.
+    from amigo.model.image import (
+        FilterSetup,
+        Instrument,
+        OpticsParams,
+        filter_psfs,
+        float64,
+        illuminance_from_psfs,
+        jittered_illuminance,
+    )
+
+    with jax.enable_x64(True):
+        instrument = Instrument.nominal(n_wavelengths=3)
+        setup = FilterSetup.create("F430M", instrument)
+        instrument, setup = float64((instrument, setup))
+        psfs = filter_psfs(instrument, setup, OpticsParams.from_instrument(instrument))
+        rng = np.random.default_rng(6)
+        k = setup.injector.w_y.shape[-1]
+        log_amp, phase = (jnp.asarray(0.1 * rng.normal(size=(k, k))) for _ in range(2))
+        args = (instrument, setup, psfs, jnp.asarray(0.3), jnp.asarray([0.02, -0.013]))
+        jitter = jnp.asarray(0.024)
+        got = np.asarray(jittered_illuminance(*args, log_amp, phase, None, jitter))
+        plain = illuminance_from_psfs(*args, log_amp, phase)
+        expected = np.asarray(instrument.detector.with_jitter(jitter).jitter(plain))
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-13 * expected.max())

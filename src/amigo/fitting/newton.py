@@ -61,14 +61,13 @@ from amigo.model.image import (
     Instrument,
     OpticsParams,
     filter_psfs,
-    illuminance_from_psfs,
+    jittered_illuminance,
 )
 from amigo.model.image import float64 as _float64
 from amigo.progress import step
 from amigo.solvers.levenberg_marquardt import minimise
 
 if TYPE_CHECKING:
-    from amigo.model.detector.linear import LinearDetector
     from amigo.model.optics import NRMOptics
 
 #: Columns differentiated together (memory: each holds the visibility FFTs of one image).
@@ -358,29 +357,26 @@ def _at(
 def local_illuminance(
     theta: Array, instrument: Instrument, setup: FilterSetup, psfs: Array, anchor: Array
 ) -> Float[Array, "240 240"]:
-    """Unit-flux optical illuminance (:func:`amigo.model.image.illuminance_from_psfs`) of one
-    exposure from its local vector ``[x, y, log_flux, slope, jitter, latents]`` (the
-    flux, ``theta[2]``, and the jitter are applied by the detector)."""
+    """Unit-flux illuminance of one exposure blurred by its jitter
+    (:func:`amigo.model.image.jittered_illuminance`) from its local vector ``[x, y,
+    log_flux, slope, jitter, latents]`` (the flux, ``theta[2]``, is applied by the
+    detector, :meth:`~amigo.model.detector.linear.LinearDetector.after_jitter`)."""
     basis = setup.basis
     assert basis is not None  # a fitted filter's setup has its latent basis
     n_amp = basis.n_amp
     latent = theta[N_LOCAL_SCALARS:]
     log_amp, phase = basis.grids(latent[:n_amp], latent[n_amp:])
-    return illuminance_from_psfs(
-        instrument, setup, psfs, theta[3], theta[:2], log_amp, phase, anchor
+    jitter_arcsec = theta[JITTER_INDEX] / 1000.0
+    return jittered_illuminance(
+        instrument, setup, psfs, theta[3], theta[:2], log_amp, phase, anchor, jitter_arcsec
     )
-
-
-def local_detector(theta: Array, instrument: Instrument) -> LinearDetector:
-    """The instrument's linear detector with the jitter of the local vector ``theta``."""
-    return instrument.detector.with_jitter(theta[JITTER_INDEX] / 1000.0)
 
 
 def _local_image(theta, instrument, setup, psfs, anchor) -> Float[Array, "80 80"]:
     """Image (DN/s) of one exposure from its local vector (as :func:`image_from_psfs`),
     with the detector geometry ``instrument`` holds."""
-    optical = local_illuminance(theta, instrument, setup, psfs, anchor)
-    return local_detector(theta, instrument)(optical, jnp.exp(theta[2]))
+    blurred = local_illuminance(theta, instrument, setup, psfs, anchor)
+    return instrument.detector.after_jitter(blurred, jnp.exp(theta[2]))
 
 
 def _columns(function, x: Array, blocks: tuple[int, ...] = ()) -> Array:

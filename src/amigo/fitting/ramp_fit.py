@@ -49,7 +49,6 @@ from jaxtyping import Array, Float
 from amigo.fitting.filter_fit import FilterFit, FilterFitResult, FitConfig, FitExposure
 from amigo.fitting.newton import (
     levenberg_marquardt,
-    local_detector,
     local_illuminance,
     local_vector,
     psfs_of,
@@ -215,13 +214,12 @@ def _slopes_and_image(
     """The base model's slopes (DN per group; with ``first_group``, the first group's
     value in front of them) and the fit's linear image (DN/s) of one exposure with local
     vector ``theta = [x, y, log_flux, slope, jitter, latents]``."""
-    optical = local_illuminance(theta, instrument, setup, psfs, anchor)
-    detector = local_detector(theta, instrument)
-    unit = detector.illuminance(optical)  # sums to the in-field fraction
+    blurred = local_illuminance(theta, instrument, setup, psfs, anchor)
+    unit = instrument.detector.resample(blurred)  # sums to the in-field fraction
     flux = jnp.exp(theta[2])
     # The linear image exactly as the refit models it (IPC included where the detector
     # has it), so that D = S - t_g M and the refit's M are the same M.
-    image = detector(optical, flux)
+    image = instrument.detector.after_jitter(blurred, flux)
     # The ramp model runs in the base model's precision (its network is float32), whatever
     # the precision of the optics (float64 when x64 is on).
     electrons = (unit * (flux * electrons_per_dn_s)).astype(base.ramp.flat.dtype)

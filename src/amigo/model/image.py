@@ -45,6 +45,7 @@ from amigo.errors import InputError
 from amigo.io.files import require_file
 from amigo.model.detector.linear import LinearDetector
 from amigo.model.optics import LinearSpectrum, NRMOptics, cast
+from amigo.model.optics.propagation import integration_matrix
 from amigo.model.visibility import Injector, LatentBasis, UVGrid
 
 if TYPE_CHECKING:
@@ -393,6 +394,57 @@ def illuminance_from_psfs(
     return instrument.optics.integrate_pixels(image)
 
 
+def jittered_illuminance(
+    instrument: Instrument,
+    setup: FilterSetup,
+    psfs: Float[Array, "l 264 264"],
+    slope_per_um: Array,
+    position_arcsec: Float[Array, " 2"],
+    log_amp: Float[Array, "k k"] | None,
+    phase: Float[Array, "k k"] | None,
+    anchor_arcsec: Float[Array, " 2"] | None,
+    jitter_arcsec: Array,
+) -> Float[Array, "240 240"]:
+    """:func:`illuminance_from_psfs` blurred by the jitter (``jitter_arcsec``): the
+    detector's input after :meth:`~amigo.model.detector.linear.LinearDetector.jitter`.
+
+    The same numbers, computed in two parts. The point source's image is cropped,
+    integrated over sub-pixels and blurred as before. The visibilities' part goes from
+    its band of the uv plane to the blurred image in two matrix products: the inverse
+    transform (:meth:`~amigo.model.visibility.Injector.band_axes`), the crop, the
+    sub-pixel integration (:func:`~amigo.model.optics.propagation.integration_matrix`)
+    and the jitter (:meth:`~amigo.model.detector.linear.LinearDetector.jitter_matrix`)
+    all act on each axis alone, so they compose into one complex matrix per axis,
+    ``L = M F E``, and the part is ``Re(L_y band L_x^T)``. Every latent column of a
+    Jacobian is then two small products instead of four 2-D FFTs.
+    """
+    config = instrument.optics.config
+    pixel_arcsec = config.pixel_scale_arcsec / config.oversample
+    offset = position_arcsec if anchor_arcsec is None else (position_arcsec - anchor_arcsec)
+    shift = offset / pixel_arcsec
+    spectrum = setup.spectrum(slope_per_um)
+    image, band = setup.injector.broadband_parts(
+        psfs, spectrum.weights(), log_amp, phase, shift_pix=shift
+    )
+    lo, size = FIELD_MARGIN_PIX * config.oversample, instrument.psf_size
+    detector = instrument.detector.with_jitter(jitter_arcsec)
+    image = image[lo : lo + size, lo : lo + size]
+    blurred = detector.jitter(instrument.optics.integrate_pixels(image))
+    if band is None:
+        return blurred
+    dtype = image.dtype
+    axis = detector.jitter_matrix(size, dtype) @ jnp.asarray(
+        integration_matrix(size, config.pixel_integration), dtype
+    )
+    e_y, e_x = setup.injector.band_axes(shift, lo, size, dtype)
+    # Real arithmetic: (a + ib)(c + id) as real products (XLA's are faster than complex).
+    ly_re, ly_im = axis @ e_y.real, axis @ e_y.imag
+    lx_re, lx_im = axis @ e_x.real, axis @ e_x.imag
+    p_re = ly_re @ band.real - ly_im @ band.imag
+    p_im = ly_re @ band.imag + ly_im @ band.real
+    return blurred + p_re @ lx_re.T - p_im @ lx_im.T
+
+
 def image_from_psfs(
     instrument: Instrument,
     setup: FilterSetup,
@@ -403,8 +455,10 @@ def image_from_psfs(
     phase: Float[Array, "k k"] | None,
     anchor_arcsec: Float[Array, " 2"] | None = None,
 ) -> Float[Array, "80 80"]:
-    """The 80 x 80 detector image (DN/s) from :func:`filter_psfs` and log-visibility grids."""
-    illuminance = illuminance_from_psfs(
+    """The 80 x 80 detector image (DN/s) from :func:`filter_psfs` and log-visibility grids
+    (the detector applied to :func:`illuminance_from_psfs`, computed as the fit does,
+    through :func:`jittered_illuminance`)."""
+    blurred = jittered_illuminance(
         instrument,
         setup,
         psfs,
@@ -413,9 +467,9 @@ def image_from_psfs(
         log_amp,
         phase,
         anchor_arcsec,
+        exposure.jitter_mas / 1000.0,
     )
-    detector = instrument.detector.with_jitter(exposure.jitter_mas / 1000.0)
-    return detector(illuminance, jnp.exp(exposure.log_flux))
+    return instrument.detector.after_jitter(blurred, jnp.exp(exposure.log_flux))
 
 
 def image_from_log_vis(

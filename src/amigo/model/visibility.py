@@ -346,15 +346,59 @@ class Injector(eqx.Module):
           image and the visibilities' are added after the transforms (which are linear),
           so a latent column's tangent never enters the full-grid transform.
         """
+        image, band = self.broadband_parts(psfs, weights, log_amp, phase, shift_pix)
+        if band is None:
+            return image
+        return image + self._band_image(band, shift_pix)
+
+    def broadband_parts(
+        self,
+        psfs: Float[Array, "l n n"],
+        weights: Float[Array, " l"],
+        log_amp: Float[Array, "k k"] | None = None,
+        phase: Float[Array, "k k"] | None = None,
+        shift_pix: Float[Array, 2] | None = None,
+    ) -> tuple[Float[Array, "n n"], Array | None]:
+        """The two parts of :meth:`broadband`: the point source's image (n, n), shifted,
+        and the visibilities' band ``sum_l w_l OTF_l (V_l - 1)`` (ny_band, nx_band),
+        complex, not yet shifted (``None`` without visibilities). The image is the first
+        plus ``Re(E_y band E_x^T)`` with the matrices of :meth:`band_axes`."""
         otf = self.otf(psfs)
         weights = weights.astype(otf.real.dtype)
         spectrum = self._shifted(jnp.tensordot(weights, otf, 1), shift_pix)
         image = jnp.fft.irfft2(spectrum, s=(self.fft_size, self.fft_size))
         image = image[: self.psf_size, : self.psf_size]
         excess = self._excess(otf, log_amp, phase)
-        if excess is None:
-            return image
-        return image + self._band_image(jnp.tensordot(weights, excess, 1), shift_pix)
+        return image, None if excess is None else jnp.tensordot(weights, excess, 1)
+
+    def band_axes(
+        self, shift_pix: Float[Array, 2] | None, start: int, size: int, dtype: DTypeLike
+    ) -> tuple[Array, Array]:
+        """Complex matrices ``E_y`` (size, ny_band) and ``E_x`` (size, nx_band) with
+        ``Re(E_y band E_x^T)`` equal to ``_band_image(band, shift_pix)[start:start + size,
+        start:start + size]``: the inverse transform of the band as two matrix products.
+
+        Row ``n`` of ``E_y`` holds ``exp(2 pi i r n / N) / N`` for the band's rows ``r``;
+        ``E_x`` the same for its columns ``k``, doubled for ``k > 0`` (the Hermitian half
+        of the spectrum not stored), so that the real part is ``irfft``'s; each column
+        times the shift's phase ramp. The phases are reduced modulo ``N`` in integers
+        before the exponential: ``2 pi r n / N`` reaches ~1600 rad, where float32 would
+        lose 1e-4 rad.
+        """
+        n = np.arange(start, start + size)[:, None]
+        rows = np.asarray(self.rows)[None, :]
+        cols = np.arange(self.nx_band)[None, :]
+        size_fft = self.fft_size
+        e_y = np.exp(2j * np.pi * ((n * rows) % size_fft) / size_fft) / size_fft
+        e_x = np.exp(2j * np.pi * ((n * cols) % size_fft) / size_fft) / size_fft
+        e_x[:, 1:] *= 2.0
+        complex_dtype = jnp.result_type(dtype, 1j)
+        e_y, e_x = jnp.asarray(e_y, complex_dtype), jnp.asarray(e_x, complex_dtype)
+        if shift_pix is None:
+            return e_y, e_x
+        ramp_x = jnp.exp(-2j * jnp.pi * self.freq_x[: self.nx_band] * shift_pix[0])
+        ramp_y = jnp.exp(-2j * jnp.pi * self.freq_y[np.asarray(self.rows)] * shift_pix[1])
+        return e_y * ramp_y[None, :], e_x * ramp_x[None, :]
 
     def _band_image(self, band: Array, shift_pix: Array | None) -> Float[Array, "n n"]:
         """The kept (psf_size, psf_size) corner of ``irfft2`` of a band array (ny_band,

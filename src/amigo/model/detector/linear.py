@@ -50,6 +50,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import DTypeLike
 from jaxtyping import Array, Float
 
 from amigo import niriss
@@ -319,6 +320,22 @@ class LinearDetector(eqx.Module):
         sigma = self.jitter_arcsec * self.oversample / self.pixel_scale_arcsec
         return fourier_gaussian_blur(image, sigma, self.jitter_pad)
 
+    def jitter_matrix(self, size: int, dtype: DTypeLike) -> Float[Array, "n n"]:
+        """(size, size) matrix ``M`` of the jitter blur along one axis: :meth:`jitter` of an
+        image ``X`` is ``M X M^T`` (the Gaussian's transfer function is the product of
+        one per axis, and padding, transforms and crop act on each axis alone).
+
+        Column ``j`` is the blurred image of a unit sample at ``j``, made by the same
+        padded transforms as :func:`fourier_gaussian_blur`, so the two agree to rounding.
+        """
+        sigma = self.jitter_arcsec * self.oversample / self.pixel_scale_arcsec
+        pad, n = self.jitter_pad, size + 2 * self.jitter_pad
+        eye = jnp.pad(jnp.eye(size, dtype=dtype), ((pad, pad), (0, 0)))
+        f = jnp.fft.rfftfreq(n).astype(dtype)
+        transfer = jnp.exp(-2.0 * jnp.pi**2 * jnp.square(sigma).astype(dtype) * f**2)
+        blurred = jnp.fft.irfft(jnp.fft.rfft(eye, axis=0) * transfer[:, None], n=n, axis=0)
+        return blurred[pad : pad + size].astype(dtype)
+
     @eqx.filter_jit
     def resample(self, image: Float[Array, "n m"]) -> Float[Array, "n m"]:
         """Optical oversampled grid -> detector oversampled grid (cubic, flux conserving:
@@ -345,7 +362,15 @@ class LinearDetector(eqx.Module):
         :meth:`amigo.model.optics.NRMOptics.illuminance`; ``flux`` sets the output's unit
         (photons, electrons or DN/s).
         """
-        pixels = flux * bin_pixels(self.illuminance(image), self.oversample)
+        return self.after_jitter(self.jitter(image), flux)
+
+    def after_jitter(
+        self, image: Float[Array, "n m"], flux: Array | float
+    ) -> Float[Array, "n/o m/o"]:
+        """:meth:`__call__` of an illuminance the jitter has already blurred (the fit
+        blurs the visibilities' part of its image on the way from the uv plane,
+        :func:`amigo.model.image.jittered_illuminance`)."""
+        pixels = flux * bin_pixels(self.resample(image), self.oversample)
         if self.ipc_kernel is None:
             return pixels
         from amigo.model.detector.read import convolve_ipc

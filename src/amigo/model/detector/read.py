@@ -19,7 +19,6 @@ Slopes are the group differences of the result: (ngroups - 1, ny, nx) DN per gro
 from __future__ import annotations
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
@@ -53,13 +52,21 @@ def convolve_ipc(frames: Float[Array, "... ny nx"], kernel: Float[Array, "5 5"])
     ``out[y, x] = sum_{dy, dx} kernel[dy + 2, dx + 2] * in[y - dy, x - dx]``: the charge of
     pixel (y, x) couples a fraction ``kernel[dy + 2, dx + 2]`` into pixel (y + dy, x + dx).
     """
-    shape = frames.shape
-    flat = frames.reshape((-1, 1, *shape[-2:]))
-    # conv_general_dilated correlates; flipping the kernel makes it a convolution.
-    out = jax.lax.conv_general_dilated(
-        flat, jnp.asarray(kernel, frames.dtype)[::-1, ::-1][None, None], (1, 1), "SAME"
-    )
-    return out.reshape(shape)
+    ny, nx = frames.shape[-2:]
+    kernel = jnp.asarray(kernel, frames.dtype)
+    widths = [(0, 0)] * (frames.ndim - 2) + [(2, 2), (2, 2)]
+    padded = jnp.pad(frames, widths)
+    # Twenty-five shifted copies, weighted and summed (XLA fuses them into one pass):
+    # the same sums as jax.lax.conv_general_dilated, which on a CPU is built for many
+    # channels and took 0.59 ms per 80 x 80 image against 0.014 ms (a batch of 64). IPC
+    # is applied to every column of every Jacobian: the float32 local Jacobian of an
+    # F480M exposure (1093 columns, 2-core CPU) 2.59 -> 2.01 s.
+    out = jnp.zeros_like(frames)
+    for dy in range(-2, 3):
+        for dx in range(-2, 3):
+            shifted = padded[..., 2 - dy : 2 - dy + ny, 2 - dx : 2 - dx + nx]
+            out = out + kernel[dy + 2, dx + 2] * shifted
+    return out
 
 
 class ReadModel(eqx.Module):

@@ -238,6 +238,22 @@ def integrate_pixels(image: Float[Array, "... n m"], method: str = "fir") -> Arr
     raise ValueError(f"unknown pixel integration method {method!r} (fir, cubic, none)")
 
 
+def integration_matrix(size: int, method: str = "fir") -> np.ndarray:
+    """(size, size) matrix ``F`` of :func:`integrate_pixels` along one axis (its taps on
+    the diagonals, zero outside the array as there): ``integrate_pixels(X) = F X F^T``."""
+    if method == "none":
+        return np.eye(size)
+    if method not in ("fir", "cubic"):
+        raise ValueError(f"unknown pixel integration method {method!r} (fir, cubic, none)")
+    taps = box_fir_taps() if method == "fir" else cubic_upsample_taps()
+    r = (len(taps) - 1) // 2
+    # separable_filter: out[i] = sum_k taps[k] x[i + k - r].
+    matrix = np.zeros((size, size))
+    for k, w in enumerate(taps):
+        matrix += float(w) * np.eye(size, k=k - r)
+    return matrix
+
+
 def pixel_transfer(frequency_per_sample: Array, method: str = "fir") -> Array:
     """Transfer function of :func:`integrate_pixels` along one axis.
 
