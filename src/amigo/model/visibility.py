@@ -396,9 +396,15 @@ class Injector(eqx.Module):
         e_y, e_x = jnp.asarray(e_y, complex_dtype), jnp.asarray(e_x, complex_dtype)
         if shift_pix is None:
             return e_y, e_x
-        ramp_x = jnp.exp(-2j * jnp.pi * self.freq_x[: self.nx_band] * shift_pix[0])
-        ramp_y = jnp.exp(-2j * jnp.pi * self.freq_y[np.asarray(self.rows)] * shift_pix[1])
+        ramp_y, ramp_x = self._band_ramps(shift_pix)
         return e_y * ramp_y[None, :], e_x * ramp_x[None, :]
+
+    def _band_ramps(self, shift_pix: Float[Array, 2]) -> tuple[Array, Array]:
+        """The phase ramps of :meth:`_shifted` on the band's rows (ny_band,) and columns
+        (nx_band,)."""
+        ramp_y = jnp.exp(-2j * jnp.pi * self.freq_y[np.asarray(self.rows)] * shift_pix[1])
+        ramp_x = jnp.exp(-2j * jnp.pi * self.freq_x[: self.nx_band] * shift_pix[0])
+        return ramp_y, ramp_x
 
     def _band_image(self, band: Array, shift_pix: Array | None) -> Float[Array, "n n"]:
         """The kept (psf_size, psf_size) corner of ``irfft2`` of a band array (ny_band,
@@ -412,8 +418,7 @@ class Injector(eqx.Module):
         ``irfft2``, for about a third of the work.
         """
         if shift_pix is not None:
-            ramp_x = jnp.exp(-2j * jnp.pi * self.freq_x[: self.nx_band] * shift_pix[0])
-            ramp_y = jnp.exp(-2j * jnp.pi * self.freq_y[np.asarray(self.rows)] * shift_pix[1])
+            ramp_y, ramp_x = self._band_ramps(shift_pix)
             band = band * ramp_y[:, None] * ramp_x[None, :]
         n_pos = self._n_positive_rows
         gap = jnp.zeros((self.fft_size - len(self.rows), self.nx_band), band.dtype)
