@@ -379,9 +379,9 @@ def illuminance_from_psfs(
     """Unit-flux, pixel-integrated illuminance (240, 240) on the optical frame's 3x grid,
     before the detector, from :func:`filter_psfs` and log-visibility grids: the
     visibilities injected into each wavelength's PSF, shifted to ``position_arcsec``,
-    weighted by the spectrum. :func:`image_from_psfs` is the linear detector applied to
-    it; the ramp model (``amigo fit --detector full``) takes
-    ``instrument.detector.illuminance`` of it."""
+    weighted by the spectrum. The fit, the ramp model and :func:`image_from_psfs` take the
+    same illuminance already blurred by the jitter from :func:`jittered_illuminance`,
+    which computes it in two parts; this is the plain path it is tested against."""
     config = instrument.optics.config
     pixel_arcsec = config.pixel_scale_arcsec / config.oversample
     offset = position_arcsec if anchor_arcsec is None else (position_arcsec - anchor_arcsec)

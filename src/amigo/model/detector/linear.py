@@ -317,8 +317,11 @@ class LinearDetector(eqx.Module):
     @eqx.filter_jit
     def jitter(self, image: Float[Array, "n m"]) -> Float[Array, "n m"]:
         """Gaussian jitter blur on the oversampled optical grid."""
-        sigma = self.jitter_arcsec * self.oversample / self.pixel_scale_arcsec
-        return fourier_gaussian_blur(image, sigma, self.jitter_pad)
+        return fourier_gaussian_blur(image, self._jitter_samples(), self.jitter_pad)
+
+    def _jitter_samples(self) -> Array:
+        """The jitter's Gaussian sigma in samples of the oversampled grid."""
+        return self.jitter_arcsec * self.oversample / self.pixel_scale_arcsec
 
     def jitter_matrix(self, size: int, dtype: DTypeLike) -> Float[Array, "n n"]:
         """(size, size) matrix ``M`` of the jitter blur along one axis: :meth:`jitter` of an
@@ -328,7 +331,7 @@ class LinearDetector(eqx.Module):
         Column ``j`` is the blurred image of a unit sample at ``j``, made by the same
         padded transforms as :func:`fourier_gaussian_blur`, so the two agree to rounding.
         """
-        sigma = self.jitter_arcsec * self.oversample / self.pixel_scale_arcsec
+        sigma = self._jitter_samples()
         pad, n = self.jitter_pad, size + 2 * self.jitter_pad
         eye = jnp.pad(jnp.eye(size, dtype=dtype), ((pad, pad), (0, 0)))
         f = jnp.fft.rfftfreq(n).astype(dtype)
