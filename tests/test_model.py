@@ -69,3 +69,29 @@ def test_locate_recovers_a_shift():
     position, flux = locate(data, mask, template, instrument.detector)
     np.testing.assert_allclose(position, truth, atol=0.01)  # well within a pixel (0.065")
     np.testing.assert_allclose(flux, 5e5, rtol=0.05)
+
+
+def test_an_instrument_file_keeps_its_wavelengths(tmp_path):
+    """``save_instrument`` / ``load_instrument`` round trip: the static settings too (an
+    instrument saved with 3 wavelengths is fitted with 3, not the nominal 9); a format-1
+    file (arrays alone) loads with the nominal settings; a damaged header is one
+    InputError naming the file."""
+    import equinox as eqx
+
+    from amigo.errors import InputError
+    from amigo.model.image import DEFAULT_N_WAVELENGTHS, load_instrument, save_instrument
+
+    instrument = Instrument.nominal(n_wavelengths=3)
+    instrument = eqx.tree_at(lambda i: i.optics.defocus_nm, instrument, jnp.float32(12.5))
+    save_instrument(instrument, tmp_path / "three.eqx")
+    loaded = load_instrument(tmp_path / "three.eqx")
+    assert loaded.n_wavelengths == 3 and loaded.name == instrument.name
+    assert eqx.tree_equal(loaded, instrument)
+    eqx.tree_serialise_leaves(tmp_path / "old.eqx", instrument)  # format 1
+    old = load_instrument(tmp_path / "old.eqx")
+    assert old.n_wavelengths == DEFAULT_N_WAVELENGTHS != 3
+    assert float(old.optics.defocus_nm) == 12.5
+    damaged = tmp_path / "damaged.eqx"
+    damaged.write_bytes((tmp_path / "three.eqx").read_bytes().replace(b'"n_wavelengths"', b"x"))
+    with pytest.raises(InputError, match=r"damaged\.eqx"):
+        load_instrument(damaged)

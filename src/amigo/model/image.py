@@ -159,23 +159,52 @@ class Instrument(eqx.Module):
         )
 
 
+#: First line of an instrument file since format 2; a JSON line of the instrument's static
+#: settings (``n_wavelengths``, ``name``) follows, then its arrays (equinox leaves). A
+#: format-1 file holds the arrays alone: its static settings were not saved, and it loads
+#: with the nominal ones (an instrument saved with 3 wavelengths was fitted with 9).
+INSTRUMENT_MAGIC = b"AMIGO-INSTRUMENT 2\n"
+
+
 def save_instrument(instrument: Instrument, path: str | Path) -> None:
-    """Serialise an :class:`Instrument`'s arrays (equinox leaves) to ``path``."""
+    """Write an :class:`Instrument` to ``path`` (atomically): its static settings and its
+    arrays, so that :func:`load_instrument` gives back the same instrument."""
+    import json
+
     from amigo.io.atomic import atomic_path
 
-    with atomic_path(path) as tmp:
-        eqx.tree_serialise_leaves(tmp, instrument)
+    settings = {"n_wavelengths": int(instrument.n_wavelengths), "name": str(instrument.name)}
+    with atomic_path(path) as tmp, open(tmp, "wb") as stream:
+        stream.write(INSTRUMENT_MAGIC)
+        stream.write(json.dumps(settings).encode() + b"\n")
+        eqx.tree_serialise_leaves(stream, instrument)
 
 
 def load_instrument(path: str | os.PathLike[str]) -> Instrument:
-    """Load arrays saved by :func:`save_instrument` into the nominal structure.
+    """Load an instrument written by :func:`save_instrument` (format 2, or format 1: the
+    arrays alone, loaded with the nominal static settings).
 
-    Raises :class:`~amigo.errors.InputError` if the file does not match it.
+    Raises :class:`~amigo.errors.InputError` if the file does not match the structure.
     """
+    import json
+
     path = require_file(path, "base-model file")
     try:
-        return eqx.tree_deserialise_leaves(path, Instrument.nominal())
-    except Exception as error:  # equinox raises several types for a mismatched file
+        with open(path, "rb") as stream:
+            like = Instrument.nominal()
+            if stream.read(len(INSTRUMENT_MAGIC)) == INSTRUMENT_MAGIC:
+                settings = json.loads(stream.readline())
+                n_wavelengths = int(settings["n_wavelengths"])
+                if n_wavelengths < 1:
+                    raise ValueError(f"n_wavelengths {n_wavelengths}")
+                nominal = Instrument.nominal(n_wavelengths)
+                like = Instrument(
+                    nominal.optics, nominal.detector, n_wavelengths, str(settings["name"])
+                )
+            else:
+                stream.seek(0)
+            return eqx.tree_deserialise_leaves(stream, like)
+    except Exception as error:  # equinox, json and int() raise several types
         raise InputError(path, f"is not an amigo base model of this version ({error})") from None
 
 
