@@ -191,7 +191,6 @@ def load_instrument(path: str | os.PathLike[str]) -> Instrument:
     path = require_file(path, "base-model file")
     try:
         with open(path, "rb") as stream:
-            like = Instrument.nominal()
             if stream.read(len(INSTRUMENT_MAGIC)) == INSTRUMENT_MAGIC:
                 settings = json.loads(stream.readline())
                 n_wavelengths = int(settings["n_wavelengths"])
@@ -203,6 +202,7 @@ def load_instrument(path: str | os.PathLike[str]) -> Instrument:
                 )
             else:
                 stream.seek(0)
+                like = Instrument.nominal()
             return eqx.tree_deserialise_leaves(stream, like)
     except Exception as error:  # equinox, json and int() raise several types
         raise InputError(path, f"is not an amigo base model of this version ({error})") from None
