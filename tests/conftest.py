@@ -29,6 +29,14 @@ if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
     os.environ["JAX_COMPILATION_CACHE_DIR"] = _JAX_CACHE
     os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 
+# amigo's own cache (latent bases, 10-16 s to build each) likewise: one folder for the
+# session, shared by the workers and their `amigo` subprocesses, and nothing written to
+# the home folder of whoever runs the tests. Tests of the cache itself set their own.
+_AMIGO_CACHE = None
+if "AMIGO_CACHE_DIR" not in os.environ:
+    _AMIGO_CACHE = tempfile.mkdtemp(prefix="amigo-tests-cache-")
+    os.environ["AMIGO_CACHE_DIR"] = _AMIGO_CACHE
+
 # What the `amigo` command sets before JAX starts (amigo.runtime): the tests that run a
 # command in this process and compare it with a child process (the Dask manifest) then
 # run under the same XLA flags.
@@ -117,8 +125,9 @@ def pytest_collection_modifyitems(session, config, items):
 
 
 def pytest_sessionfinish(session, exitstatus):
-    if _JAX_CACHE is not None:
-        shutil.rmtree(_JAX_CACHE, ignore_errors=True)
+    for folder in (_JAX_CACHE, _AMIGO_CACHE):
+        if folder is not None:
+            shutil.rmtree(folder, ignore_errors=True)
 
 
 def _require(path: Path) -> Path:

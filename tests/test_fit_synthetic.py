@@ -50,8 +50,7 @@ def _scene(detector, instrument, zernikes_nm, sources, rng):
 
 
 @pytest.mark.slow
-def test_synthetic_single_and_binary(tmp_path, monkeypatch):
-    monkeypatch.setenv("AMIGO_CACHE_DIR", str(tmp_path / "cache"))
+def test_synthetic_single_and_binary():
     rng = np.random.default_rng(7)
     instrument = Instrument.nominal(n_wavelengths=3)
     zernikes = rng.normal(0.0, 4.0, (7, 10))  # nm rms, the same wavefront for all

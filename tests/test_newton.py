@@ -75,7 +75,7 @@ def test_undamped_step_is_the_newton_step_and_degeneracies_get_none():
 
 
 @pytest.mark.slow
-def test_wavefront_prior_adds_exactly_its_gaussian_term(tmp_path, monkeypatch):
+def test_wavefront_prior_adds_exactly_its_gaussian_term():
     """The prior of ``NewtonConfig.wavefront_prior_nm`` adds ``|w - w0|^2 / (2 s^2)`` to
     the calibrators' loss (``w0``: the instrument's own wavefront), ``-(w - w0) / s^2`` to
     their gradient (checked against a finite difference of the loss) and ``1 / s^2`` to
@@ -89,7 +89,6 @@ def test_wavefront_prior_adds_exactly_its_gaussian_term(tmp_path, monkeypatch):
     from amigo.model.image import FilterSetup, Instrument
     from amigo.model.visibility import UVGrid
 
-    monkeypatch.setenv("AMIGO_CACHE_DIR", str(tmp_path))
     rng = np.random.default_rng(3)
     w0 = rng.normal(0, 10.0, (7, 10))
     # The small configuration the fitting tests share (3 wavelengths, 27 x 27 knots at
