@@ -66,37 +66,36 @@ def pytest_runtest_logreport(report):
 
 
 #: Seconds each of the longest test files takes on one worker (2-core AMD EPYC,
-#: 2026-11-27, -n 2, measured with --junitxml; the manifest and fuzz files estimated after
-#: they were made smaller). pytest-xdist (--dist loadfile) hands whole files to the two
-#: workers in collection order, so a long file collected last runs alone at the end while
+#: 2026-11-27, -n 2, measured with --junitxml at 3917eb3 and the tests' changes after it).
+#: pytest-xdist (--dist loadfile) hands whole files to the two workers in collection order, so a long file collected last runs alone at the end while
 #: the other worker idles (the Dask manifest file, 513 s, did); collecting the longest
 #: first (longest-processing-time-first scheduling) keeps both busy to the end. Only the
 #: order depends on these figures: a stale or missing entry costs time, never a test.
 LONG_FILES_S = {
-    "test_manifest.py": 400,
-    "test_fit_outcomes.py": 330,
-    "test_cli_demo.py": 244,
-    "test_ramp_fit.py": 237,
-    "test_first_group_cli.py": 208,
-    "test_fit_synthetic.py": 189,
-    "test_calibration.py": 177,
-    "test_api.py": 160,
-    "test_cli_train.py": 152,
-    "test_train_level2.py": 145,
-    "test_companions_search.py": 135,
-    "test_newton.py": 100,
-    "test_train_sharding.py": 99,
+    "test_fit_outcomes.py": 464,
+    "test_manifest.py": 340,
+    "test_cli_demo.py": 248,
+    "test_first_group_cli.py": 236,
+    "test_ramp_fit.py": 207,
+    "test_calibration.py": 161,
+    "test_cli_train.py": 141,
+    "test_companions_search.py": 140,
+    "test_fit_synthetic.py": 139,
+    "test_train_level2.py": 124,
     "test_fuzz_inputs.py": 80,
-    "test_optics.py": 76,
-    "test_dark_residual.py": 62,
+    "test_train_sharding.py": 70,
+    "test_optics.py": 69,
+    "test_dark_residual.py": 56,
+    "test_newton.py": 47,
     "test_docs.py": 47,
-    "test_cli_detect.py": 46,
     "test_basemodel.py": 45,
-    "test_interrupted.py": 40,
-    "test_ramp.py": 40,
-    "test_detector_linear.py": 30,
-    "test_visibility.py": 29,
-    "test_pipeline_slope.py": 25,
+    "test_cli_detect.py": 39,
+    "test_interrupted.py": 38,
+    "test_api.py": 37,
+    "test_visibility.py": 35,
+    "test_ramp.py": 32,
+    "test_detector_linear.py": 22,
+    "test_pipeline_slope.py": 14,
 }
 
 
