@@ -67,9 +67,9 @@ def pytest_runtest_logreport(report):
 
 #: Seconds each of the longest test files takes on one worker (2-core AMD EPYC,
 #: 2026-11-27, -n 2, measured with --junitxml at 3917eb3 and the tests' changes after it).
-#: pytest-xdist (--dist loadfile) hands whole files to the two workers in collection order, so a long file collected last runs alone at the end while
-#: the other worker idles (the Dask manifest file, 513 s, did); collecting the longest
-#: first (longest-processing-time-first scheduling) keeps both busy to the end. Only the
+#: pytest-xdist (--dist loadfile) hands whole files to the two workers in collection
+#: order, so a long file collected last runs alone at the end while the other worker
+#: idles (the Dask manifest file, 513 s, did); collecting the longest first (longest-processing-time-first scheduling) keeps both busy to the end. Only the
 #: order depends on these figures: a stale or missing entry costs time, never a test.
 LONG_FILES_S = {
     "test_fit_outcomes.py": 464,
