@@ -36,10 +36,12 @@ def exposure_figure(image: ImageData, model: np.ndarray, stats: ExposureStats) -
     data = np.where(image.mask, image.data, np.nan)
     peak = np.nanmax(np.abs(data)) or 1.0
     stretch = dict(origin="lower", cmap="inferno", vmin=0.0, vmax=np.sqrt(peak))
-    for ax, values, title in ((axes[0], data, "data"), (axes[1], model, "model")):
+    for ax, cax, values, title in zip(
+        axes[:2], colorbar_axes[:2], (data, model), ("data", "model"), strict=True
+    ):
         im = ax.imshow(np.sqrt(np.clip(values, 0, None)), **stretch)
         ax.set_title(f"{title} (sqrt, DN/s)")
-        fig.colorbar(im, cax=colorbar_axes[0 if ax is axes[0] else 1])
+        fig.colorbar(im, cax=cax)
     z = np.where(image.mask, (image.data - model) / image.error, np.nan)
     lim = max(3.0, float(np.nanpercentile(np.abs(z), 99.5)))
     im = axes[2].imshow(z, origin="lower", cmap="RdBu_r", vmin=-lim, vmax=lim)
