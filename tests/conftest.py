@@ -69,8 +69,9 @@ def pytest_runtest_logreport(report):
 #: 2026-11-27, -n 2, measured with --junitxml at 3917eb3 and the tests' changes after it).
 #: pytest-xdist (--dist loadfile) hands whole files to the two workers in collection
 #: order, so a long file collected last runs alone at the end while the other worker
-#: idles (the Dask manifest file, 513 s, did); collecting the longest first (longest-processing-time-first scheduling) keeps both busy to the end. Only the
-#: order depends on these figures: a stale or missing entry costs time, never a test.
+#: idles (the Dask manifest file, 513 s, did); collecting the longest first
+#: (longest-processing-time-first scheduling) keeps both busy to the end. Only the order
+#: depends on these figures: a stale or missing entry costs time, never a test.
 LONG_FILES_S = {
     "test_fit_outcomes.py": 464,
     "test_manifest.py": 340,
@@ -100,11 +101,12 @@ LONG_FILES_S = {
 
 
 #: Files that compile the same programs as an earlier file of LONG_FILES_S and must not
-#: start beside it: each waits until that file has run a while. The two workers start
-#: with the first two files; had both been fits of the small level-2 configuration (3
-#: wavelengths, 27 x 27 knots), both would compile it cold at once (measured: the
-#: per-filter outcomes and the Dask manifest, 350 -> 441 s and 513 -> 542 s). Started
-#: third, the manifest finds the programs in the suite's compilation cache.
+#: start beside it. The two workers start with the first two files; had both been fits
+#: of the small level-2 configuration (3 wavelengths, 27 x 27 knots), both would compile
+#: it cold at once (measured: the per-filter outcomes and the Dask manifest, 350 -> 441 s
+#: and 513 -> 542 s). xdist queues a second file on each worker at the start (the third
+#: file on the first worker): third, the manifest runs after the per-filter outcomes on
+#: the same worker and finds the programs in the suite's compilation cache.
 AFTER = {"test_manifest.py": "test_cli_demo.py"}
 
 
