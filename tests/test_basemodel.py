@@ -329,3 +329,19 @@ def test_shipped_models_match_their_checksums_and_a_tampered_copy_is_refused(tmp
     assert hashlib.sha256(bytes(data)).hexdigest() not in sums.read_text()
     with pytest.raises(InputError, match="reinstall"):
         verify_checksum(Path(copy), tmp_path / CHECKSUMS_NAME)
+
+
+def test_strong_types_keep_every_value_and_drop_only_the_weak_flag():
+    # A model built from Python numbers holds weakly typed scalars; an optimiser's update
+    # returns strongly typed ones, and a compiled step keyed on the flag would compile
+    # twice. Training starts from the strongly typed model (amigo.training.trainer).
+    from amigo.model.optics.model import strong_types
+
+    model = BaseModel.create(BaseModelConfig(filters=("F430M",), shape=(8, 8)), linear=True)
+    before = [x for x in jax.tree.leaves(model) if isinstance(x, jax.Array)]
+    assert any(x.weak_type for x in before)  # the test has teeth
+    after = [x for x in jax.tree.leaves(strong_types(model)) if isinstance(x, jax.Array)]
+    assert not any(x.weak_type for x in after)
+    assert len(after) == len(before)
+    for a, b in zip(after, before, strict=True):
+        assert a.dtype == b.dtype and np.array_equal(np.asarray(a), np.asarray(b))

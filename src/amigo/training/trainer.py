@@ -92,6 +92,7 @@ from amigo.model.base import (
 )
 from amigo.model.detector.ramp import ChargeMigrationNetwork
 from amigo.model.detector.reset import Superbias
+from amigo.model.optics.model import strong_types
 from amigo.progress import step as report_step
 from amigo.solvers.natural_gradient import FisherMomentum
 from amigo.training.data import CHECKPOINT_FORMAT, History, TrainingData, TrainSettings, TrainState
@@ -165,6 +166,7 @@ class Trainer:
             base = base.for_level2()  # the model behind the pipeline
         elif base.config.data_level == "level2":
             raise InputError(where, "was trained on level-2 images: raw ramps need a ramp model")
+        base = strong_types(base)  # one compiled program per step function (see there)
         self.cache = base.pupil_cache() if cache is None else cache
         self.rng = np.random.default_rng(settings.seed)
         self.history = History()
