@@ -40,9 +40,9 @@ if "AMIGO_CACHE_DIR" not in os.environ:
 # What the `amigo` command sets before JAX starts (amigo.runtime): the tests that run a
 # command in this process and compare it with a child process (the Dask manifest) then
 # run under the same XLA flags.
-from amigo.runtime import reproducible_cpu  # noqa: E402  (imports neither JAX nor NumPy)
+from amigo.runtime import configure_xla  # noqa: E402  (imports neither JAX nor NumPy)
 
-reproducible_cpu()
+configure_xla()
 
 
 #: Tests slower than this are named, with their time, as they finish (a CI log that is cut

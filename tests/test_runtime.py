@@ -1,4 +1,5 @@
-"""amigo.runtime: the XLA flag that makes the CPU's matrix products reproducible."""
+"""amigo.runtime: the XLA flags that make the CPU's matrix products reproducible and its
+compilation faster."""
 
 from __future__ import annotations
 
@@ -6,7 +7,8 @@ import os
 import subprocess
 import sys
 
-from amigo.runtime import EIGEN_THREADS_FLAG, reproducible_cpu
+import amigo.runtime as runtime
+from amigo.runtime import EIGEN_THREADS_FLAG, FUSION_EMITTERS_FLAG, configure_xla, reproducible_cpu
 
 
 def test_the_flag_is_added_once_and_a_users_choice_wins(monkeypatch):
@@ -34,3 +36,42 @@ def test_it_says_whether_jax_will_read_it():
         [sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True
     )
     assert out.stdout.split() == ["True", "False"]
+
+
+def test_the_older_fusion_emitters_only_where_jaxlib_is_known(monkeypatch):
+    monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
+    monkeypatch.setattr(runtime, "_jaxlib_minor", lambda: (0, 10))
+    configure_xla()
+    configure_xla()
+    assert os.environ["XLA_FLAGS"].split() == [
+        "--xla_force_host_platform_device_count=2",
+        f"{FUSION_EMITTERS_FLAG}=false",
+        f"{EIGEN_THREADS_FLAG}=false",
+    ]
+    # A jaxlib whose XLA was not measured may not know the flag (XLA then stops the
+    # process): nothing is added.
+    monkeypatch.setenv("XLA_FLAGS", "")
+    monkeypatch.setattr(runtime, "_jaxlib_minor", lambda: (0, 99))
+    assert not runtime.fast_cpu_compile()
+    assert FUSION_EMITTERS_FLAG not in os.environ["XLA_FLAGS"]
+    monkeypatch.setenv("XLA_FLAGS", f"{FUSION_EMITTERS_FLAG}=true")  # a user's choice wins
+    assert runtime.fast_cpu_compile()
+    assert os.environ["XLA_FLAGS"] == f"{FUSION_EMITTERS_FLAG}=true"
+
+
+def test_the_installed_jaxlib_accepts_what_amigo_sets():
+    """A new process with amigo's flags starts JAX and computes (an unknown flag would
+    stop it); with the jaxlib of this environment the older emitters are asked for."""
+    code = (
+        "from amigo.runtime import configure_xla\n"
+        "configure_xla()\n"
+        "import os, jax.numpy as jnp\n"
+        "print(float(jnp.ones(3).sum()), os.environ['XLA_FLAGS'])\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True
+    )
+    assert out.stdout.split()[0] == "3.0"
+    known = runtime._jaxlib_minor() in runtime.FUSION_EMITTERS_JAXLIB
+    assert (FUSION_EMITTERS_FLAG in out.stdout) == known

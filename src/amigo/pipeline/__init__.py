@@ -44,15 +44,16 @@ from amigo.pipeline._manifest import ManifestResult, TargetOutcome, run_manifest
 from amigo.pipeline._process import ProcessResult, process
 from amigo.pipeline._run import RunResult, run
 from amigo.pipeline._train import TrainResult, train
-from amigo.runtime import reproducible_cpu
+from amigo.runtime import configure_xla
 
 PathLike = str | os.PathLike[str]
 
 # Compiled programs persist between processes for the API as for the commands (the cache
 # folder of :mod:`amigo.cachedir`; ``JAX_COMPILATION_CACHE_DIR=""`` turns it off).
 enable_compilation_cache()
-# Bitwise reproducible products where JAX has not started yet (amigo.runtime).
-reproducible_cpu()
+# Bitwise reproducible products and faster CPU compilation where JAX has not started
+# yet (amigo.runtime).
+configure_xla()
 
 __all__ = [
     "BasisReport",
