@@ -22,6 +22,15 @@ def test_the_flag_is_added_once_and_a_users_choice_wins(monkeypatch):
     assert os.environ["XLA_FLAGS"] == f"{EIGEN_THREADS_FLAG}=true"
 
 
+def _child(code: str) -> str:
+    """What ``python -c code`` prints, started without XLA_FLAGS (as a user's shell)."""
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    done = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True
+    )
+    return done.stdout
+
+
 def test_it_says_whether_jax_will_read_it():
     """Before JAX's first computation the flag applies; after it, JAX has read its flags."""
     code = (
@@ -31,11 +40,7 @@ def test_it_says_whether_jax_will_read_it():
         "float(jnp.ones(3).sum())\n"
         "print(before, reproducible_cpu())\n"
     )
-    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
-    out = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True
-    )
-    assert out.stdout.split() == ["True", "False"]
+    assert _child(code).split() == ["True", "False"]
 
 
 def test_the_older_fusion_emitters_only_where_jaxlib_is_known(monkeypatch):
@@ -68,10 +73,7 @@ def test_the_installed_jaxlib_accepts_what_amigo_sets():
         "import os, jax.numpy as jnp\n"
         "print(float(jnp.ones(3).sum()), os.environ['XLA_FLAGS'])\n"
     )
-    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
-    out = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True
-    )
-    assert out.stdout.split()[0] == "3.0"
+    out = _child(code)
+    assert out.split()[0] == "3.0"
     known = runtime._jaxlib_minor() in runtime.FUSION_EMITTERS_JAXLIB
-    assert (FUSION_EMITTERS_FLAG in out.stdout) == known
+    assert (FUSION_EMITTERS_FLAG in out) == known
