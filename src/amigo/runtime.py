@@ -54,13 +54,19 @@ def fast_cpu_compile() -> bool:
     there already (a user's choice wins) or the installed jaxlib is not one of
     :data:`FUSION_EMITTERS_JAXLIB`. Returns whether the flag is now in ``XLA_FLAGS``.
     """
-    flags = os.environ.get("XLA_FLAGS", "")
-    if FUSION_EMITTERS_FLAG in flags:
+    if FUSION_EMITTERS_FLAG in os.environ.get("XLA_FLAGS", ""):
         return True
     if _jaxlib_minor() not in FUSION_EMITTERS_JAXLIB:
         return False
-    os.environ["XLA_FLAGS"] = f"{flags} {FUSION_EMITTERS_FLAG}=false".strip()
+    _default_flag(FUSION_EMITTERS_FLAG, "false")
     return True
+
+
+def _default_flag(name: str, value: str) -> None:
+    """Append ``name=value`` to ``XLA_FLAGS`` unless ``name`` is there (a user's wins)."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    if name not in flags:
+        os.environ["XLA_FLAGS"] = f"{flags} {name}={value}".strip()
 
 
 def _jaxlib_minor() -> tuple[int, int] | None:
@@ -82,9 +88,7 @@ def reproducible_cpu() -> bool:
     its first computation starts a backend: returns whether the setting applies, i.e.
     no backend has started yet in this process.
     """
-    flags = os.environ.get("XLA_FLAGS", "")
-    if EIGEN_THREADS_FLAG not in flags:
-        os.environ["XLA_FLAGS"] = f"{flags} {EIGEN_THREADS_FLAG}=false".strip()
+    _default_flag(EIGEN_THREADS_FLAG, "false")
     return not _backend_started()
 
 
