@@ -100,6 +100,9 @@ def test_failures_are_reported_per_filter_and_runs_resume(inputs, tmp_path, monk
 
     out = tmp_path / "out"
     real = amigo.observables.extract.latent_information
+    # The OIFITS files' creation DATE is fixed (the child process inherits it): a run
+    # resumed after midnight must still write the uninterrupted run's bytes.
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "1700000000")
 
     def singular_in_f430m(fit, *args, **kwargs):
         if fit.setup.name == "F430M":

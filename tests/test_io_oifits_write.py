@@ -82,3 +82,22 @@ def test_oifits_round_trip(tmp_path):
     # Covariance: the closure phases' covariance read back from OI_CORR equals T C T^T.
     t = closure_matrix()
     np.testing.assert_allclose(t3.covariance, t @ cov[21:, 21:] @ t.T, rtol=1e-6)
+
+
+def test_creation_date_follows_source_date_epoch(monkeypatch):
+    """DATE is today (UTC) unless SOURCE_DATE_EPOCH fixes it (a run resumed after
+    midnight then writes the bytes of an uninterrupted one); a value that is not a
+    number of seconds is ignored, as the convention says."""
+    import datetime
+
+    from amigo.io.oifits_write import creation_date
+
+    monkeypatch.delenv("SOURCE_DATE_EPOCH", raising=False)
+    before = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d")
+    today = creation_date()
+    after = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d")
+    assert today in (before, after)
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", str(19_000 * 86_400 + 86_399))  # last second
+    assert creation_date() == "2022-01-08"
+    monkeypatch.setenv("SOURCE_DATE_EPOCH", "yesterday")
+    assert creation_date() in (before, after)

@@ -53,6 +53,23 @@ def _covariance_to_corr(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nda
     return i + 1, j + 1, corr[i, j]
 
 
+def creation_date() -> str:
+    """The file's creation date for the OIFITS ``DATE`` keyword, ``YYYY-MM-DD`` (UTC).
+
+    Today, unless ``SOURCE_DATE_EPOCH`` (the reproducible-builds convention: seconds since
+    1970-01-01 UTC) fixes it: then two runs on different days, or a run resumed after
+    midnight, write the same bytes.
+    """
+    epoch = os.environ.get("SOURCE_DATE_EPOCH", "").strip()
+    moment = _dt.datetime.now(_dt.UTC)
+    if epoch:
+        try:
+            moment = _dt.datetime.fromtimestamp(int(epoch), _dt.UTC)
+        except (ValueError, OverflowError, OSError):
+            pass  # not a number of seconds: the convention says to ignore it
+    return moment.strftime("%Y-%m-%d")
+
+
 def write_oifits(
     path: str | os.PathLike[str],
     *,
@@ -106,7 +123,7 @@ def write_oifits(
     h = primary.header
     h["CONTENT"] = "OIFITS2"
     h["ORIGIN"] = "amigo"
-    h["DATE"] = _dt.datetime.now(_dt.UTC).strftime("%Y-%m-%d")
+    h["DATE"] = creation_date()
     h["DATE-OBS"] = date
     h["TELESCOP"] = "JWST"
     h["INSTRUME"] = "NIRISS"
