@@ -4,9 +4,11 @@ filters of small simulated level-2 images).
 
 One sequence of runs on the same inputs, each building on the last:
 
-1. a fit whose F430M Hessians fail (injected: a singular matrix, what numpy raises) and
+1. a fit whose F430M solver fails (injected: a singular matrix, what numpy raises) and
    whose F480M has a calibrator with every pixel flagged: F480M is fitted without that
-   calibrator, F430M is reported failed, exit status 3, nothing for F430M written;
+   calibrator, F430M is reported failed, exit status 3, nothing for F430M written (the
+   later stages, the latent Hessians, covariances and kernel, turn the same errors into
+   the same record through the same ``amigo.errors.numerical``);
 2. the same command again: F480M is kept (its products are complete and record the same
    inputs), F430M is fitted;
 3. a fit of the same exposures killed (SIGKILL) after its first filter and run again:
@@ -96,25 +98,25 @@ def _products(out: Path) -> dict[str, bytes]:
 
 
 def test_failures_are_reported_per_filter_and_runs_resume(inputs, tmp_path, monkeypatch, capsys):
-    import amigo.observables.extract
+    from amigo.fitting.filter_fit import FilterFit
 
     out = tmp_path / "out"
-    real = amigo.observables.extract.latent_information
+    real = FilterFit.fit
     # The OIFITS files' creation DATE is fixed (the child process inherits it): a run
     # resumed after midnight must still write the uninterrupted run's bytes.
     monkeypatch.setenv("SOURCE_DATE_EPOCH", "1700000000")
 
     def singular_in_f430m(fit, *args, **kwargs):
-        if fit.setup.name == "F430M":
+        if fit.setup.name == "F430M":  # before any work: this filter's fit is not needed
             raise np.linalg.LinAlgError("Singular matrix")
         return real(fit, *args, **kwargs)
 
     # 1. F430M fails, F480M is fitted without its calibrator that has no usable pixel
-    monkeypatch.setattr(amigo.observables.extract, "latent_information", singular_in_f430m)
+    monkeypatch.setattr(FilterFit, "fit", singular_in_f430m)
     assert amigo_status(_args(inputs, out, flagged=True)) == 3
     err = capsys.readouterr().err
     assert "flagged_F480M_cal.fits: only 0 usable pixels" in err
-    assert "F430M: failed (latent Hessians: LinAlgError: Singular matrix)" in err
+    assert "F430M: failed (fit: LinAlgError: Singular matrix)" in err
     assert "Traceback" not in err
     summary = json.loads((out / "fit_summary.json").read_text())
     f430, f480 = summary["filters"]["F430M"], summary["filters"]["F480M"]
@@ -134,7 +136,7 @@ def test_failures_are_reported_per_filter_and_runs_resume(inputs, tmp_path, monk
     first = _products(out)
 
     # 2. the same command: F480M kept as it is, F430M fitted
-    monkeypatch.setattr(amigo.observables.extract, "latent_information", real)
+    monkeypatch.setattr(FilterFit, "fit", real)
     assert (
         amigo_status(_args(inputs, out, flagged=True)) == 3
     )  # the flagged calibrator is still out

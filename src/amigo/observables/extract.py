@@ -184,13 +184,16 @@ def extract_filter(
         f"{label}: {len(exposures)} exposures, {len(dict.fromkeys(e.target for e in exposures))} targets"
     )
     record = None
-    if detector is None:
-        fit = FilterFit(instrument, setup, exposures)
-        result = fit.fit(config, label=label)
-    else:
-        fit, result, record = fit_through_detector(
-            instrument, setup, exposures, config, detector, label
-        )
+    # The solvers' linear algebra (NumPy on the host) can meet a matrix without a result
+    # (eigh of a Fisher matrix gone non-finite): a failure of this filter, not of the run.
+    with numerical("fit"):
+        if detector is None:
+            fit = FilterFit(instrument, setup, exposures)
+            result = fit.fit(config, label=label)
+        else:
+            fit, result, record = fit_through_detector(
+                instrument, setup, exposures, config, detector, label
+            )
     step(
         f"{label}: {'converged' if result.converged else 'NOT converged'} after "
         f"{result.iterations} iterations (loss change {result.loss_change:.3g}, "
