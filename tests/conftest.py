@@ -66,37 +66,37 @@ def pytest_runtest_logreport(report):
 
 
 #: Seconds each of the longest test files takes on one worker (2-core AMD EPYC,
-#: 2026-11-27, -n 2, measured with --junitxml at 3917eb3 and the tests' changes after it).
+#: 2026-11-28, -n 2, measured with --junitxml at da978d4).
 #: pytest-xdist (--dist loadfile) hands whole files to the two workers in collection
 #: order, so a long file collected last runs alone at the end while the other worker
 #: idles (the Dask manifest file, 513 s, did); collecting the longest first
 #: (longest-processing-time-first scheduling) keeps both busy to the end. Only the order
 #: depends on these figures: a stale or missing entry costs time, never a test.
 LONG_FILES_S = {
-    "test_fit_outcomes.py": 464,
-    "test_manifest.py": 340,
-    "test_cli_demo.py": 248,
-    "test_first_group_cli.py": 236,
-    "test_ramp_fit.py": 207,
-    "test_calibration.py": 161,
-    "test_cli_train.py": 141,
-    "test_companions_search.py": 140,
-    "test_fit_synthetic.py": 139,
-    "test_train_level2.py": 124,
-    "test_fuzz_inputs.py": 80,
-    "test_train_sharding.py": 70,
-    "test_optics.py": 69,
-    "test_dark_residual.py": 56,
-    "test_newton.py": 47,
-    "test_docs.py": 47,
-    "test_basemodel.py": 45,
-    "test_cli_detect.py": 39,
-    "test_interrupted.py": 38,
-    "test_api.py": 37,
-    "test_visibility.py": 35,
-    "test_ramp.py": 32,
+    "test_fit_outcomes.py": 433,
+    "test_manifest.py": 336,
+    "test_cli_demo.py": 215,
+    "test_ramp_fit.py": 187,
+    "test_first_group_cli.py": 186,
+    "test_companions_search.py": 128,
+    "test_cli_train.py": 104,
+    "test_fit_synthetic.py": 96,
+    "test_fuzz_inputs.py": 89,
+    "test_train_sharding.py": 84,
+    "test_train_level2.py": 84,
+    "test_calibration.py": 77,
+    "test_dark_residual.py": 50,
+    "test_basemodel.py": 47,
+    "test_newton.py": 46,
+    "test_interrupted.py": 45,
+    "test_optics.py": 44,
+    "test_docs.py": 42,
+    "test_api.py": 38,
+    "test_cli_detect.py": 31,
+    "test_ramp.py": 28,
+    "test_visibility.py": 26,
     "test_detector_linear.py": 22,
-    "test_pipeline_slope.py": 14,
+    "test_pipeline_slope.py": 12,
 }
 
 
