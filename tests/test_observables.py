@@ -174,6 +174,25 @@ def test_discos_leave_out_directions_of_no_variance_and_fail_when_none_is_left()
         obs.discos(np.full(m, np.nan), c_sci, np.zeros(m), c_cal, kernel, to_knots)
 
 
+def test_numerical_errors_of_a_stage_become_its_failure_and_others_pass_through():
+    """``amigo.errors.numerical(stage)``, around the fit, the latent Hessians, their
+    covariances and the kernel (amigo.observables.extract): what NumPy raises for a
+    matrix without a result becomes that stage's NumericalFailure (the filter's
+    ``failed`` record); any other exception is a bug and is not hidden."""
+    import pytest
+
+    from amigo.errors import NumericalFailure, numerical
+
+    for error in (np.linalg.LinAlgError("Singular matrix"), FloatingPointError("overflow")):
+        with pytest.raises(NumericalFailure) as caught, numerical("latent Hessians"):
+            raise error
+        assert str(caught.value) == f"latent Hessians: {type(error).__name__}: {error}"
+    with pytest.raises(NumericalFailure, match=r"^fit: LinAlgError"), numerical("fit"):
+        np.linalg.inv(np.zeros((2, 2)))
+    with pytest.raises(KeyError), numerical("fit"):
+        raise KeyError("not numerical")
+
+
 def test_disco_signs_follow_the_data_not_the_eigensolver(monkeypatch):
     """An eigenvector's sign is arbitrary: whatever signs the eigensolver returns, each
     DISCO row's largest entry is positive, so a rerun whose last bits differ (and whose
