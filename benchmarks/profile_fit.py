@@ -234,18 +234,19 @@ def main() -> None:
         print(machine(args.platform), f"filters {' '.join(args.filters)}", flush=True)
         if args.wavelengths is not None:
             print(f"wavelengths per filter: {args.wavelengths}", flush=True)
-        labels = {"both": ("cold", "warm"), "cold": ("cold",), "warm": ("cold", "warm")}
-        for label in labels[args.runs]:
-            if args.runs == "warm" and label == "cold":
-                run_command([*fit, "--force"], cache, label, args.platform)  # fills the cache
-                continue
+        # A warm run needs the cold one before it (it fills the caches), shown or not.
+        for label in ("cold",) if args.runs == "cold" else ("cold", "warm"):
+            shown = args.runs in (label, "both")
             # Each table as soon as its run ends: a run cut short still reports the others.
             run = run_command([*fit, "--force"], cache, label, args.platform)
-            print_run(f"{label} fit", run)
+            if shown:
+                print_run(f"{label} fit", run)
             if not args.no_detect:
                 calvis = sorted(out.glob("*_calvis.fits"))
                 detect = ["detect", *map(str, calvis), "--out", str(out / "detect"), *extra]
-                print_run(f"{label} detect", run_command(detect, cache, label, args.platform))
+                run = run_command(detect, cache, label, args.platform)
+                if shown:
+                    print_run(f"{label} detect", run)
             sys.stdout.flush()
         if args.reference is not None:
             print()
