@@ -320,10 +320,10 @@ def compare(out: Path, reference: Path) -> None:
         same = np.sign(np.sum(a.disco_matrix * b.disco_matrix, axis=1))
         z = np.abs(same * a.values - b.values) / b.errors
         print(f"  {path.name:30s} DISCOs: max {z.max():.4f}, rms {np.sqrt(np.mean(z * z)):.4f}")
-    found = [
-        json.loads((d / "detect" / "companions.json").read_text()).get("companions", [])
-        for d in (out, reference)
-    ]
+    listed = [d / "detect" / "companions.json" for d in (out, reference)]
+    if not all(path.is_file() for path in listed):  # --no-detect, here or there
+        return
+    found = [json.loads(path.read_text()).get("companions", []) for path in listed]
     for a, b in zip(*found, strict=False):
         pairs = [("sep_mas", a["sep_mas"], b["sep_mas"], b["sep_err_mas"]),
                  ("pa_deg", a["pa_deg"], b["pa_deg"], b["pa_err_deg"])]  # fmt: skip

@@ -8,7 +8,13 @@ import subprocess
 import sys
 
 import amigo.runtime as runtime
-from amigo.runtime import EIGEN_THREADS_FLAG, FUSION_EMITTERS_FLAG, configure_xla, reproducible_cpu
+from amigo.runtime import (
+    EIGEN_THREADS_FLAG,
+    FUSION_EMITTERS_FLAG,
+    OPT_LEVEL_FLAG,
+    configure_xla,
+    reproducible_cpu,
+)
 
 
 def test_the_flag_is_added_once_and_a_users_choice_wins(monkeypatch):
@@ -46,13 +52,21 @@ def test_it_says_whether_jax_will_read_it():
 def test_the_older_fusion_emitters_only_where_jaxlib_is_known(monkeypatch):
     monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
     monkeypatch.setattr(runtime, "_jaxlib_minor", lambda: (0, 10))
+    monkeypatch.setattr(runtime, "_accelerator_plugin", lambda: False)
     configure_xla()
     configure_xla()
     assert os.environ["XLA_FLAGS"].split() == [
         "--xla_force_host_platform_device_count=2",
         f"{FUSION_EMITTERS_FLAG}=false",
+        f"{OPT_LEVEL_FLAG}=1",
         f"{EIGEN_THREADS_FLAG}=false",
     ]
+    # With a GPU's (or TPU's) plugin installed the optimisation level stays XLA's: the
+    # flag is not the CPU's alone.
+    monkeypatch.setenv("XLA_FLAGS", "")
+    monkeypatch.setattr(runtime, "_accelerator_plugin", lambda: True)
+    assert runtime.fast_cpu_compile()
+    assert os.environ["XLA_FLAGS"].split() == [f"{FUSION_EMITTERS_FLAG}=false"]
     # A jaxlib whose XLA was not measured may not know the flag (XLA then stops the
     # process): nothing is added.
     monkeypatch.setenv("XLA_FLAGS", "")
@@ -77,3 +91,4 @@ def test_the_installed_jaxlib_accepts_what_amigo_sets():
     assert out.split()[0] == "3.0"
     known = runtime._jaxlib_minor() in runtime.FUSION_EMITTERS_JAXLIB
     assert (FUSION_EMITTERS_FLAG in out) == known
+    assert (OPT_LEVEL_FLAG in out) == (known and not runtime._accelerator_plugin())
