@@ -102,7 +102,7 @@ LONG_FILES_S = {
 
 #: Files that compile the same programs as an earlier file of LONG_FILES_S and must not
 #: start beside it. The two workers start with the first two files; had both been fits
-#: of the small level-2 configuration (one wavelength, 27 x 27 knots), both would compile
+#: of the small level-2 configuration (3 wavelengths, 27 x 27 knots), both would compile
 #: it cold at once (measured: the per-filter outcomes and the Dask manifest, 350 -> 441 s
 #: and 513 -> 542 s). xdist queues a second file on each worker at the start (the third
 #: file on the first worker): third, the manifest runs after the per-filter outcomes on

@@ -94,20 +94,10 @@ def write_level2(
     return path
 
 
-#: The band's sampling of the tests whose subject is not the optics (what a run does with
-#: its inputs, its failures and its restarts): one wavelength, images and model alike.
-#: A small level-2 fit costs ~15 % less than at 3 wavelengths (70 against 83 s cold on 2
-#: cores), and the same configuration in all of them lets each find the others' compiled
-#: programs in the suite's cache.
-MONOCHROMATIC = 1
-
-
-def nominal_star(
-    filter_name: str = "F480M", flux_dn_s: float = 2e5, n_wavelengths: int = 3
-) -> np.ndarray:
+def nominal_star(filter_name: str = "F480M", flux_dn_s: float = 2e5) -> np.ndarray:
     """(80, 80) DN/s: a point source (0.03, -0.02 pixels off the reference position,
-    ``flux_dn_s`` entering the mask) through amigo's nominal instrument at
-    ``n_wavelengths`` wavelengths, with its nominal jitter; no noise."""
+    ``flux_dn_s`` entering the mask) through amigo's nominal instrument at 3 wavelengths,
+    with its nominal jitter; no noise."""
     import jax.numpy as jnp
 
     from amigo.model.image import (
@@ -118,7 +108,7 @@ def nominal_star(
         image_from_log_vis,
     )
 
-    instrument = Instrument.nominal(n_wavelengths=n_wavelengths)
+    instrument = Instrument.nominal(n_wavelengths=3)
     setup = FilterSetup.create(filter_name, instrument)
     exposure = ExposureParams(
         jnp.asarray([0.03, -0.02], jnp.float32),

@@ -101,11 +101,11 @@ def test_fit_and_detect_return_what_they_wrote(tmp_path):
     from matplotlib.figure import Figure
 
     from amigo.model.image import Instrument, save_instrument
-    from jwst_files import MONOCHROMATIC, nominal_star, write_level2
+    from jwst_files import nominal_star, write_level2
 
     model = tmp_path / "nominal.eqx"
-    save_instrument(Instrument.nominal(n_wavelengths=MONOCHROMATIC), model)
-    image = nominal_star("F480M", n_wavelengths=MONOCHROMATIC)
+    save_instrument(Instrument.nominal(n_wavelengths=3), model)
+    image = nominal_star("F480M")
     error = np.sqrt(np.maximum(image, 0.0) / 80.0 + 4.0)
     rng = np.random.default_rng(2)
     files = {

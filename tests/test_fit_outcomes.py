@@ -29,7 +29,7 @@ import numpy as np
 import pytest
 
 from cli_runs import amigo_status
-from jwst_files import MONOCHROMATIC, nominal_star, write_level2
+from jwst_files import nominal_star, write_level2
 
 pytestmark = pytest.mark.slow
 
@@ -38,18 +38,17 @@ FILTERS = ("F430M", "F480M")  # fitted in this order (sorted)
 
 @pytest.fixture(scope="module")
 def inputs(tmp_path_factory) -> dict[str, Path]:
-    """Level-2 images of a point source through amigo's nominal instrument (one
-    wavelength, as the model fitted), with photon and read noise; and a calibrator with
-    every pixel flagged."""
+    """Level-2 images of a point source through amigo's nominal instrument (3
+    wavelengths), with photon and read noise; and a calibrator with every pixel flagged."""
     from amigo.model.image import Instrument, save_instrument
 
     folder = tmp_path_factory.mktemp("in")
-    instrument = Instrument.nominal(n_wavelengths=MONOCHROMATIC)
+    instrument = Instrument.nominal(n_wavelengths=3)
     paths = {"model": folder / "nominal.eqx"}
     save_instrument(instrument, paths["model"])
     rng = np.random.default_rng(3)
     for filter_name in FILTERS:
-        image = nominal_star(filter_name, n_wavelengths=MONOCHROMATIC)
+        image = nominal_star(filter_name)
         error = np.sqrt(np.maximum(image, 0.0) / 80.0 + 4.0)
         for role, observation in (("sci", "001"), ("cal", "002")):
             name = f"{role}_{filter_name}"

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 from cli_runs import amigo_child, amigo_status
-from jwst_files import MONOCHROMATIC, nominal_star, write_level2
+from jwst_files import nominal_star, write_level2
 
 
 @pytest.fixture
@@ -109,7 +109,7 @@ def test_manifest_and_exposures_exclude_each_other(files, tmp_path, capsys):
 
 # ---------------------------------------------------------------------------- slow
 N_TARGETS = 3
-#: Small and fast: a one-wavelength instrument, a coarse uv grid, no NUTS, a short search.
+#: Small and fast: a 3-wavelength instrument, a coarse uv grid, no NUTS, a short search.
 OPTIONS = "[options]\nknots = 27\nknot_spacing = 0.5\nhmc = false\nrmax_mas = 300.0\n"
 
 
@@ -120,9 +120,9 @@ def program(tmp_path_factory) -> Path:
     from amigo.model.image import Instrument, save_instrument
 
     folder = tmp_path_factory.mktemp("program")
-    save_instrument(Instrument.nominal(n_wavelengths=MONOCHROMATIC), folder / "nominal.eqx")
+    save_instrument(Instrument.nominal(n_wavelengths=3), folder / "nominal.eqx")
     rng = np.random.default_rng(11)
-    image = nominal_star("F480M", n_wavelengths=MONOCHROMATIC)
+    image = nominal_star("F480M")
     error = np.sqrt(np.maximum(image, 0.0) / 80.0 + 4.0)
 
     def write(name: str, target: str, observation: str) -> str:
