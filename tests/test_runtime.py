@@ -67,6 +67,14 @@ def test_the_older_fusion_emitters_only_where_jaxlib_is_known(monkeypatch):
     monkeypatch.setattr(runtime, "_accelerator_plugin", lambda: True)
     assert runtime.fast_cpu_compile()
     assert os.environ["XLA_FLAGS"].split() == [f"{FUSION_EMITTERS_FLAG}=false"]
+    # A user's choice of one flag keeps theirs and does not stop the other.
+    monkeypatch.setenv("XLA_FLAGS", f"{FUSION_EMITTERS_FLAG}=true")
+    monkeypatch.setattr(runtime, "_accelerator_plugin", lambda: False)
+    assert runtime.fast_cpu_compile()
+    assert os.environ["XLA_FLAGS"].split() == [
+        f"{FUSION_EMITTERS_FLAG}=true",
+        f"{OPT_LEVEL_FLAG}=1",
+    ]
     # A jaxlib whose XLA was not measured may not know the flag (XLA then stops the
     # process): nothing is added.
     monkeypatch.setenv("XLA_FLAGS", "")

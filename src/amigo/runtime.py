@@ -62,16 +62,14 @@ def fast_cpu_compile() -> bool:
     there already (a user's choice wins) or the installed jaxlib is not one of
     :data:`FUSION_EMITTERS_JAXLIB`; with it, ``--xla_backend_optimization_level=1``
     unless an accelerator's JAX plugin is installed (:func:`_accelerator_plugin`).
-    Returns whether the emitters' flag is now in ``XLA_FLAGS``.
+    Each flag a user set keeps the user's value. Returns whether the emitters' flag is
+    now in ``XLA_FLAGS``.
     """
-    if FUSION_EMITTERS_FLAG in os.environ.get("XLA_FLAGS", ""):
-        return True
-    if _jaxlib_minor() not in FUSION_EMITTERS_JAXLIB:
-        return False
-    _default_flag(FUSION_EMITTERS_FLAG, "false")
-    if not _accelerator_plugin():
-        _default_flag(OPT_LEVEL_FLAG, "1")
-    return True
+    if _jaxlib_minor() in FUSION_EMITTERS_JAXLIB:
+        _default_flag(FUSION_EMITTERS_FLAG, "false")
+        if not _accelerator_plugin():
+            _default_flag(OPT_LEVEL_FLAG, "1")
+    return FUSION_EMITTERS_FLAG in os.environ.get("XLA_FLAGS", "")
 
 
 def _accelerator_plugin() -> bool:
