@@ -215,3 +215,35 @@ def test_a_given_fisher_matrix_saves_jacobians_and_changes_no_optimum():
     assert found.converged and found.fisher is not None
     assert stale.jacobians and stale.jacobians[-1]  # confirmed by float64 Jacobians
     np.testing.assert_allclose(found.vector, reference.vector, rtol=1e-5)
+
+
+def test_jacobian_batch_is_the_default_unless_the_environment_sets_it(monkeypatch):
+    from amigo.fitting import newton
+
+    monkeypatch.delenv(newton.JVP_BATCH_ENV, raising=False)
+    assert newton.jvp_batch() == newton.JVP_BATCH
+    monkeypatch.setenv(newton.JVP_BATCH_ENV, "48")
+    assert newton.jvp_batch() == 48
+    for bad in ("0", "-3", "many"):
+        monkeypatch.setenv(newton.JVP_BATCH_ENV, bad)
+        with pytest.raises(ValueError, match=newton.JVP_BATCH_ENV):
+            newton.jvp_batch()
+
+
+@pytest.mark.parametrize("batch", ["3", "64"])
+def test_jacobian_columns_do_not_depend_on_the_batch(monkeypatch, batch):
+    """A batch larger than a block, or one that does not divide it: the same columns as
+    ``jax.jacfwd`` (the blocks' batches are shared evenly and padded with zero tangents)."""
+    import jax
+
+    from amigo.fitting import newton
+
+    monkeypatch.setenv(newton.JVP_BATCH_ENV, batch)
+    x = jnp.linspace(-1.0, 1.0, 11)
+    weights = jnp.arange(33.0).reshape(3, 11) / 10.0
+
+    def function(v):
+        return jnp.sin(weights @ v) * jnp.sum(v**2)
+
+    columns = newton._columns(function, x, (4,))
+    np.testing.assert_allclose(columns, jax.jacfwd(function)(x).T, rtol=1e-5, atol=1e-6)

@@ -43,6 +43,7 @@ being computed again (:func:`amigo.fitting.filter_fit.latent_information`).
 from __future__ import annotations
 
 import itertools
+import os
 import time
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
@@ -70,10 +71,31 @@ from amigo.solvers.levenberg_marquardt import minimise
 if TYPE_CHECKING:
     from amigo.model.optics import NRMOptics
 
-#: Columns differentiated together (memory: each holds the visibility FFTs of one image).
-#: Measured (2-core CPU, a warm one-filter fit of real data): 16 -> 103 s and 2.1 GB peak,
-#: 8 -> 80 s and 1.75 GB, 4 -> 85 s and 1.63 GB (smaller batches stay in cache).
+#: Columns differentiated together on a CPU (memory: each holds the visibility FFTs of one
+#: image). Measured (2-core CPU, a warm one-filter fit of real data): 16 -> 103 s and 2.1 GB
+#: peak, 8 -> 80 s and 1.75 GB, 4 -> 85 s and 1.63 GB (smaller batches stay in cache).
 JVP_BATCH = 8
+#: Environment variable that sets the batch (benchmarks/jacobian_batch.py). On a GPU each
+#: batch is a step of a sequential loop whose kernels may be too small to fill the device,
+#: so larger batches may pay there; not yet measured (docs/performance.md).
+JVP_BATCH_ENV = "AMIGO_JVP_BATCH"
+
+
+def jvp_batch() -> int:
+    """Jacobian columns per batch: :data:`JVP_BATCH`, or ``$AMIGO_JVP_BATCH`` when set.
+    Read when a Jacobian is traced: a compiled Jacobian keeps the batch it was traced with."""
+    value = os.environ.get(JVP_BATCH_ENV, "").strip()
+    if not value:
+        return JVP_BATCH
+    try:
+        batch = int(value)
+    except ValueError:
+        batch = 0
+    if batch < 1:
+        raise ValueError(f"{JVP_BATCH_ENV} must be a positive integer, got {value!r}")
+    return batch
+
+
 #: Standard deviations of the Gaussian prior on ``[rotation_deg, anisotropy, skew_deg,
 #: scale]`` around the instrument's geometry: 1 deg, 1 %, 1 deg, 1 % (the real data and
 #: an independent simulation move them by < 0.5 deg and < 0.5 %; one calibrator exposure
@@ -409,7 +431,10 @@ def _columns(function, x: Array, blocks: tuple[int, ...] = ()) -> Array:
 
         _, linear = jax.linearize(of_block, x[lo:hi])
         size = hi - lo
-        batch = min(JVP_BATCH, size)
+        # As many steps as the batch size asks for, shared evenly: the least padding
+        # (71 columns at 64 are 2 steps of 36, not 2 of 64).
+        steps = -(-size // jvp_batch())
+        batch = -(-size // steps)
         padded = -(-size // batch) * batch
         tangents = jnp.eye(padded, size, dtype=x.dtype)  # rows size.. are zero
         parts.append(jax.lax.map(linear, tangents, batch_size=batch)[:size])
