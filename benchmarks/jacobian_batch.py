@@ -76,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:
         module.local_jacobian = timed("local", newton.local_jacobian)  # type: ignore[assignment]
         module.optics_jacobian = timed("optics", newton.optics_jacobian)  # type: ignore[assignment]
 
-    options = [*(["--model", args.model] if args.model else [])]
+    options = ["--model", args.model] if args.model else []
     if args.knots is not None:
         options += ["--knots", str(args.knots)]
     if args.knot_spacing is not None:
