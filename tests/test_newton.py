@@ -213,7 +213,7 @@ def test_a_given_fisher_matrix_saves_jacobians_and_changes_no_optimum():
     stale.jacobians.clear()
     found = minimise(stale, start, _Settings(), "approximate", approximate, exact=False)
     assert found.converged and found.fisher is not None
-    assert stale.jacobians and stale.jacobians[-1]  # confirmed by float64 Jacobians
+    assert stale.jacobians and stale.jacobians[-1]  # confirmed by float64 normal equations
     np.testing.assert_allclose(found.vector, reference.vector, rtol=1e-5)
 
 

@@ -27,8 +27,8 @@ By default, damped Gauss-Newton (Levenberg-Marquardt) steps with the full Fisher
 of every exposure (:mod:`amigo.fitting.newton`): the calibrators first, with the wavefront, then
 the science exposures with the wavefront held at the calibrators' optimum; between two
 sets of Jacobians, chord steps reuse the Fisher matrix with fresh gradients; the
-Jacobians that confirm convergence are float64 and their Fisher matrix gives the latent
-Hessians. The natural gradient with the full Fisher matrix and a unit step *is* the
+Jacobians that confirm convergence (float32 Jacobians, float64 residuals and sums) give
+the latent Hessians. The natural gradient with the full Fisher matrix and a unit step *is* the
 Gauss-Newton step.
 
 Optionally (``FitConfig.max_iterations > 0``) a first-order stage runs before it:
@@ -45,7 +45,7 @@ Uncertainties
 -------------
 :func:`latent_estimates` returns, per target, the latent visibilities and their
 covariance: the inverse of the Hessian of ``-log L`` with respect to them at the
-optimum, in float64, in its Gauss-Newton form ``sum_e J_e^T W_e J_e`` (the Fisher
+optimum, summed in float64, in its Gauss-Newton form ``sum_e J_e^T W_e J_e`` (the Fisher
 information; the dropped term is weighted by residuals and has zero expectation). The
 Jacobians are computed exactly by forward-mode differentiation of the model.
 """
@@ -84,10 +84,10 @@ from amigo.model.image import (
     OpticsParams,
     SourceParams,
     filter_psfs,
-    float64,
     image_from_psfs,
     locate,
 )
+from amigo.model.optics import cast as cast_floats
 from amigo.progress import step
 
 FIT_ROLES = ("science", "calibrator")
@@ -189,10 +189,10 @@ class FilterFitResult:
     seconds
         Wall time of the fit.
     fisher, exact_exposures
-        The float64 Fisher matrix of the global parameter vector
+        The Fisher matrix of the global parameter vector
         (:class:`amigo.fitting.newton.Layout`) at ``params`` summed over the exposures
         ``exact_exposures``, whose convergence the Levenberg-Marquardt finish confirmed
-        with float64 Jacobians there (``None`` and ``()`` if none):
+        with float64 residuals there (``None`` and ``()`` if none):
         :func:`latent_information` reads their latent Hessians from it.
     last_fisher
         The Levenberg-Marquardt finish's last Fisher matrix (float32 or float64, at or
@@ -836,12 +836,12 @@ def latent_information(
 ) -> LatentInformation:
     """Hessians of ``-log L`` w.r.t. the latent visibilities and the nuisance cross terms.
 
-    Everything is evaluated in float64 (``jax.enable_x64``): the model, its Jacobians
-    (forward mode, exact) and the sums. Covariances use the Hessians at the optimum; the
-    kernel's terms are taken at the calibrators' point-source state (see
-    :class:`LatentInformation`). ``fisher``: the float64 Fisher matrix of the global
-    vector at ``params`` summed over ``exact_exposures`` (:attr:`FilterFitResult.fisher`):
-    the latent blocks of those exposures' targets are read from it, the others computed.
+    The Jacobians (forward mode, exact) are float32 and every sum float64, as in the
+    solver (:mod:`amigo.fitting.newton`, "Precision"). Covariances use the Hessians
+    at the optimum; the kernel's terms are taken at the calibrators' point-source state
+    (see :class:`LatentInformation`). ``fisher``: the Fisher matrix of the global vector
+    at ``params`` summed over ``exact_exposures`` (:attr:`FilterFitResult.fisher`): the
+    latent blocks of those exposures' targets are read from it, the others computed.
     """
     start = time.perf_counter()
     n = params.sources.amp.shape[1] + params.sources.phase.shape[1]
@@ -850,43 +850,43 @@ def latent_information(
     cross = np.zeros((n, len(names)))
     cal_hessian = np.zeros((n, n))
     w = np.asarray(fit.pixels.inverse_sigma, dtype=np.float64) ** 2
-    with jax.enable_x64(True):
-        instrument, setup, params64 = float64((fit.instrument, fit.setup, params))
-        point = eqx.tree_at(
-            lambda p: (p.sources.amp, p.sources.phase),
-            params64,
-            (jnp.zeros_like(params64.sources.amp), jnp.zeros_like(params64.sources.phase)),
-        )
-        source = np.asarray(fit.source_index)
-        known = set()  # targets whose every exposure is in `fisher`
-        if fisher is not None:
-            layout = Layout.of(params)
-            for s in range(len(fit.targets)):
-                members = np.nonzero(source == s)[0]
-                if set(members.tolist()) <= set(exact_exposures):
-                    latent = layout.local(int(members[0]), s)[N_LOCAL_SCALARS:]
-                    hessian[s] = fisher[np.ix_(latent, latent)]
-                    known.add(s)
-        for e in range(fit.n_exposures):
-            if source[e] not in known:
-                step(f"{label}: Hessian of {fit.exposures[e].name} ({n} latent visibilities)")
-                jac = np.asarray(fit.latent_jacobian(params64, e, instrument, setup))
-                jac = jac.reshape(n, -1)
-                hessian[fit.source_index[e]] += (jac * w[e].ravel()) @ jac.T
-            if fit.is_calibrator[e]:
-                step(f"{label}: kernel Jacobians of {fit.exposures[e].name} (point source)")
-                local, wave = fit.local_jacobians(point, e, instrument, setup, wavefront=True)
-                assert wave is not None  # wavefront=True returns the optics block
-                jac0 = np.asarray(local[N_LOCAL_SCALARS:]).reshape(n, -1)
-                # Columns in the order of nuisance_names(): Zernikes, log-flux, slope,
-                # defocus, jitter (the instrument block is [Zernikes, defocus, geometry]).
-                n_zernike = params.optics.zernikes_nm.size
-                zernikes, defocus = wave[:n_zernike], wave[n_zernike : n_zernike + 1]
-                jitter = local[JITTER_INDEX : JITTER_INDEX + 1]
-                nuis = np.concatenate([zernikes, local[2:4], defocus, jitter])
-                nuis = np.asarray(nuis).reshape(len(names), -1)
-                cross += (jac0 * w[e].ravel()) @ nuis.T
-                cal_hessian += (jac0 * w[e].ravel()) @ jac0.T
+    # The fit's own float32 instrument and setup: the programs the solver compiled.
+    instrument, setup, params32 = fit.instrument, fit.setup, cast_floats(params, jnp.float32)
+    point = eqx.tree_at(
+        lambda p: (p.sources.amp, p.sources.phase),
+        params32,
+        (jnp.zeros_like(params32.sources.amp), jnp.zeros_like(params32.sources.phase)),
+    )
+    source = np.asarray(fit.source_index)
+    known = set()  # targets whose every exposure is in `fisher`
+    if fisher is not None:
+        layout = Layout.of(params)
+        for s in range(len(fit.targets)):
+            members = np.nonzero(source == s)[0]
+            if set(members.tolist()) <= set(exact_exposures):
+                latent = layout.local(int(members[0]), s)[N_LOCAL_SCALARS:]
+                hessian[s] = fisher[np.ix_(latent, latent)]
+                known.add(s)
+    for e in range(fit.n_exposures):
+        if source[e] not in known:
+            step(f"{label}: Hessian of {fit.exposures[e].name} ({n} latent visibilities)")
+            jac = np.asarray(fit.latent_jacobian(params32, e, instrument, setup), np.float64)
+            jac = jac.reshape(n, -1)
+            hessian[fit.source_index[e]] += (jac * w[e].ravel()) @ jac.T
+        if fit.is_calibrator[e]:
+            step(f"{label}: kernel Jacobians of {fit.exposures[e].name} (point source)")
+            local, wave = fit.local_jacobians(point, e, instrument, setup, wavefront=True)
+            assert wave is not None  # wavefront=True returns the optics block
+            jac0 = np.asarray(local[N_LOCAL_SCALARS:], np.float64).reshape(n, -1)
+            # Columns in the order of nuisance_names(): Zernikes, log-flux, slope,
+            # defocus, jitter (the instrument block is [Zernikes, defocus, geometry]).
+            n_zernike = params.optics.zernikes_nm.size
+            zernikes, defocus = wave[:n_zernike], wave[n_zernike : n_zernike + 1]
+            jitter = local[JITTER_INDEX : JITTER_INDEX + 1]
+            nuis = np.concatenate([zernikes, local[2:4], defocus, jitter])
+            nuis = np.asarray(nuis, np.float64).reshape(len(names), -1)
+            cross += (jac0 * w[e].ravel()) @ nuis.T
+            cal_hessian += (jac0 * w[e].ravel()) @ jac0.T
     return LatentInformation(hessian, cross, cal_hessian, time.perf_counter() - start)
 
 

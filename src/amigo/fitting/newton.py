@@ -35,9 +35,23 @@ Cost
 ----
 A set of Jacobians (~1100 forward-mode columns per exposure) costs seconds; a gradient
 (one reverse-mode pass over all exposures) a fraction of a second: hence the solver's
-chord steps. When they converge, the float64 Fisher matrix at the final point comes back
-with the result, and the Hessians of the latent visibilities are read from it instead of
+chord steps. When they converge, the Fisher matrix at the final point comes back with
+the result, and the Hessians of the latent visibilities are read from it instead of
 being computed again (:func:`amigo.fitting.filter_fit.latent_information`).
+
+Precision
+---------
+The model, its residuals and the reverse-mode gradient run in float32 until the solver
+expects convergence, then in float64: float32 rounding of a model image (~1e-7 of its
+peak, ~1e-4 sigma in a bright pixel, and correlated with the image's structure) sets a
+floor of about one chi2 unit per exposure on the Newton decrement ``g^T F^+ g`` of a
+1000-parameter fit, which the convergence test reads. The Jacobians are float32 always,
+with every product and sum of ``F = J^T W J`` and ``g = J^T W r`` taken in float64: a
+relative error of ~1e-7 in the entries of ``J`` moves ``g`` by ~1e-7 of itself and the
+Fisher matrix by ~1e-7 of its norm, far below what a step, the decrement or a covariance
+can see (the fits' latent Hessians agree with a float64 evaluation to ~1e-5 of their
+largest entry, tests/test_fit_synthetic.py). A float64 Jacobian would be compiled a
+second time (~10 s of XLA per configuration on a 2-core CPU) and run at half the speed.
 """
 
 from __future__ import annotations
@@ -149,8 +163,9 @@ class NewtonConfig:
         Most steps taken with the Fisher matrix of the last Jacobians and fresh gradients
         before new Jacobians are computed (0: plain Levenberg-Marquardt).
     float64_check
-        Evaluate the Jacobians that are expected to confirm convergence in float64 (and
-        return their Fisher matrix, see :class:`NewtonResult`).
+        Evaluate the model and residuals of the normal equations that are expected to
+        confirm convergence in float64, and from then on (and return their Fisher matrix,
+        see :class:`NewtonResult`; the Jacobians stay float32, module notes).
     wavefront_prior_nm
         Standard deviation (nm) of an independent Gaussian prior on every Zernike
         coefficient and the defocus, centred on the instrument's own wavefront (the base
@@ -185,8 +200,8 @@ class NewtonResult:
     reused Fisher matrix. ``loss`` is ``L`` of all exposures at the end, ``loss_change``
     the fall of ``L`` per exposure over the last iteration of the last stage.
 
-    ``fisher`` is the float64 Fisher matrix ``F`` of the global vector (:class:`Layout`)
-    from the float64 Jacobians that confirmed convergence, summed over the exposures
+    ``fisher`` is the Fisher matrix ``F`` of the global vector (:class:`Layout`) from the
+    Jacobians that confirmed convergence with float64 residuals, summed over the exposures
     ``exact_exposures`` of those stages (``None`` if none): evaluated one undamped
     Gauss-Newton step (a fraction of a sigma) before ``params``
     (:func:`amigo.solvers.levenberg_marquardt.minimise`).
@@ -525,9 +540,9 @@ class _Problem:
 
     ``members`` are the exposures in this problem (the solver fits the calibrators, then
     the science exposures; see :func:`levenberg_marquardt`). ``float64`` switches the
-    model, its gradients and Jacobians to 64-bit (the solver does so near the optimum,
-    where float32 rounding of the loss and of the Jacobians hides the last fractions of
-    chi2 that the convergence test asks about).
+    model, its residuals and gradients to 64-bit (the solver does so near the optimum,
+    where float32 rounding of the loss hides the last fractions of chi2 that the
+    convergence test asks about); the Jacobians stay float32 (module notes, "Precision").
     """
 
     def __init__(
@@ -578,8 +593,8 @@ class _Problem:
         self.float64 = False
         self._models64: tuple[Instrument, FilterSetup] | None = None
 
-    def _models(self):
-        if not self.float64:
+    def _models(self, float64: bool | None = None):
+        if not (self.float64 if float64 is None else float64):
             return self.fit.instrument, self.fit.setup, jnp.float32
         if self._models64 is None:
             self._models64 = _float64((self.fit.instrument, self.fit.setup))
@@ -589,10 +604,11 @@ class _Problem:
         """Context in which the model runs in the current precision."""
         return jax.enable_x64(self.float64)
 
-    def _inputs(self, vector: np.ndarray):
+    def _inputs(self, vector: np.ndarray, float64: bool | None = None):
         """The model at ``vector``: the instrument (with the vector's geometry), setup,
-        dtype, instrument block, local vectors (E, n) and the PSF anchor."""
-        instrument, setup, dtype = self._models()
+        dtype, instrument block, local vectors (E, n) and the PSF anchor, in the current
+        precision (``float64``: in that one)."""
+        instrument, setup, dtype = self._models(float64)
         lay = self.layout
         block = jnp.asarray(vector[lay.optics], dtype)
         optics = _split_block(block, lay.zernike_shape)
@@ -654,8 +670,9 @@ class _Problem:
         return -grad
 
     def normal_equations(self, vector: np.ndarray, label: str) -> tuple[np.ndarray, np.ndarray]:
-        """Fisher matrix ``F`` and ``g = -grad L`` at ``vector`` (float64 sums of the
-        Jacobians and residuals of the current precision)."""
+        """Fisher matrix ``F`` and ``g = -grad L`` at ``vector``: float64 sums of float32
+        Jacobians and of the residuals of the current precision (see
+        :func:`float32_jacobians`)."""
         fit, lay = self.fit, self.layout
         n = lay.size
         fisher, grad = np.zeros((n, n)), np.zeros(n)
@@ -663,23 +680,25 @@ class _Problem:
             instrument, setup, _, wavefront, thetas, anchor = self._inputs(vector)
             psfs = self._psfs(instrument, setup, wavefront, anchor)
             r = self._residuals(instrument, setup, thetas, psfs, anchor)
-            for e in self.members:
-                precision = "float64 " if self.float64 else ""
-                step(f"{label}: {precision}Jacobian of {fit.exposures[e].name}")
-                jac = np.asarray(
-                    local_jacobian(thetas[e], instrument, setup, psfs, anchor), np.float64
-                ).reshape(len(self.locals[e]), -1)
-                index = self.locals[e]
-                if fit.is_calibrator[e]:
-                    jo = np.asarray(
-                        optics_jacobian(wavefront, thetas[e], instrument, setup, anchor),
-                        np.float64,
-                    ).reshape(len(lay.optics), -1)
-                    jac = np.concatenate([jac, jo])
-                    index = np.concatenate([index, lay.optics])
-                wj = jac * self.weight[e]  # whitened Jacobian
-                fisher[np.ix_(index, index)] += wj @ wj.T
-                grad[index] += wj @ r[e]
+        instrument, setup, _, wavefront, thetas, anchor = self._inputs(vector, float64=False)
+        psfs = self._psfs(instrument, setup, wavefront, anchor)
+        for e in self.members:
+            residuals = "float64 residuals, " if self.float64 else ""
+            step(f"{label}: {residuals}Jacobian of {fit.exposures[e].name}")
+            jac = np.asarray(
+                local_jacobian(thetas[e], instrument, setup, psfs, anchor), np.float64
+            ).reshape(len(self.locals[e]), -1)
+            index = self.locals[e]
+            if fit.is_calibrator[e]:
+                jo = np.asarray(
+                    optics_jacobian(wavefront, thetas[e], instrument, setup, anchor),
+                    np.float64,
+                ).reshape(len(lay.optics), -1)
+                jac = np.concatenate([jac, jo])
+                index = np.concatenate([index, lay.optics])
+            wj = jac * self.weight[e]  # whitened Jacobian
+            fisher[np.ix_(index, index)] += wj @ wj.T
+            grad[index] += wj @ r[e]
         fisher[lay.optics, lay.optics] += self.prior_precision
         grad[lay.optics] -= self.prior_precision * self._prior_offset(vector)
         fisher[np.diag_indices(n)] += self.jitter_precision
