@@ -41,17 +41,20 @@ being computed again (:func:`amigo.fitting.filter_fit.latent_information`).
 
 Precision
 ---------
-The model, its residuals and the reverse-mode gradient run in float32 until the solver
-expects convergence, then in float64: float32 rounding of a model image (~1e-7 of its
-peak, ~1e-4 sigma in a bright pixel, and correlated with the image's structure) sets a
-floor of about one chi2 unit per exposure on the Newton decrement ``g^T F^+ g`` of a
-1000-parameter fit, which the convergence test reads. The Jacobians are float32 always,
-with every product and sum of ``F = J^T W J`` and ``g = J^T W r`` taken in float64: a
-relative error of ~1e-7 in the entries of ``J`` moves ``g`` by ~1e-7 of itself and the
-Fisher matrix by ~1e-7 of its norm, far below what a step, the decrement or a covariance
-can see (the fits' latent Hessians agree with a float64 evaluation to ~1e-5 of their
-largest entry, tests/test_fit_synthetic.py). A float64 Jacobian would be compiled a
-second time (~10 s of XLA per configuration on a 2-core CPU) and run at half the speed.
+The model and its residuals ``r`` run in float32 until the solver expects convergence,
+then in float64: float32 rounding of a model image (~1e-7 of its peak, ~1e-4 sigma in a
+bright pixel, and correlated with the image's structure) sets a floor of about one chi2
+unit per exposure on the Newton decrement ``g^T F^+ g`` of a 1000-parameter fit, which
+the convergence test reads. The derivatives are linear in what they act on and need no
+such care: the Jacobians (forward mode) and the gradient's reverse pass are float32
+always, the latter pulling back the residuals of the current precision, and every
+product and sum of ``F = J^T W J`` and ``g = J^T W r`` is taken in float64. A relative
+error of ~1e-7 in the entries of ``J`` moves ``g`` by ~1e-7 of itself and the Fisher
+matrix by ~1e-7 of its norm, far below what a step, the decrement or a covariance can see
+(the fits' latent Hessians agree with a float64 evaluation to ~1e-5 of their largest
+entry, tests/test_fit_synthetic.py). Float64 derivatives would compile the three largest
+programs a second time (~15 s of XLA per configuration on a 2-core CPU) and run at half
+the speed.
 """
 
 from __future__ import annotations
@@ -500,10 +503,12 @@ def _images(thetas, instrument, setup, psfs, anchor) -> Float[Array, "e 80 80"]:
 
 
 @eqx.filter_jit
-def _gradient(thetas, block, instrument, setup, anchor, data, weight, members, calibrator):
+def _gradient(thetas, block, instrument, setup, anchor, pull, members, calibrator):
     """Gradient of ``L = sum_e |W_e (d_e - m_e)|^2 / 2`` over the exposures with
     ``members[e] = 1`` w.r.t. every exposure's local vector (E, n) and the instrument
-    block ``[Zernikes, defocus, geometry]``, by reverse mode.
+    block ``[Zernikes, defocus, geometry]``, by reverse mode, given ``pull`` (E, npix):
+    ``W_e^2 (d_e - m_e)``, the residuals weighted twice, from a model of any precision
+    (the reverse pass is linear in it; see the module notes, "Precision").
 
     Only exposures with ``calibrator[e] = 1`` inform the instrument block (science
     exposures see it as a constant, as in :meth:`amigo.fitting.filter_fit.FilterFit.models`).
@@ -524,12 +529,11 @@ def _gradient(thetas, block, instrument, setup, anchor, data, weight, members, c
         return jax.vmap(lambda t: _local_image(t, at_instrument, at_setup, psfs, anchor))(thetas)
 
     images, image_pullback = jax.vjp(images_of, thetas, psfs, block[n_wave:])
-    r = (data - images.reshape(data.shape)) * weight
-    # dL/dm_e = -mask_e W_e r_e, with the members' mask for the local vectors and the
-    # calibrators' for the instrument: both pulled back by one batched reverse pass (one
-    # copy of the model's backward graph, not two, to compile).
-    masks = jnp.stack([members, calibrator]).astype(r.dtype)
-    cotangents = (-masks[:, :, None] * (r * weight)[None]).reshape((2, *images.shape))
+    # dL/dm_e = -mask_e W_e^2 (d_e - m_e), with the members' mask for the local vectors
+    # and the calibrators' for the instrument: both pulled back by one batched reverse
+    # pass (one copy of the model's backward graph, not two, to compile).
+    masks = jnp.stack([members, calibrator]).astype(images.dtype)
+    cotangents = (-masks[:, :, None] * pull[None]).reshape((2, *images.shape))
     g_thetas, g_psfs, g_rest = jax.vmap(image_pullback)(cotangents)
     return g_thetas[0], jnp.concatenate([pullback(g_psfs[1])[0], g_rest[1]])
 
@@ -540,9 +544,9 @@ class _Problem:
 
     ``members`` are the exposures in this problem (the solver fits the calibrators, then
     the science exposures; see :func:`levenberg_marquardt`). ``float64`` switches the
-    model, its residuals and gradients to 64-bit (the solver does so near the optimum,
-    where float32 rounding of the loss hides the last fractions of chi2 that the
-    convergence test asks about); the Jacobians stay float32 (module notes, "Precision").
+    model and its residuals to 64-bit (the solver does so near the optimum, where float32
+    rounding of the loss hides the last fractions of chi2 that the convergence test asks
+    about); the derivatives stay float32 (module notes, "Precision").
     """
 
     def __init__(
@@ -592,6 +596,7 @@ class _Problem:
         self.member_mask = np.isin(np.arange(fit.n_exposures), self.members)
         self.float64 = False
         self._models64: tuple[Instrument, FilterSetup] | None = None
+        self._last_residuals: tuple[tuple[bytes, bool], np.ndarray] | None = None
 
     def _models(self, float64: bool | None = None):
         if not (self.float64 if float64 is None else float64):
@@ -632,36 +637,45 @@ class _Problem:
         """Instrument block minus the prior's centre."""
         return vector[self.layout.optics] - self.prior_centre
 
+    def _residuals_at(self, vector: np.ndarray) -> np.ndarray:
+        """:meth:`_residuals` at ``vector`` in the current precision (the last point's
+        kept: the solver asks for the gradient where it has just taken the loss)."""
+        key = (vector.tobytes(), self.float64)
+        if self._last_residuals is None or self._last_residuals[0] != key:
+            with self.precision():
+                instrument, setup, _, wavefront, thetas, anchor = self._inputs(vector)
+                psfs = self._psfs(instrument, setup, wavefront, anchor)
+                r = self._residuals(instrument, setup, thetas, psfs, anchor)
+            self._last_residuals = (key, r)
+        return self._last_residuals[1]
+
     def loss(self, vector: np.ndarray) -> float:
         """``L = chi2 / 2`` of the member exposures at ``vector`` plus the priors'
         ``sum (w - w0)^2 / (2 sigma^2)`` on the instrument block."""
-        with self.precision():
-            instrument, setup, _, wavefront, thetas, anchor = self._inputs(vector)
-            psfs = self._psfs(instrument, setup, wavefront, anchor)
-            r = self._residuals(instrument, setup, thetas, psfs, anchor)[self.members]
+        r = self._residuals_at(vector)[self.members]
         prior = 0.5 * float(np.sum(self.prior_precision * self._prior_offset(vector) ** 2))
         jitter = vector - self.jitter_centre
         prior += 0.5 * float(np.sum(self.jitter_precision * jitter**2))
         return 0.5 * float(np.sum(r * r)) + prior
 
     def gradient(self, vector: np.ndarray) -> np.ndarray:
-        """``g = -grad L`` at ``vector`` (one reverse-mode pass)."""
+        """``g = -grad L`` at ``vector``: one float32 reverse-mode pass of the residuals
+        of the current precision (module notes, "Precision")."""
         fit, lay = self.fit, self.layout
-        with self.precision():
-            instrument, setup, dtype, wavefront, thetas, anchor = self._inputs(vector)
-            g_thetas, g_wave = _gradient(
-                thetas,
-                wavefront,
-                instrument,
-                setup,
-                anchor,
-                jnp.asarray(self.data, dtype),
-                jnp.asarray(self.weight, dtype),
-                jnp.asarray(self.member_mask, dtype),
-                jnp.asarray(self.member_mask & np.asarray(fit.is_calibrator, bool), dtype),
-            )
-            g_thetas = np.asarray(g_thetas, np.float64)
-            g_wave = np.asarray(g_wave, np.float64)
+        pull = self._residuals_at(vector) * self.weight
+        instrument, setup, dtype, wavefront, thetas, anchor = self._inputs(vector, float64=False)
+        g_thetas, g_wave = _gradient(
+            thetas,
+            wavefront,
+            instrument,
+            setup,
+            anchor,
+            jnp.asarray(pull, dtype),
+            jnp.asarray(self.member_mask, dtype),
+            jnp.asarray(self.member_mask & np.asarray(fit.is_calibrator, bool), dtype),
+        )
+        g_thetas = np.asarray(g_thetas, np.float64)
+        g_wave = np.asarray(g_wave, np.float64)
         grad = np.zeros(lay.size)
         for e in self.members:
             np.add.at(grad, self.locals[e], g_thetas[e])
@@ -676,10 +690,7 @@ class _Problem:
         fit, lay = self.fit, self.layout
         n = lay.size
         fisher, grad = np.zeros((n, n)), np.zeros(n)
-        with self.precision():
-            instrument, setup, _, wavefront, thetas, anchor = self._inputs(vector)
-            psfs = self._psfs(instrument, setup, wavefront, anchor)
-            r = self._residuals(instrument, setup, thetas, psfs, anchor)
+        r = self._residuals_at(vector)
         instrument, setup, _, wavefront, thetas, anchor = self._inputs(vector, float64=False)
         psfs = self._psfs(instrument, setup, wavefront, anchor)
         for e in self.members:
