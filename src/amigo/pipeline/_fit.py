@@ -230,6 +230,7 @@ def fit(
     summary: dict[str, Any] = {}
     products = {}
     names = []
+    fitted_one = False  # a filter was fitted in this call
     for filter_name, items in fitted.items():
         instrument = fit_model.instrument(filter_name)
         names.append(instrument.name)
@@ -240,9 +241,12 @@ def fit(
             records = [r for r in records if r.get("status") != "excluded"]
             step(f"{filter_name}: products up to date in {out}, kept (--force fits again)")
         else:
+            if fitted_one:
+                _release_compiled_programs()
             record, records, product = _fit_filter(
                 instrument, filter_name, items, config, out, grid, detector_model, reset, key
             )
+            fitted_one = True
             if product is not None:
                 products[filter_name] = product
         filters_summary[filter_name] = record
@@ -263,6 +267,20 @@ def fit(
         status=exit_status(filters_summary, summary_exposures),
         products=products,
     )
+
+
+def _release_compiled_programs() -> None:
+    """Free the compiled programs of the filter fitted last, before the next filter's.
+
+    A filter's large programs serve no other filter: its name, the rows of its injection
+    band and its latent counts are compiled into them (docs/performance.md, "Programs
+    compiled twice, and what two filters share"). Kept, every filter's stayed in memory
+    to the end of the run. They stay in the disk cache; the few small programs that two
+    filters do share are read back from it.
+    """
+    import jax
+
+    jax.clear_caches()
 
 
 def _superbias(paths: tuple[Path, ...], level: str):
