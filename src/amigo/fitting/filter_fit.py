@@ -26,10 +26,10 @@ Optimiser
 By default, damped Gauss-Newton (Levenberg-Marquardt) steps with the full Fisher matrix
 of every exposure (:mod:`amigo.fitting.newton`): the calibrators first, with the wavefront, then
 the science exposures with the wavefront held at the calibrators' optimum; between two
-sets of Jacobians, chord steps reuse the Fisher matrix with fresh gradients; the
-Jacobians that confirm convergence (float32 Jacobians, float64 residuals and sums) give
-the latent Hessians. The natural gradient with the full Fisher matrix and a unit step *is* the
-Gauss-Newton step.
+sets of Jacobians, chord steps reuse the Fisher matrix with fresh gradients; the normal
+equations that confirm convergence (float32 Jacobians, float64 residuals and sums) give
+the latent Hessians. The natural gradient with the full Fisher matrix and a unit step
+*is* the Gauss-Newton step.
 
 Optionally (``FitConfig.max_iterations > 0``) a first-order stage runs before it:
 natural (Fisher-preconditioned) gradient descent. The gradient of ``L = chi2 / 2`` is
