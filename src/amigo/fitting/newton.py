@@ -686,8 +686,8 @@ class _Problem:
 
     def normal_equations(self, vector: np.ndarray, label: str) -> tuple[np.ndarray, np.ndarray]:
         """Fisher matrix ``F`` and ``g = -grad L`` at ``vector``: float64 sums of float32
-        Jacobians and of the residuals of the current precision (see
-        :func:`float32_jacobians`)."""
+        Jacobians and of the residuals of the current precision (module notes,
+        "Precision")."""
         fit, lay = self.fit, self.layout
         n = lay.size
         fisher, grad = np.zeros((n, n)), np.zeros(n)
