@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, TypeVar
 
@@ -45,6 +46,7 @@ from amigo.errors import InputError
 from amigo.io.files import require_file
 from amigo.model.detector.linear import LinearDetector
 from amigo.model.optics import LinearSpectrum, NRMOptics, cast
+from amigo.model.optics.aperture import HoleWindows
 from amigo.model.optics.propagation import integration_matrix
 from amigo.model.visibility import Injector, LatentBasis, UVGrid
 
@@ -393,6 +395,21 @@ def filter_psfs(
     dtype = setup.wavelengths_m.dtype
     anchor = jnp.zeros(2, dtype) if anchor_arcsec is None else anchor_arcsec
     return optics.psfs(setup.wavelengths_m, anchor)
+
+
+def filter_psf_tangents(
+    instrument: Instrument,
+    setup: FilterSetup,
+    optics_params: OpticsParams,
+    anchor_arcsec: Float[Array, " 2"],
+    windows: HoleWindows,
+) -> tuple[Float[Array, "l 264 264"], Callable[[Array], Float[Array, "j l 264 264"]]]:
+    """:func:`filter_psfs` and the function ``hole -> (n_zernike, n_lambda, 264, 264)``
+    of their derivatives with respect to that hole's Zernike coefficients (nm), by
+    :meth:`~amigo.model.optics.NRMOptics.wavefront_psf_tangents` (raw pistons: see
+    there)."""
+    optics = instrument.wide_optics(optics_params)
+    return optics.wavefront_psf_tangents(setup.wavelengths_m, anchor_arcsec, windows)
 
 
 def illuminance_from_psfs(

@@ -363,13 +363,48 @@ class Injector(eqx.Module):
         and the visibilities' band ``sum_l w_l OTF_l (V_l - 1)`` (ny_band, nx_band),
         complex, not yet shifted (``None`` without visibilities). The image is the first
         plus ``Re(E_y band E_x^T)`` with the matrices of :meth:`band_axes`."""
-        otf = self.otf(psfs)
-        weights = weights.astype(otf.real.dtype)
-        spectrum = self._shifted(jnp.tensordot(weights, otf, 1), shift_pix)
+        weights = weights.astype(psfs.dtype)
+        # The transform is linear: the point source's spectrum is the transform of the
+        # weighted PSF, one FFT instead of one per wavelength.
+        spectrum = self._shifted(self.otf(jnp.tensordot(weights, psfs, 1)), shift_pix)
         image = jnp.fft.irfft2(spectrum, s=(self.fft_size, self.fft_size))
         image = image[: self.psf_size, : self.psf_size]
-        excess = self._excess(otf, log_amp, phase)
-        return image, None if excess is None else jnp.tensordot(weights, excess, 1)
+        if log_amp is None and phase is None:
+            return image, None
+        excess = self._excess_on_band(self.band_otf(psfs), log_amp, phase)
+        return image, jnp.tensordot(weights, excess, 1)
+
+    def band_otf(self, psfs: Float[Array, "l n n"]) -> Array:
+        """(n_lambda, ny_band, nx_band) OTFs of the zero-padded PSFs on the band alone:
+        ``self._band(self.otf(psfs))``, computed as two real matrix products.
+
+        Why not the FFT: the band is a tenth of the rfft grid, and a discrete Fourier
+        transform restricted to it costs fewer operations than it sounds, at the speed
+        of matrix products. Measured on 2 CPU cores (nine 264^2 PSFs, float32): the
+        pass along x that keeps 76 of 265 columns takes 2.0 ms as a matrix product
+        against 11 ms as an FFT of every row, and the whole band 5 ms against 28 ms for
+        ``rfft2``. Every evaluation of the model pays it, and so does every column of
+        the instrument block's Jacobian (its tangents move the PSFs).
+
+        The phases ``2 pi k n / N`` are reduced modulo ``N`` in integers before the
+        cosine, as in :meth:`band_axes`.
+        """
+        size = psfs.shape[-1]
+        n = np.arange(size)
+        fx = np.arange(self.nx_band)
+        turns_x = ((fx[:, None] * n[None, :]) % self.fft_size) / self.fft_size
+        turns_y = ((np.asarray(self.rows)[:, None] * n[None, :]) % self.fft_size) / self.fft_size
+        dtype = psfs.dtype
+        # Along x: A = psf (cos - i sin)^T as one product with [cos | sin]^T.
+        cos_sin_x = np.concatenate([np.cos(2 * np.pi * turns_x), np.sin(2 * np.pi * turns_x)])
+        a = psfs @ jnp.asarray(cos_sin_x.T, dtype)  # (l, n, 2 nx): [A_re | -A_im]
+        # Along y: B = (C - i S) A with A = a_c - i a_s, as one product [C; S] @ [a_c | a_s].
+        cos_sin_y = np.concatenate([np.cos(2 * np.pi * turns_y), np.sin(2 * np.pi * turns_y)])
+        b = jnp.asarray(cos_sin_y, dtype) @ a  # (l, 2 ny, 2 nx)
+        ny, nx = len(self.rows), self.nx_band
+        c_c, c_s, s_c, s_s = b[:, :ny, :nx], b[:, :ny, nx:], b[:, ny:, :nx], b[:, ny:, nx:]
+        # (C - i S)(a_c - i a_s) = (C a_c - S a_s) - i (C a_s + S a_c).
+        return jax.lax.complex(c_c - s_s, -(c_s + s_c))
 
     def band_axes(
         self, shift_pix: Float[Array, 2] | None, start: int, size: int, dtype: DTypeLike
@@ -431,10 +466,14 @@ class Injector(eqx.Module):
         it), or ``None`` when no visibility is given."""
         if log_amp is None and phase is None:
             return None
+        return self._excess_on_band(self._band(otf), log_amp, phase)
+
+    def _excess_on_band(self, band_otf: Array, log_amp: Array | None, phase: Array | None) -> Array:
+        """``OTF (V - 1)`` from the OTFs on the band (n_lambda, ny_band, nx_band)."""
         log_amp = jnp.zeros(self.w_y.shape[-1:] * 2) if log_amp is None else log_amp
         phase = jnp.zeros_like(log_amp) if phase is None else phase
         amp, pha = self.log_visibility(log_amp, phase)
-        return self._band(otf) * jnp.expm1(amp + 1j * pha)
+        return band_otf * jnp.expm1(amp + 1j * pha)
 
     def _shifted(self, spectrum: Array, shift_pix: Array | None) -> Array:
         """``spectrum`` (..., fft, fft // 2 + 1) times the phase ramp of a ``(dx, dy)``

@@ -24,6 +24,7 @@ Conventions
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from typing import Protocol, cast
@@ -32,6 +33,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import numpy.typing as npt
 from jax import lax
 from jaxtyping import Array, Float
 
@@ -229,6 +231,55 @@ def zernike_basis(
         )
 
     return jax.vmap(one_hole)(jnp.asarray(centres_m))
+
+
+@dataclasses.dataclass(frozen=True)
+class HoleWindows:
+    """One square window of the pupil grid per hole, holding the support of that hole's
+    Zernikes (static, hashable: a compiled program's shapes).
+
+    A Zernike coefficient of one hole changes the pupil field only where that hole's
+    polynomials are non-zero, a disc of half the closest hole spacing, so its tangent
+    needs a transform of that window alone (:meth:`amigo.model.optics.NRMOptics.
+    wavefront_psf_tangents`): about 52 of the 256-pixel pupil's rows and columns.
+
+    Attributes
+    ----------
+    size
+        Pupil pixels per side of every window (the same for all holes, so that one
+        compiled step serves them all).
+    origins
+        ``(row, column)`` of each window's first pixel on the pupil grid, one per hole.
+    """
+
+    size: int
+    origins: tuple[tuple[int, int], ...]
+
+
+def hole_windows(basis: npt.ArrayLike) -> HoleWindows:
+    """The smallest common :class:`HoleWindows` holding the support of each hole's
+    Zernikes, from a concrete basis (h, j, ny, nx) (host arrays, not traced).
+
+    Each window is centred on its hole's support and moved inside the grid where it
+    would cross an edge; what lies in a window besides its own hole's support (other
+    holes' pixels) has a zero tangent, so a window may hold anything else.
+    """
+    support = np.any(np.asarray(basis) != 0, axis=1)  # (h, ny, nx)
+    ny, nx = support.shape[1:]
+    boxes = []
+    for mask in support:
+        rows, cols = np.nonzero(np.any(mask, axis=1))[0], np.nonzero(np.any(mask, axis=0))[0]
+        if rows.size == 0:  # no support: any window (its tangents are zero)
+            rows, cols = np.array([0]), np.array([0])
+        boxes.append((rows[0], rows[-1] + 1, cols[0], cols[-1] + 1))
+    size = max(max(r1 - r0, c1 - c0) for r0, r1, c0, c1 in boxes)
+    size = min(size, ny, nx)
+
+    def origin(lo: int, hi: int, n: int) -> int:
+        return int(np.clip(lo - (size - (hi - lo)) // 2, 0, n - size))
+
+    origins = tuple((origin(r0, r1, ny), origin(c0, c1, nx)) for r0, r1, c0, c1 in boxes)
+    return HoleWindows(int(size), origins)
 
 
 class Aperture(eqx.Module):
