@@ -217,6 +217,32 @@ def test_a_given_fisher_matrix_saves_jacobians_and_changes_no_optimum():
     np.testing.assert_allclose(found.vector, reference.vector, rtol=1e-5)
 
 
+def test_a_float64_gradient_confirms_convergence_with_the_last_matrix(monkeypatch):
+    """Chord steps that end near their Jacobians (``dx^T F dx`` about 2.3 tolerances,
+    within STALE_FISHER_REACH): the float64 gradient weighed by the last matrix confirms
+    convergence, with no float64 Jacobians; the optimum is the one float64 normal
+    equations confirm (a reach of 0 asks for them)."""
+    from amigo.solvers import levenberg_marquardt as lm
+
+    reference = lm.minimise(_Curve(), np.array([1.0, 1.0, 0.0]), _Settings(), "reference")
+    assert reference.fisher is not None
+    direction = np.array([1.0, -2.0, 0.5])
+    # _Settings' tolerance is 1e-6 (times chi2 / n = 1.1 here).
+    start = reference.vector + direction * np.sqrt(
+        2.5e-6 / (direction @ reference.fisher @ direction)
+    )
+    quick = _Curve()
+    found = lm.minimise(quick, start, _Settings(), "quick")
+    assert found.converged and found.fisher is not None and quick.float64
+    assert quick.jacobians == [False]  # one float32 evaluation, at the start
+    monkeypatch.setattr(lm, "STALE_FISHER_REACH", 0.0)
+    strict = _Curve()
+    confirmed = lm.minimise(strict, start, _Settings(), "strict")
+    assert confirmed.converged and confirmed.fisher is not None and strict.jacobians[-1]
+    np.testing.assert_allclose(found.vector, confirmed.vector, rtol=1e-7)
+    np.testing.assert_allclose(found.vector, reference.vector, rtol=1e-7)
+
+
 def test_jacobian_batch_is_the_default_unless_the_environment_sets_it(monkeypatch):
     from amigo.fitting import newton
 

@@ -26,6 +26,19 @@ asked for in float64 (``problem.float64 = True``): if they confirm convergence, 
 undamped step is taken with that exact matrix (a loss evaluation: it brings the vector
 quadratically close to the optimum, which the tolerance alone leaves up to ~1 sigma away
 along one direction), and the matrix is returned with the solution.
+
+Confirmation
+------------
+What the confirmation needs in float64 is the gradient: float32 rounding of the model
+puts a floor of about one chi2 unit per group on the decrement. The Fisher matrix only
+weighs it, and ``F`` barely changes over the distances the tolerance speaks of (the
+Jacobians' relative change over a displacement is the displacement over the scale on
+which the model is non-linear, orders of magnitude larger than a sigma for data at a
+useful signal to noise). So where the vector is still within :data:`STALE_FISHER_REACH`
+(``dx^T F dx`` per group, in tolerances) of the point of the last Jacobians, the float64
+gradient there is weighed by that matrix, and new Jacobians are evaluated only if it
+does not confirm convergence. The returned matrix is then the one of those Jacobians,
+and that distance is the one the caller's covariances are taken across.
 """
 
 from __future__ import annotations
@@ -47,6 +60,11 @@ CHORD_EFFICIENCY = 0.05
 #: smaller eigenvalues are set by rounding, and the gradient's rounding noise along them
 #: would dominate both the step and the Newton decrement.
 EIGEN_FLOOR = 1e-7
+#: How far (``dx^T F dx`` per group, in units of the tolerance) the vector may have moved
+#: from where the last Jacobians were evaluated for that Fisher matrix to confirm
+#: convergence with a float64 gradient alone (module notes, "Confirmation"): 4, i.e.
+#: within about 2 sigma (Mahalanobis) at the default tolerance.
+STALE_FISHER_REACH = 4.0
 
 
 class Problem(Protocol):
@@ -182,10 +200,22 @@ def minimise(
     converged = False
     iteration = chords = 0
     given, given_exact = fisher is not None, exact
-    exact = False  # whether `fisher` is float64 and was evaluated at `vector`
+    exact = False  # whether the last decrement came from float64 residuals at `vector`
+    # Where the Jacobians of `fisher` were evaluated (None: not known, e.g. a matrix
+    # given from another fit), and whether it has already been tried as a confirmation.
+    fisher_point = np.array(vector, copy=True) if given and exact else None
+    stale_tried = False
 
     def tolerance() -> float:
         return config.tolerance * max(1.0, 2.0 * loss / problem.n_values)
+
+    def near(matrix: np.ndarray | None, point: np.ndarray | None) -> bool:
+        """Whether ``vector`` is within :data:`STALE_FISHER_REACH` of ``point``, where
+        the Jacobians of ``matrix`` were evaluated (``dx^T F dx`` per group)."""
+        if matrix is None or point is None or not config.float64_check:
+            return False
+        dx = vector - point
+        return float(dx @ matrix @ dx) / n_groups <= STALE_FISHER_REACH * tolerance()
 
     def damped_step(solver, grad) -> float | None:
         """A Levenberg-Marquardt step from ``vector``: the fall of the loss, or None if
@@ -236,10 +266,19 @@ def minimise(
             grad = problem.gradient(vector)
             exact = problem.float64 and given_exact
             source = "the given Fisher matrix"
+        elif estimate < tolerance() and not stale_tried and near(fisher, fisher_point):
+            # Confirmation by a float64 gradient, weighed by the last Fisher matrix
+            # (module notes, "Confirmation").
+            to_float64()
+            grad = problem.gradient(vector)
+            exact = problem.float64
+            stale_tried = True
+            source = "float64 residuals, the last Fisher matrix"
         else:
             if estimate < tolerance():
                 to_float64()  # these Jacobians are expected to confirm convergence
             fisher, grad = problem.normal_equations(vector, label)
+            fisher_point, stale_tried = np.array(vector, copy=True), False
             exact = problem.float64
             source = "new Jacobians"
         start_loss = loss  # after any switch to float64: a fall, not a rounding change
@@ -250,12 +289,15 @@ def minimise(
             f"Newton decrement {decrement:.3g} per exposure ({source})"
         )
         if decrement < tolerance():
-            if not (given and iteration == 1 and not given_exact):
+            approximate = given and iteration == 1 and not given_exact
+            if not approximate and (exact or not config.float64_check):
                 converged = True
                 if exact:
                     final_step(solver, grad)
                 break
-            # An approximate matrix's decrement is an estimate: new Jacobians confirm.
+            # An approximate matrix's decrement is an estimate: new Jacobians confirm. A
+            # float32 one is confirmed by the float64 gradient at this point, weighed by
+            # the same matrix (the next iteration; module notes, "Confirmation").
             estimate = decrement
             continue
         if damped_step(solver, grad) is None:
