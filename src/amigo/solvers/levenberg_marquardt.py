@@ -205,6 +205,8 @@ def minimise(
     # given from another fit), and whether it has already been tried as a confirmation.
     fisher_point = np.array(vector, copy=True) if given and exact else None
     stale_tried = False
+    solver: FisherSolve | None = None  # the decomposition of `solved`
+    solved: np.ndarray | None = None
 
     def tolerance() -> float:
         return config.tolerance * max(1.0, 2.0 * loss / problem.n_values)
@@ -282,7 +284,9 @@ def minimise(
             exact = problem.float64
             source = "new Jacobians"
         start_loss = loss  # after any switch to float64: a fall, not a rounding change
-        solver = FisherSolve(fisher)
+        assert fisher is not None  # every branch above has one
+        if solver is None or solved is not fisher:  # a confirmation keeps its matrix
+            solver, solved = FisherSolve(fisher), fisher
         decrement = float(grad @ solver(grad)) / n_groups
         step(
             f"{label}: Gauss-Newton {iteration}: chi2 {2 * loss:.2f}, "
