@@ -202,15 +202,17 @@ class NewtonConfig:
 class NewtonResult:
     """Outcome of :func:`levenberg_marquardt` (``loss`` is ``L = chi2 / 2``).
 
-    ``iterations`` counts Jacobian evaluations, ``chord_steps`` the steps taken with a
-    reused Fisher matrix. ``loss`` is ``L`` of all exposures at the end, ``loss_change``
+    ``iterations`` counts Gauss-Newton iterations (each with new Jacobians, a given
+    matrix, or a confirmation by the float64 gradient), ``chord_steps`` the steps taken
+    with a reused Fisher matrix. ``loss`` is ``L`` of all exposures at the end, ``loss_change``
     the fall of ``L`` per exposure over the last iteration of the last stage.
 
     ``fisher`` is the Fisher matrix ``F`` of the global vector (:class:`Layout`) from the
-    Jacobians that confirmed convergence with float64 residuals, summed over the exposures
-    ``exact_exposures`` of those stages (``None`` if none): evaluated one undamped
-    Gauss-Newton step (a fraction of a sigma) before ``params``
-    (:func:`amigo.solvers.levenberg_marquardt.minimise`).
+    last Jacobians of the stages whose convergence float64 residuals confirmed, summed
+    over the exposures ``exact_exposures`` of those stages (``None`` if none): evaluated
+    within a few tolerances (about 2 sigma) of ``params``, which is one undamped
+    Gauss-Newton step from the point of confirmation
+    (:func:`amigo.solvers.levenberg_marquardt.minimise`, "Confirmation").
     """
 
     params: FitParams

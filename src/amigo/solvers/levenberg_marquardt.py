@@ -31,10 +31,11 @@ Confirmation
 ------------
 What the confirmation needs in float64 is the gradient: float32 rounding of the model
 puts a floor of about one chi2 unit per group on the decrement. The Fisher matrix only
-weighs it, and ``F`` barely changes over the distances the tolerance speaks of (the
+weighs it, and ``F`` changes little over the distances the tolerance speaks of (the
 Jacobians' relative change over a displacement is the displacement over the scale on
-which the model is non-linear, orders of magnitude larger than a sigma for data at a
-useful signal to noise). So where the vector is still within :data:`STALE_FISHER_REACH`
+which the model is non-linear; on the real F480M pair of docs/performance.md, taking
+the matrix up to ~2 sigma from the optimum instead of ~1 moved the DISCOs' information
+matrix by 1.4e-3 and their errors by at most 1.2e-3 of themselves). So where the vector is still within :data:`STALE_FISHER_REACH`
 (``dx^T F dx`` per group, in tolerances) of the point of the last Jacobians, the float64
 gradient there is weighed by that matrix, and new Jacobians are evaluated only if it
 does not confirm convergence. The returned matrix is then the one of those Jacobians,
@@ -155,10 +156,11 @@ def marginal_errors(fisher: np.ndarray | None, indices: np.ndarray) -> np.ndarra
 
 @dataclass
 class Solution:
-    """Outcome of :func:`minimise`: the final vector, and ``fisher`` when float64 normal
-    equations confirmed convergence, else ``None``: the matrix at the point where they
-    were evaluated, from which the final vector is one undamped Gauss-Newton step (inside
-    the tolerance: a fraction of a sigma, over which the matrix does not change)."""
+    """Outcome of :func:`minimise`: the final vector, and ``fisher`` when float64
+    residuals confirmed convergence, else ``None``: the matrix of the last Jacobians,
+    evaluated within :data:`STALE_FISHER_REACH` tolerances of the point of confirmation,
+    from which the final vector is one undamped Gauss-Newton step (module notes,
+    "Confirmation")."""
 
     vector: np.ndarray
     converged: bool
@@ -203,7 +205,7 @@ def minimise(
     exact = False  # whether the last decrement came from float64 residuals at `vector`
     # Where the Jacobians of `fisher` were evaluated (None: not known, e.g. a matrix
     # given from another fit), and whether it has already been tried as a confirmation.
-    fisher_point = np.array(vector, copy=True) if given and exact else None
+    fisher_point = np.array(vector, copy=True) if given and given_exact else None
     stale_tried = False
     solver: FisherSolve | None = None  # the decomposition of `solved`
     solved: np.ndarray | None = None
