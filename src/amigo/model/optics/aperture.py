@@ -241,7 +241,8 @@ class HoleWindows:
     A Zernike coefficient of one hole changes the pupil field only where that hole's
     polynomials are non-zero, a disc of half the closest hole spacing, so its tangent
     needs a transform of that window alone (:meth:`amigo.model.optics.NRMOptics.
-    wavefront_psf_tangents`): about 52 of the 256-pixel pupil's rows and columns.
+    wavefront_psf_tangents`): 43 of the 220 x 222 rows and columns of the 256-pixel
+    pupil's grid.
 
     Attributes
     ----------

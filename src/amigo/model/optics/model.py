@@ -263,19 +263,32 @@ class NRMOptics(eqx.Module):
     ) -> tuple[Float[Array, "n m m"], Float[Array, "n m m"]]:
         """Real and imaginary parts of the normalised focal fields before any
         angular-spectrum defocus (with the "pupil" defocus method, the final fields)."""
+        wavelengths = jax.lax.stop_gradient(jnp.asarray(wavelengths_m))
+        return self._focal_fields(*self._pupil_fields(wavelengths, position_arcsec), wavelengths)
+
+    def _focal_fields(
+        self, pupil_re: Array, pupil_im: Array, norm: Array, wavelengths: Array
+    ) -> tuple[Float[Array, "n m m"], Float[Array, "n m m"]]:
+        """Normalised focal fields (real, imaginary) of the pupil fields of
+        :meth:`_pupil_fields`, one transform per wavelength."""
+        x, y = self.grid.x_m, self.grid.y_m
+        e_re, e_im = jax.vmap(lambda a, b, w: self._transform(a, b, x, y, w))(
+            pupil_re, pupil_im, wavelengths
+        )
+        return e_re * norm[:, None, None], e_im * norm[:, None, None]
+
+    def _pupil_fields(
+        self, wavelengths: Float[Array, " n"], position_arcsec: Float[Array, " 2"]
+    ) -> tuple[Float[Array, "n ny nx"], Float[Array, "n ny nx"], Float[Array, " n"]]:
+        """Real and imaginary parts of the pupil field ``A exp(2 pi i OPD / lambda)`` at
+        each wavelength (the source's tilt included), and the normalisation of each
+        wavelength's transform (:meth:`_field_norm`). The wavelengths are constants of
+        the gradient: the MFT matrices depend on them alone."""
         amplitude, opd_m, power = self._pupil_and_power()
         opd_m = self._tilted_opd(opd_m, position_arcsec)
-
-        def one(wavelength):
-            # The MFT matrices depend on the wavelength only: constants of the gradient.
-            wavelength = jax.lax.stop_gradient(wavelength)
-            phase = (2.0 * jnp.pi / wavelength) * opd_m
-            re, im = amplitude * jnp.cos(phase), amplitude * jnp.sin(phase)
-            e_re, e_im = self._transform(re, im, self.grid.x_m, self.grid.y_m, wavelength)
-            norm = self._field_norm(wavelength, power)
-            return e_re * norm, e_im * norm
-
-        return jax.vmap(one)(jnp.asarray(wavelengths_m))
+        phase = (2.0 * jnp.pi / wavelengths)[:, None, None] * opd_m
+        norm = jax.vmap(lambda w: self._field_norm(w, power))(wavelengths)
+        return amplitude * jnp.cos(phase), amplitude * jnp.sin(phase), norm
 
     def _tilted_opd(self, opd_m: Array, position_arcsec: Array) -> Array:
         """The OPD with the source's tilt (and the pupil-plane defocus, if that method)."""
@@ -319,9 +332,9 @@ class NRMOptics(eqx.Module):
         moves the pupil field ``A exp(i phi)`` by ``i k A exp(i phi) 1e-9 Z_hj`` (``k =
         2 pi / lambda``): zero outside the support of hole ``h``'s polynomials. So the
         field's tangent ``dE`` is the transform of that hole's window of the pupil alone
-        (``windows``, :func:`~amigo.model.optics.aperture.hole_windows`): a 52-pixel
-        window of the 256-pixel pupil makes the two matrix products of the transform
-        5 and 8 times smaller. The PSF's tangent is ``2 (Re E Re dE + Im E Im dE)``.
+        (``windows``, :func:`~amigo.model.optics.aperture.hole_windows`): a 43-pixel
+        window of the 220 x 222 grid of the 256-pixel pupil makes the two matrix
+        products of the transform about 5 and 26 times smaller. The PSF's tangent is ``2 (Re E Re dE + Im E Im dE)``.
 
         The piston coefficients are the raw ones: :meth:`pupil` removes the mean piston
         over the holes, so the derivative with respect to ``z_h0`` is this function's
@@ -335,19 +348,12 @@ class NRMOptics(eqx.Module):
         c = self.config
         if c.fresnel and c.defocus_method != "pupil":
             raise ValueError("hole-window tangents need the pupil defocus method")
-        amplitude, opd_m, power = self._pupil_and_power()
-        opd_m = self._tilted_opd(opd_m, position_arcsec)
         wavelengths = jax.lax.stop_gradient(jnp.asarray(wavelengths_m))
         k = 2.0 * jnp.pi / wavelengths  # (n,)
-        phase = k[:, None, None] * opd_m
-        pupil_re, pupil_im = amplitude * jnp.cos(phase), amplitude * jnp.sin(phase)
-        norm = jax.vmap(lambda w: self._field_norm(w, power))(wavelengths)
-        x, y = self.grid.x_m, self.grid.y_m
-        e_re, e_im = jax.vmap(lambda a, b, w: self._transform(a, b, x, y, w))(
-            pupil_re, pupil_im, wavelengths
-        )
-        e_re, e_im = e_re * norm[:, None, None], e_im * norm[:, None, None]
+        pupil_re, pupil_im, norm = self._pupil_fields(wavelengths, position_arcsec)
+        e_re, e_im = self._focal_fields(pupil_re, pupil_im, norm, wavelengths)
         psfs = e_re**2 + e_im**2
+        x, y = self.grid.x_m, self.grid.y_m
         basis = self.aperture.zernike_basis(self.grid, c.n_zernike, c.zernike_radius_factor)
         origins = jnp.asarray(windows.origins, jnp.int32)  # (h, 2)
         size = windows.size
