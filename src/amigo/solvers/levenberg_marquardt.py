@@ -35,10 +35,10 @@ weighs it, and ``F`` changes little over the distances the tolerance speaks of (
 Jacobians' relative change over a displacement is the displacement over the scale on
 which the model is non-linear; on the real F480M pair of docs/performance.md, taking
 the matrix up to ~2 sigma from the optimum instead of ~1 moved the DISCOs' information
-matrix by 1.4e-3 and their errors by at most 1.2e-3 of themselves). So where the vector is still within :data:`STALE_FISHER_REACH`
-(``dx^T F dx`` per group, in tolerances) of the point of the last Jacobians, the float64
-gradient there is weighed by that matrix, and new Jacobians are evaluated only if it
-does not confirm convergence. The returned matrix is then the one of those Jacobians,
+matrix by 1.4e-3 and their errors by at most 1.2e-3 of themselves). So where the vector
+is still within :data:`STALE_FISHER_REACH` (``dx^T F dx`` per group, in tolerances) of
+the point of the last Jacobians, the float64 gradient there is weighed by that matrix,
+and new Jacobians are evaluated only if it does not confirm convergence. The returned matrix is then the one of those Jacobians,
 and that distance is the one the caller's covariances are taken across.
 """
 
@@ -207,8 +207,7 @@ def minimise(
     # given from another fit), and whether it has already been tried as a confirmation.
     fisher_point = np.array(vector, copy=True) if given and given_exact else None
     stale_tried = False
-    solver: FisherSolve | None = None  # the decomposition of `solved`
-    solved: np.ndarray | None = None
+    solver: FisherSolve | None = None  # the decomposition of `fisher`
 
     def tolerance() -> float:
         return config.tolerance * max(1.0, 2.0 * loss / problem.n_values)
@@ -269,10 +268,11 @@ def minimise(
                 to_float64()
             grad = problem.gradient(vector)
             exact = problem.float64 and given_exact
+            solver = FisherSolve(fisher)
             source = "the given Fisher matrix"
         elif estimate < tolerance() and not stale_tried and near(fisher, fisher_point):
-            # Confirmation by a float64 gradient, weighed by the last Fisher matrix
-            # (module notes, "Confirmation").
+            # Confirmation by a float64 gradient, weighed by the last Fisher matrix and
+            # its decomposition (module notes, "Confirmation").
             to_float64()
             grad = problem.gradient(vector)
             exact = problem.float64
@@ -283,12 +283,11 @@ def minimise(
                 to_float64()  # these Jacobians are expected to confirm convergence
             fisher, grad = problem.normal_equations(vector, label)
             fisher_point, stale_tried = np.array(vector, copy=True), False
+            solver = FisherSolve(fisher)
             exact = problem.float64
             source = "new Jacobians"
         start_loss = loss  # after any switch to float64: a fall, not a rounding change
-        assert fisher is not None  # every branch above has one
-        if solver is None or solved is not fisher:  # a confirmation keeps its matrix
-            solver, solved = FisherSolve(fisher), fisher
+        assert solver is not None  # every branch above has one
         decrement = float(grad @ solver(grad)) / n_groups
         step(
             f"{label}: Gauss-Newton {iteration}: chi2 {2 * loss:.2f}, "
