@@ -124,7 +124,9 @@ def scene_terms(
     if primary_diameter_mas:
         primary = disc_visibility(uv_m, wavelengths_m, weights, primary_diameter_mas)
     else:
-        primary = jnp.ones(uv_m.shape[0])
+        # In the baselines' precision: a default float64 here would promote a float32
+        # evaluation (Dataset.single_precision) back to float64 from this point on.
+        primary = jnp.ones_like(uv_m[:, 0])
     numerator = primary.astype(jnp.result_type(primary, 1j))
     if offsets_mas.shape[0]:
         phasors = point_phasors(uv_m, wavelengths_m, weights, offsets_mas)  # (n_comp, n_uv)

@@ -104,12 +104,16 @@ def _potential(z: dict, dataset: Dataset, bounds: dict, primary_diameter_mas: fl
     log_jacobian = sum(
         jnp.sum(jax.nn.log_sigmoid(z[name]) + jax.nn.log_sigmoid(-z[name])) for name in SITES
     )
-    offsets = jnp.stack([x["dra"], x["ddec"]], axis=-1)
-    residuals = block_residuals(dataset, offsets, 10.0 ** x["log10c"], primary_diameter_mas)
+    # The scene in the dataset's precision (float32 from sample_posterior), the sums of
+    # squares in float64.
+    dtype = dataset.blocks[0].design.dtype
+    offsets = jnp.stack([x["dra"], x["ddec"]], axis=-1).astype(dtype)
+    contrasts = (10.0 ** x["log10c"]).astype(dtype)
+    residuals = block_residuals(dataset, offsets, contrasts, primary_diameter_mas)
     loglike: float | jax.Array = 0.0
     for i, r in enumerate(residuals):
         s = x["scale"][dataset.group_index(i)]
-        loglike = loglike - 0.5 * jnp.sum((r / s) ** 2) - jnp.sum(jnp.log(s))
+        loglike = loglike - 0.5 * jnp.sum((r.astype(s.dtype) / s) ** 2) - jnp.sum(jnp.log(s))
     return -(loglike + log_jacobian)
 
 
@@ -126,6 +130,7 @@ def sample_posterior(
     primary_diameter_mas: float = 0.0,
     progress_bar: bool = False,
     chain_method: str = "vectorized",
+    single_precision: bool = True,
 ) -> Posterior:
     """Run NUTS from the best fit ``best`` and return samples with R-hat and ESS.
 
@@ -139,6 +144,11 @@ def sample_posterior(
         (n_groups,) starting error scales (e.g. the maximum-likelihood estimates).
     num_warmup, num_samples, num_chains
         NUTS settings; chains are vectorised by default (2 CPU cores are shared).
+    single_precision
+        Evaluate the residuals in float32 (:meth:`Dataset.single_precision`; the sums,
+        the priors and the chains stay float64). The potential's value and gradient then
+        cost half as much and the samples change within their Monte Carlo noise
+        (docs/performance.md).
     """
     from numpyro.diagnostics import summary
     from numpyro.infer import MCMC, NUTS
@@ -169,8 +179,9 @@ def sample_posterior(
             z0 = {name: np.broadcast_to(v, (num_chains, *v.shape)) for name, v in z0.items()}
         init = {name: jnp.asarray(v) for name, v in z0.items()}
         diameter = float(primary_diameter_mas)
+        evaluated = dataset.single_precision() if single_precision else dataset
         kernel = NUTS(
-            potential_fn=lambda z: _potential(z, dataset, bounds, diameter),
+            potential_fn=lambda z: _potential(z, evaluated, bounds, diameter),
             dense_mass=True,
             target_accept_prob=0.85,
         )
