@@ -32,7 +32,7 @@ import numpy as np
 from scipy import ndimage
 
 from amigo.companions.models import MAS_TO_RAD, scene_terms
-from amigo.companions.observables import Dataset, Observables
+from amigo.companions.observables import Dataset, Observables, single_precision
 from amigo.companions.significance import log_chi2_sf, sigma_from_log_p
 
 #: Bounds of the contrast solved at each grid point (flux ratios).
@@ -425,9 +425,13 @@ def grid_statistics(
         groups = np.unique(scene.groups)
         onehot = jnp.asarray((scene.groups[:, None] == groups[None, :]).astype(float))
         r0 = jnp.concatenate(scene.residuals)
+        # The products in float32: twice the rate of float64 on a CPU, and their rounding
+        # (relative ~1e-6 in the inner products) is far below what moves a map (measured:
+        # docs/performance.md). The solves that follow are float64.
+        inputs = single_precision((scene.blocks, scene.background, r0, onehot, scene.y_phasors))
         gram, cross = _over_columns(
-            lambda xs, sc=scene, r=r0, o=onehot: _chunk_statistics(
-                sc.blocks, sc.background, r, o, xs, sc.y_phasors
+            lambda xs, a=inputs: _chunk_statistics(
+                a[0], a[1], a[2], a[3], single_precision(xs), a[4]
             ),
             scene,
             grid,
@@ -435,8 +439,8 @@ def grid_statistics(
         )
         out.append(
             FilterStatistics(
-                gram=gram,
-                cross=cross,
+                gram=gram.astype(np.float64),
+                cross=cross.astype(np.float64),
                 background=np.asarray(jnp.einsum("o,o,og->g", r0, r0, onehot)),
                 groups=groups,
                 n_obs=int(r0.size),

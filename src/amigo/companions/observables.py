@@ -30,7 +30,7 @@ from __future__ import annotations
 import dataclasses
 import os
 from collections.abc import Sequence
-from typing import Any, Literal, cast
+from typing import Any, Literal, TypeVar, cast
 
 import equinox as eqx
 import jax
@@ -57,6 +57,8 @@ COVARIANCE_RANK_TOL = 1e-9
 Leaf = np.ndarray | Array
 #: A 2x2 matrix as nested tuples (hashable: static metadata).
 Matrix2 = tuple[tuple[float, float], tuple[float, float]]
+
+T = TypeVar("T")
 
 
 class Observables(eqx.Module):
@@ -427,12 +429,22 @@ def load(
 
 
 # ---------------------------------------------------------------------------- datasets
+#: Single-precision counterparts of the double-precision dtypes.
+_SINGLE = {np.dtype(np.float64): np.float32, np.dtype(np.complex128): np.complex64}
+
+
 def _single(leaf: Any) -> Any:
-    """A float64 array leaf in float32 (NumPy stays NumPy, JAX stays JAX); others as given."""
+    """A float64 (complex128) array leaf in float32 (complex64), NumPy staying NumPy and
+    JAX staying JAX; any other leaf as given."""
     dtype = getattr(leaf, "dtype", None)
-    if dtype != np.float64:
+    if dtype not in _SINGLE:
         return leaf
-    return leaf.astype(np.float32) if isinstance(leaf, np.ndarray) else leaf.astype(jnp.float32)
+    return leaf.astype(_SINGLE[np.dtype(dtype)])
+
+
+def single_precision(tree: T) -> T:
+    """``tree`` with every float64 and complex128 array leaf in single precision."""
+    return cast(T, jax.tree_util.tree_map(_single, tree))
 
 
 class Dataset(eqx.Module):
@@ -499,7 +511,7 @@ class Dataset(eqx.Module):
         trigonometric functions on the CPU run about twice as fast. Residuals in float32
         carry a relative rounding of about 1e-7 of the observables, far below their errors.
         """
-        return cast(Dataset, jax.tree_util.tree_map(_single, self))
+        return single_precision(self)
 
     def scale_vectors(self, group_scales: Array | np.ndarray) -> tuple[Array, ...]:
         """Per-block (n_obs,) error-scale vectors from (n_groups,) group scales (NumPy in,
