@@ -240,6 +240,9 @@ def _search_one(
     # The grid's products with the observable matrices depend on the background scene,
     # not on the error scales: made once, solved again for each set of scales.
     statistics = grid_statistics(dataset, grid, offsets, 10.0**log10c, diameter)
+    # A peak found again with new scales starts from its fit with the previous ones:
+    # the scales only reweight the groups, so the optimum moves little.
+    previous: dict[tuple[float, float], fitting.CompanionFitResult] = {}
     for _ in range(3):  # error scales depend on the candidate, the candidate on the scales
         result = contrast_grid(
             dataset, grid, offsets, 10.0**log10c, scales, diameter, statistics=statistics
@@ -249,19 +252,30 @@ def _search_one(
         else:
             chi2_before = fitting.background_chi2(dataset, scales, diameter)
         candidates = []
+        fitted: dict[tuple[float, float], fitting.CompanionFitResult] = {}
         for x, y, _ in result.peaks(settings.n_candidates):
-            iy = int(np.argmin(np.abs(grid.y_mas - y)))
-            ix = int(np.argmin(np.abs(grid.x_mas - x)))
-            start = [np.log10(max(m.contrast[iy, ix], m.sigma[iy, ix], 1e-8)) for m in result.maps]
+            before = previous.get((x, y))
+            if before is not None:
+                start_offsets, start_log10c = before.offsets_mas, before.log10_contrasts
+            else:
+                iy = int(np.argmin(np.abs(grid.y_mas - y)))
+                ix = int(np.argmin(np.abs(grid.x_mas - x)))
+                start = [
+                    np.log10(max(m.contrast[iy, ix], m.sigma[iy, ix], 1e-8)) for m in result.maps
+                ]
+                start_offsets = np.vstack([offsets, [[x, y]]])
+                start_log10c = np.vstack([log10c, [start]])
             trial = fitting.fit_companions(
                 dataset,
-                np.vstack([offsets, [[x, y]]]),
-                np.vstack([log10c, [start]]),
+                start_offsets,
+                start_log10c,
                 scales,
                 diameter,
                 chi2_tolerance=CANDIDATE_CHI2_TOLERANCE,
             )
+            fitted[(x, y)] = trial
             candidates.append(_Candidate(trial, chi2_before - trial.chi2, scales))
+        previous = fitted
         if not candidates:
             return result, []
         candidates.sort(key=lambda c: -c.dchi2)
