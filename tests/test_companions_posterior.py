@@ -89,3 +89,28 @@ def test_the_float32_potential_agrees_and_runs_in_float32(tmp_path):
             z
         )
         assert all(d == ("float64", "float64") for d in _matrix_products(program.jaxpr))
+
+
+def test_the_design_is_stored_without_its_zero_quarter(tmp_path):
+    """A calvis file's DISCO amplitudes do not depend on arg V: stored without that zero
+    half, the products are the whole matrix's (to rounding) and read a quarter less."""
+    with jax.enable_x64(True):
+        block = _dataset(tmp_path).blocks[0]
+        rng = np.random.default_rng(5)
+        full = block.design
+        n_cols = full.shape[1]
+        n_amplitudes = sum(k == 0 for k in block.kinds)
+        assert n_amplitudes > 0 and block.design_head.shape[0] == n_amplitudes
+        assert block.design_head.size + block.design_tail.size == full.size - n_amplitudes * (
+            n_cols // 2
+        )
+        log_vis = rng.normal(size=(3, n_cols))
+        np.testing.assert_allclose(
+            np.asarray(block.linear_part(jnp.asarray(log_vis))),
+            log_vis @ full.T,
+            rtol=1e-12,
+            atol=1e-12 * np.abs(log_vis @ full.T).max(),
+        )
+        # select_kinds keeps the parts consistent with the rows it keeps
+        phases = obs.select_kinds(block, ["phase"])
+        np.testing.assert_array_equal(phases.design, full[np.asarray(block.kinds) == 1])

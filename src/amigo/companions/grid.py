@@ -251,7 +251,7 @@ def _series_statistics(blocks, background, r0, phasors, onehot):
             ratio_k, inverse_k = ratio_k * ratio, inverse_k * inverse
         series = jnp.stack(series_k)  # (K, n_uv)
         log_terms = jnp.concatenate([series.real, series.imag], axis=1)  # (K, 2 n_uv)
-        terms.append((log_terms @ block.design.T) / block.errors)  # (K, n_obs)
+        terms.append(block.linear_part(log_terms) / block.errors)  # (K, n_obs)
     m = jnp.concatenate(terms, axis=1)
     gram = jnp.einsum("ko,lo,og->gkl", m, m, onehot)
     cross = jnp.einsum("ko,o,og->gk", m, r0, onehot)

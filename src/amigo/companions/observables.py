@@ -74,8 +74,13 @@ class Observables(eqx.Module):
         [n_uv, 2] uv points (m) in the sky-aligned frame (x east, y north).
     wavelengths_m, weights
         [n_uv, n_wl] wavelengths (m) and normalised weights at each uv point.
-    design
-        [n_raw, 2 n_uv] the linear map ``A`` from ``[log|V|, arg V]`` to raw observables.
+    design_head, design_tail
+        The linear map ``A`` (:attr:`design`, [n_raw, 2 n_uv]) from ``[log|V|, arg V]`` to
+        raw observables, stored in two parts: [n_head, n_uv] for its leading rows that do
+        not depend on ``arg V`` (a calvis file's DISCO amplitudes, an OIFITS file's V2),
+        without their zero half, and [n_raw - n_head, 2 n_uv] for the rest. A quarter of
+        a calvis matrix is those zeros, and its products (NUTS, the grid) are bound by
+        reading it.
     exp_rows, wrap_rows
         [n_raw] booleans: raw observables that are ``exp`` of their linear part (V2), and
         those whose residuals are angles to wrap (closure phases).
@@ -100,7 +105,8 @@ class Observables(eqx.Module):
     uv_m: Leaf
     wavelengths_m: Leaf
     weights: Leaf
-    design: Leaf
+    design_head: Leaf
+    design_tail: Leaf
     exp_rows: Leaf
     wrap_rows: Leaf
     data_raw: Leaf
@@ -136,7 +142,24 @@ class Observables(eqx.Module):
     def min_wavelength_m(self) -> float:
         return float(np.min(np.where(self.weights > 0, self.wavelengths_m, np.inf)))
 
+    @property
+    def design(self) -> np.ndarray:
+        """[n_raw, 2 n_uv] the whole linear map ``A`` (NumPy; the model uses its parts)."""
+        head = np.asarray(self.design_head)
+        head = np.concatenate([head, np.zeros_like(head)], axis=1)
+        return np.concatenate([head, np.asarray(self.design_tail)], axis=0)
+
     # ------------------------------------------------------------------ model
+    def linear_part(self, log_vis: Array) -> Array:
+        """``A [log|V|, arg V]``: (..., n_raw) for ``log_vis`` (..., 2 n_uv)."""
+        n_uv = self.uv_m.shape[0]
+        # Contract with the matrices' second axis as they are stored: written as
+        # ``log_vis @ design.T``, XLA may copy each transposed matrix first.
+        last = log_vis.ndim - 1
+        head = jnp.tensordot(log_vis[..., :n_uv], self.design_head, axes=((last,), (1,)))
+        tail = jnp.tensordot(log_vis, self.design_tail, axes=((last,), (1,)))
+        return jnp.concatenate([head, tail], axis=-1)
+
     def raw(self, vis: Array) -> Array:
         """Raw observables (n_raw,) of a complex visibility (n_uv,) (principal-branch log).
 
@@ -145,7 +168,7 @@ class Observables(eqx.Module):
         and a total flux ratio below one): then ``Re V > 0`` and no branch cut is crossed.
         """
         log_vis = jnp.concatenate([jnp.log(jnp.abs(vis)), jnp.angle(vis)])
-        linear = self.design @ log_vis
+        linear = self.linear_part(log_vis)
         return jnp.where(self.exp_rows, jnp.exp(linear), linear)
 
     def _whiten(self, raw_residual: Array) -> Array:
@@ -167,6 +190,16 @@ class Observables(eqx.Module):
 
 
 # ---------------------------------------------------------------------------- builders
+def _split_design(design: np.ndarray) -> dict[str, np.ndarray]:
+    """``design`` [n_raw, 2 n_uv] as :class:`Observables`' two parts: the leading rows
+    whose ``arg V`` half is zero (without it), and the rest."""
+    design = np.asarray(design)
+    n_uv = design.shape[1] // 2
+    free = np.all(design[:, n_uv:] == 0.0, axis=1)
+    n_head = len(free) if free.all() else int(np.argmin(free))
+    return {"design_head": design[:n_head, :n_uv].copy(), "design_tail": design[n_head:].copy()}
+
+
 def from_calvis(calvis: CalVis, source: str = "") -> Observables:
     """Observables of a calvis file (DISCOs through the file's linear map)."""
     sky_to_uv = np.asarray(calvis.sky_to_uv, dtype=float)
@@ -179,7 +212,7 @@ def from_calvis(calvis: CalVis, source: str = "") -> Observables:
         uv_m=np.asarray(uv_sky),
         wavelengths_m=np.asarray(wl),
         weights=np.asarray(w),
-        design=np.asarray(calvis.disco_matrix),
+        **_split_design(calvis.disco_matrix),
         exp_rows=np.zeros(n_obs, dtype=bool),
         wrap_rows=np.zeros(n_obs, dtype=bool),
         data_raw=np.asarray(calvis.values),
@@ -292,7 +325,7 @@ def from_oifits(
         uv_m=np.asarray(uv_m),
         wavelengths_m=np.asarray(wl),
         weights=np.asarray(w),
-        design=np.asarray(design),
+        **_split_design(design),
         exp_rows=np.asarray(np.concatenate(exp_rows)),
         wrap_rows=np.asarray(np.concatenate(wrap_rows)),
         data_raw=np.asarray(np.concatenate(raw_data)),
@@ -378,7 +411,7 @@ def select_kinds(block: Observables, kinds: Sequence[str]) -> Observables | None
     if block.projection is None:  # raw observables are the independent ones
         return dataclasses.replace(
             block,
-            design=block.design[rows],
+            **_split_design(block.design[rows]),
             exp_rows=block.exp_rows[rows],
             wrap_rows=block.wrap_rows[rows],
             data_raw=block.data_raw[rows],

@@ -106,7 +106,7 @@ def _potential(z: dict, dataset: Dataset, bounds: dict, primary_diameter_mas: fl
     )
     # The scene in the dataset's precision (float32 from sample_posterior), the sums of
     # squares in float64.
-    dtype = dataset.blocks[0].design.dtype
+    dtype = dataset.blocks[0].design_tail.dtype
     offsets = jnp.stack([x["dra"], x["ddec"]], axis=-1).astype(dtype)
     contrasts = (10.0 ** x["log10c"]).astype(dtype)
     residuals = block_residuals(dataset, offsets, contrasts, primary_diameter_mas)
