@@ -190,14 +190,15 @@ class Observables(eqx.Module):
 
 
 # ---------------------------------------------------------------------------- builders
-def _split_design(design: np.ndarray) -> dict[str, np.ndarray]:
-    """``design`` [n_raw, 2 n_uv] as :class:`Observables`' two parts: the leading rows
-    whose ``arg V`` half is zero (without it), and the rest."""
+def _split_design(design: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``design`` [n_raw, 2 n_uv] as :class:`Observables`' two parts ``(design_head,
+    design_tail)``: the leading rows whose ``arg V`` half is zero (without it), and the
+    rest."""
     design = np.asarray(design)
     n_uv = design.shape[1] // 2
     free = np.all(design[:, n_uv:] == 0.0, axis=1)
     n_head = len(free) if free.all() else int(np.argmin(free))
-    return {"design_head": design[:n_head, :n_uv].copy(), "design_tail": design[n_head:].copy()}
+    return design[:n_head, :n_uv].copy(), design[n_head:].copy()
 
 
 def from_calvis(calvis: CalVis, source: str = "") -> Observables:
@@ -208,11 +209,13 @@ def from_calvis(calvis: CalVis, source: str = "") -> Observables:
     wl = np.broadcast_to(calvis.wavelengths_m, (n_uv, calvis.wavelengths_m.size))
     w = np.broadcast_to(calvis.weights / calvis.weights.sum(), wl.shape)
     n_obs = calvis.n_obs
+    head, tail = _split_design(calvis.disco_matrix)
     return Observables(
         uv_m=np.asarray(uv_sky),
         wavelengths_m=np.asarray(wl),
         weights=np.asarray(w),
-        **_split_design(calvis.disco_matrix),
+        design_head=head,
+        design_tail=tail,
         exp_rows=np.zeros(n_obs, dtype=bool),
         wrap_rows=np.zeros(n_obs, dtype=bool),
         data_raw=np.asarray(calvis.values),
@@ -321,11 +324,13 @@ def from_oifits(
         # Ireland (2013): sigma_CP = N_h / N_p * sqrt(1.5 N_p) => N_p = 1.5 N_h^2 / sigma_CP^2.
         sigma_cp = float(np.median(oi.t3.error_rad))
         n_photons, photon_source = 1.5 * n_holes**2 / sigma_cp**2, "closure-phase errors"
+    head, tail = _split_design(design)
     return Observables(
         uv_m=np.asarray(uv_m),
         wavelengths_m=np.asarray(wl),
         weights=np.asarray(w),
-        **_split_design(design),
+        design_head=head,
+        design_tail=tail,
         exp_rows=np.asarray(np.concatenate(exp_rows)),
         wrap_rows=np.asarray(np.concatenate(wrap_rows)),
         data_raw=np.asarray(np.concatenate(raw_data)),
@@ -409,9 +414,11 @@ def select_kinds(block: Observables, kinds: Sequence[str]) -> Observables | None
         return block
     kept = tuple(k for k in block.kinds if k in wanted)
     if block.projection is None:  # raw observables are the independent ones
+        head, tail = _split_design(block.design[rows])
         return dataclasses.replace(
             block,
-            **_split_design(block.design[rows]),
+            design_head=head,
+            design_tail=tail,
             exp_rows=block.exp_rows[rows],
             wrap_rows=block.wrap_rows[rows],
             data_raw=block.data_raw[rows],
