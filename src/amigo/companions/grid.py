@@ -23,6 +23,7 @@ in NumPy.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import equinox as eqx
@@ -428,12 +429,20 @@ def grid_statistics(
         # The products in float32: twice the rate of float64 on a CPU, and their rounding
         # (relative ~1e-6 in the inner products) is far below what moves a map (measured:
         # docs/performance.md). The solves that follow are float64.
-        inputs = single_precision((scene.blocks, scene.background, r0, onehot, scene.y_phasors))
-        gram, cross = _over_columns(
-            lambda xs, a=inputs: _chunk_statistics(
-                a[0], a[1], a[2], a[3], single_precision(xs), a[4]
-            ),
+        # Cast once, the x phasors included, not chunk by chunk.
+        single = dataclasses.replace(
             scene,
+            blocks=single_precision(scene.blocks),
+            background=single_precision(scene.background),
+            x_phasors=single_precision(scene.x_phasors),
+            y_phasors=single_precision(scene.y_phasors),
+        )
+        r0_single, onehot_single = single_precision((r0, onehot))
+        gram, cross = _over_columns(
+            lambda xs, sc=single, r=r0_single, o=onehot_single: _chunk_statistics(
+                sc.blocks, sc.background, r, o, xs, sc.y_phasors
+            ),
+            single,
             grid,
             chunk_columns,
         )

@@ -38,8 +38,9 @@ the matrix up to ~2 sigma from the optimum instead of ~1 moved the DISCOs' infor
 matrix by 1.4e-3 and their errors by at most 1.2e-3 of themselves). So where the vector
 is still within :data:`STALE_FISHER_REACH` (``dx^T F dx`` per group, in tolerances) of
 the point of the last Jacobians, the float64 gradient there is weighed by that matrix,
-and new Jacobians are evaluated only if it does not confirm convergence. The returned matrix is then the one of those Jacobians,
-and that distance is the one the caller's covariances are taken across.
+and new Jacobians are evaluated only if it does not confirm convergence. The returned
+matrix is then the one of those Jacobians, and that distance is the one the caller's
+covariances are taken across.
 """
 
 from __future__ import annotations

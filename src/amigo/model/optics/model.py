@@ -334,7 +334,8 @@ class NRMOptics(eqx.Module):
         field's tangent ``dE`` is the transform of that hole's window of the pupil alone
         (``windows``, :func:`~amigo.model.optics.aperture.hole_windows`): a 43-pixel
         window of the 220 x 222 grid of the 256-pixel pupil makes the two matrix
-        products of the transform about 5 and 26 times smaller. The PSF's tangent is ``2 (Re E Re dE + Im E Im dE)``.
+        products of the transform about 5 and 26 times smaller. The PSF's tangent is
+        ``2 (Re E Re dE + Im E Im dE)``.
 
         The piston coefficients are the raw ones: :meth:`pupil` removes the mean piston
         over the holes, so the derivative with respect to ``z_h0`` is this function's
