@@ -118,13 +118,13 @@ def fit_single_star(image: ImageData, filter_name: str, row: str, basis) -> dict
 def simulated_image(filter_name: str, like: ImageData, seed: int = 0) -> ImageData:
     """The project's simulator's point source with the flux and noise of a real file."""
     from amigo.simulation.optics_illumination import OpticalModelIllumination
-    from amigo.simulation.scene import DetectorScene, PointSource
+    from amigo.simulation.scene import DetectorScene, DetectorSource
     from amigo.simulation.state import InstrumentState
 
     state = dataclasses.replace(InstrumentState.perfect(), jitter_mas=SIM_JITTER_MAS)
     k = 3
     centre = 0.5 * (niriss.SUBARRAY_SIZE - 1)
-    scene = DetectorScene((PointSource(centre + 0.3, centre - 0.2, 1.0),))
+    scene = DetectorScene((DetectorSource(centre + 0.3, centre - 0.2, 1.0),))
     rate = OpticalModelIllumination().render(scene, filter_name, state, k)
     unit = np.asarray(bin_pixels(jnp.asarray(rate), k), np.float64)
     flux = float(np.sum(np.where(like.mask, like.data, 0.0)) / np.sum(unit[like.mask]))

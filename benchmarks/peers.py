@@ -88,17 +88,17 @@ def _render(filter_name: str, orientation, xy, companion, seed: int) -> np.ndarr
 
     from amigo.model.detector.linear import bin_pixels
     from amigo.simulation.optics_illumination import OpticalModelIllumination
-    from amigo.simulation.scene import DetectorScene, PointSource
+    from amigo.simulation.scene import DetectorScene, DetectorSource
     from amigo.simulation.state import InstrumentState
 
     state = dataclasses.replace(InstrumentState.perfect(), jitter_mas=SIM_JITTER_MAS)
-    sources = [PointSource(xy[0], xy[1], 1.0)]
+    sources = [DetectorSource(xy[0], xy[1], 1.0)]
     if companion[0] is not None:
         sep, pa, dm = companion
         dx, dy = orientation.sky_to_detector(
             sep * np.sin(np.radians(pa)), sep * np.cos(np.radians(pa))
         )
-        sources.append(PointSource(xy[0] + float(dx), xy[1] + float(dy), 10 ** (-0.4 * dm)))
+        sources.append(DetectorSource(xy[0] + float(dx), xy[1] + float(dy), 10 ** (-0.4 * dm)))
     k = 3
     rate = OpticalModelIllumination().render(DetectorScene(tuple(sources)), filter_name, state, k)
     return np.asarray(bin_pixels(jnp.asarray(rate), k), np.float64)

@@ -26,7 +26,7 @@ from amigo import niriss
 from amigo.orientation import Orientation
 from amigo.simulation.detector import DetectorConfig, RampSimulator, draw_detector
 from amigo.simulation.illumination import AnalyticNRM
-from amigo.simulation.scene import DetectorScene, PointSource
+from amigo.simulation.scene import DetectorScene, DetectorSource
 from amigo.simulation.state import StateSpread, draw_instrument_state
 from amigo.simulation.writer import UncalWriter, primary_header, sci_header
 
@@ -65,7 +65,7 @@ def main() -> None:
     state = draw_instrument_state(np.random.default_rng(0), StateSpread())
     start = time.perf_counter()
     unit = AnalyticNRM(n_wavelengths=15).render(
-        DetectorScene((PointSource(45.1, 40.2, 1.0),)), "F430M", state, 4
+        DetectorScene((DetectorSource(45.1, 40.2, 1.0),)), "F430M", state, 4
     )
     optics_s = time.perf_counter() - start
     pixels = unit.reshape(80, 4, 80, 4).sum(axis=(1, 3))
