@@ -11,7 +11,7 @@ from scipy import special
 from amigo import niriss
 from amigo.companions import observables as obs
 from amigo.companions.models import airy_amplitude, disc_visibility, scene_visibility
-from amigo.io.calvis import read_calvis
+from amigo.io.calvis import read_calvis, write_calvis
 from amigo.io.oifits import read_oifits
 from detect_helpers import (
     MAS,
@@ -145,6 +145,87 @@ def test_calvis_observables_match_independent_projection(tmp_path):
     np.testing.assert_allclose(
         np.asarray(block.predicted(vis)), calvis.disco_matrix @ log_vis, atol=1e-12
     )
+
+
+def test_silent_uv_points_are_the_largest_weak_set_within_the_bound():
+    rng = np.random.default_rng(11)
+    n_obs, n_uv = 40, 30
+    design = rng.normal(size=(n_obs, 2 * n_uv))
+    weak = rng.choice(n_uv, 12, replace=False)
+    scale = 10.0 ** rng.uniform(-6, -1, size=12)  # weak points of many strengths
+    design[:, weak] *= scale
+    design[:, n_uv + weak] *= scale
+    errors = rng.uniform(0.5, 2.0, n_obs)
+    tolerance = 0.05
+    silent = obs.silent_uv_points(design, errors, tolerance)
+    whitened = design / errors[:, None]
+    both = np.concatenate([silent, silent])
+    assert np.linalg.norm(whitened[:, both]) <= tolerance
+    # Maximal: the next weakest point would break the bound.
+    power = np.sum(whitened[:, :n_uv] ** 2, axis=0) + np.sum(whitened[:, n_uv:] ** 2, axis=0)
+    nxt = np.argmin(np.where(silent, np.inf, power))
+    assert np.sum(power[silent]) + power[nxt] > tolerance**2
+    assert 0 < silent.sum() < 12 and set(np.flatnonzero(silent)) <= set(weak)
+    # What it bounds: the whitened observables of any L move by at most tolerance |L_D|.
+    for _ in range(5):
+        log_vis = rng.normal(size=2 * n_uv)
+        change = whitened[:, both] @ log_vis[both]
+        assert np.linalg.norm(change) <= tolerance * np.linalg.norm(log_vis[both])
+
+
+def test_calvis_points_beyond_the_splodges_are_left_out_within_the_bound(tmp_path):
+    """A calvis file whose matrix spans knots the DISCOs barely weigh (as a fit's knot grid
+    beyond the mask's transfer function): reading it leaves them out, keeps the file's
+    longest baseline for the search, and predicts every DISCO as the whole matrix does."""
+    rng = np.random.default_rng(8)
+    companion = (-150.0, 90.0, 0.05)
+    path = write_sim_calvis(tmp_path / "s_F480M_calvis.fits", "F480M", [companion], rng)
+    calvis = read_calvis(path)
+    n_uv, n_far = calvis.uv_m.shape[0], 40
+    far = rng.uniform(-9.0, 9.0, size=(n_far, 2))
+    far[0] = (9.0, 9.0)  # the longest baseline of the file
+    weights = 1e-8 * rng.normal(size=(calvis.n_obs, 2, n_far))  # whitened: ~5e-6
+    d = calvis.disco_matrix
+    matrix = np.concatenate([d[:, :n_uv], weights[:, 0], d[:, n_uv:], weights[:, 1]], axis=1)
+    wide = tmp_path / "wide_F480M_calvis.fits"
+    write_calvis(
+        wide,
+        values=calvis.values,
+        errors=calvis.errors,
+        kinds=list(calvis.kinds),
+        disco_matrix=matrix,
+        uv_m=np.concatenate([calvis.uv_m, far]),
+        wavelengths_m=calvis.wavelengths_m,
+        weights=calvis.weights,
+        sky_to_uv=calvis.sky_to_uv,
+        orientation=calvis.orientation,
+        n_photons=calvis.n_photons,
+        target=calvis.target,
+        filter_name=calvis.filter_name,
+        science_files=list(calvis.science_files),
+        calibrator_files=list(calvis.calibrator_files),
+    )
+    block = obs.load(wide)
+    every = obs.from_calvis(read_calvis(wide), str(wide), silent_tolerance=0.0)
+    assert block.n_uv == n_uv and every.n_uv == n_uv + n_far
+    longest = np.max(np.hypot(*(every.uv_m.T)))  # (9, 9) m, on the sky
+    assert block.max_baseline_m == every.max_baseline_m == longest
+    assert np.max(np.hypot(*(block.uv_m.T))) < 0.8 * longest
+    offsets, contrasts = jnp.asarray([companion[:2]]), jnp.asarray([companion[2]])
+    z_all = every.residuals(
+        scene_visibility(every.uv_m, every.wavelengths_m, every.weights, offsets, contrasts)
+    )
+    z = block.residuals(
+        scene_visibility(block.uv_m, block.wavelengths_m, block.weights, offsets, contrasts)
+    )
+    vis = scene_visibility(every.uv_m, every.wavelengths_m, every.weights, offsets, contrasts)
+    log_far = np.concatenate([np.log(np.abs(vis)), np.angle(vis)])[
+        np.concatenate(
+            [np.arange(n_uv, n_uv + n_far), n_uv + n_far + np.arange(n_uv, n_uv + n_far)]
+        )
+    ]
+    bound = obs.SILENT_UV_TOLERANCE * np.linalg.norm(log_far)
+    assert 0 < np.linalg.norm(np.asarray(z) - np.asarray(z_all)) <= bound
 
 
 def test_select_kinds_keeps_one_type(tmp_path):

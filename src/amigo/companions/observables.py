@@ -53,6 +53,11 @@ OIFITS_BAND_SAMPLES = 5
 #: Eigenvalues below this fraction of the largest are the null space of a covariance.
 COVARIANCE_RANK_TOL = 1e-9
 
+#: uv points of a calvis file left out when read: the largest set of its weakest points
+#: whose whitened DISCO-matrix columns (``A / error``, both halves) have a Frobenius norm
+#: of at most this. See :func:`silent_uv_points` for what that bounds.
+SILENT_UV_TOLERANCE = 0.01
+
 #: An array leaf of :class:`Observables`: NumPy as built, a JAX array where traced.
 Leaf = np.ndarray | Array
 #: A 2x2 matrix as nested tuples (hashable: static metadata).
@@ -120,6 +125,9 @@ class Observables(eqx.Module):
     photon_source: str = eqx.field(static=True, default="")
     linear: bool = eqx.field(static=True, default=False)
     sky_to_uv: Matrix2 = eqx.field(static=True, default=((1.0, 0.0), (0.0, 1.0)))
+    #: Longest baseline (m) of the file's uv points, those left out included (the inner
+    #: working angle and the grid's step are the file's, whatever amigo evaluates).
+    longest_baseline_m: float = eqx.field(static=True, default=float("nan"))
 
     # ------------------------------------------------------------------ sizes
     @property
@@ -132,6 +140,8 @@ class Observables(eqx.Module):
 
     @property
     def max_baseline_m(self) -> float:
+        if np.isfinite(self.longest_baseline_m):
+            return self.longest_baseline_m
         return float(np.max(np.hypot(self.uv_m[:, 0], self.uv_m[:, 1])))
 
     @property
@@ -201,15 +211,49 @@ def _split_design(design: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return design[:n_head, :n_uv].copy(), design[n_head:].copy()
 
 
-def from_calvis(calvis: CalVis, source: str = "") -> Observables:
-    """Observables of a calvis file (DISCOs through the file's linear map)."""
+def silent_uv_points(design: np.ndarray, errors: np.ndarray, tolerance: float) -> np.ndarray:
+    """(n_uv,) True for the uv points of a linear map that observables barely see.
+
+    ``design`` [n_obs, 2 n_uv] maps ``L = [log|V|, arg V]`` to observables with
+    ``errors`` [n_obs]. The points chosen are the largest set ``D`` of the weakest ones
+    (by the norm of their two whitened columns) whose whitened columns ``A_D`` have a
+    Frobenius norm of at most ``tolerance``. Leaving them out changes the whitened
+    residuals of any scene by ``A_D L_D``, at most ``tolerance * |L_D|`` in norm, and so
+    (to first order) moves any fitted parameter by at most that many of its standard
+    errors: for companions of flux ratio ``c``, ``|L_D| <~ c sqrt(2 |D|)``.
+
+    A calvis file's matrix spans the whole knot grid of the latent visibilities, and a
+    third to a half of its knots lie beyond the mask's transfer function, where the
+    DISCOs' weights are 1e-5 to 1e-2 of a supported knot's: they cost the companion
+    models as much as any other point and tell them nothing.
+    """
+    design = np.asarray(design, dtype=float) / np.asarray(errors, dtype=float)[:, None]
+    n_uv = design.shape[1] // 2
+    power = np.sum(design[:, :n_uv] ** 2, axis=0) + np.sum(design[:, n_uv:] ** 2, axis=0)
+    order = np.argsort(power, kind="stable")
+    n_silent = int(np.searchsorted(np.cumsum(power[order]), tolerance**2, side="right"))
+    silent = np.zeros(n_uv, dtype=bool)
+    silent[order[: min(n_silent, n_uv - 1)]] = True  # a block keeps at least one point
+    return silent
+
+
+def from_calvis(
+    calvis: CalVis, source: str = "", silent_tolerance: float = SILENT_UV_TOLERANCE
+) -> Observables:
+    """Observables of a calvis file (DISCOs through the file's linear map), without the uv
+    points the DISCOs barely see (:func:`silent_uv_points` with ``silent_tolerance``;
+    0 leaves out only points whose columns are zero)."""
     sky_to_uv = np.asarray(calvis.sky_to_uv, dtype=float)
-    uv_sky = np.asarray(calvis.uv_m) @ sky_to_uv  # b_sky = S^T b, as rows
+    uv_all = np.asarray(calvis.uv_m) @ sky_to_uv  # b_sky = S^T b, as rows
+    longest = float(np.max(np.hypot(uv_all[:, 0], uv_all[:, 1])))
+    kept = ~silent_uv_points(calvis.disco_matrix, calvis.errors, silent_tolerance)
+    uv_sky = uv_all[kept]
     n_uv = uv_sky.shape[0]
     wl = np.broadcast_to(calvis.wavelengths_m, (n_uv, calvis.wavelengths_m.size))
     w = np.broadcast_to(calvis.weights / calvis.weights.sum(), wl.shape)
     n_obs = calvis.n_obs
-    head, tail = _split_design(calvis.disco_matrix)
+    design = np.asarray(calvis.disco_matrix)
+    head, tail = _split_design(design[:, np.concatenate([kept, kept])])
     return Observables(
         uv_m=np.asarray(uv_sky),
         wavelengths_m=np.asarray(wl),
@@ -229,6 +273,7 @@ def from_calvis(calvis: CalVis, source: str = "") -> Observables:
         photon_source="NPHOT" if np.isfinite(calvis.n_photons) else "",
         linear=True,
         sky_to_uv=cast(Matrix2, tuple(tuple(float(x) for x in row) for row in sky_to_uv)),
+        longest_baseline_m=longest,
     )
 
 
