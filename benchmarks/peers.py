@@ -104,9 +104,10 @@ def _render(filter_name: str, orientation, xy, companion, seed: int) -> np.ndarr
     return np.asarray(bin_pixels(jnp.asarray(rate), k), np.float64)
 
 
-def write_calints(path: Path, template: Path, image: np.ndarray, target: str, observation: str, seed: int) -> Path:  # fmt: skip
+def write_calints(path: Path, template: Path, image: np.ndarray, target: str, observation: str, seed: int, noise_scale: float = 1.0) -> Path:  # fmt: skip
     """A ``_calints`` file like ``template`` (its headers, bad pixels, flux scale, noise
-    law and NINTS) whose integrations are ``image`` (unit flux) plus Gaussian noise."""
+    law and NINTS) whose integrations are ``image`` (unit flux) plus Gaussian noise
+    (``noise_scale`` times the law's; 0: noiseless data with the law's ERR)."""
     with fits.open(template) as hdul:
         primary, sci_header = hdul[0].header.copy(), hdul["SCI"].header.copy()
         sci, err, dq = (np.asarray(hdul[n].data, np.float64) for n in ("SCI", "ERR", "DQ"))
@@ -119,7 +120,7 @@ def write_calints(path: Path, template: Path, image: np.ndarray, target: str, ob
     nints = int(primary["NINTS"])
     sigma_int = np.sqrt(np.clip(a * truth + b, floor, None) * nints)
     rng = np.random.default_rng(seed)
-    cube = truth[None] + sigma_int[None] * rng.standard_normal((nints, 80, 80))
+    cube = truth[None] + noise_scale * sigma_int[None] * rng.standard_normal((nints, 80, 80))
     primary["TARGPROP"] = primary["TARGNAME"] = target
     primary["OBSERVTN"] = observation
     primary["S_DARK"] = "SKIPPED"  # no dark residual in a simulation (docs/detector.md)
