@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -188,23 +190,9 @@ def test_calvis_points_beyond_the_splodges_are_left_out_within_the_bound(tmp_pat
     d = calvis.disco_matrix
     matrix = np.concatenate([d[:, :n_uv], weights[:, 0], d[:, n_uv:], weights[:, 1]], axis=1)
     wide = tmp_path / "wide_F480M_calvis.fits"
-    write_calvis(
-        wide,
-        values=calvis.values,
-        errors=calvis.errors,
-        kinds=list(calvis.kinds),
-        disco_matrix=matrix,
-        uv_m=np.concatenate([calvis.uv_m, far]),
-        wavelengths_m=calvis.wavelengths_m,
-        weights=calvis.weights,
-        sky_to_uv=calvis.sky_to_uv,
-        orientation=calvis.orientation,
-        n_photons=calvis.n_photons,
-        target=calvis.target,
-        filter_name=calvis.filter_name,
-        science_files=list(calvis.science_files),
-        calibrator_files=list(calvis.calibrator_files),
-    )
+    as_read = {f.name: getattr(calvis, f.name) for f in dataclasses.fields(calvis)}
+    as_read.update(disco_matrix=matrix, uv_m=np.concatenate([calvis.uv_m, far]))
+    write_calvis(wide, **as_read)
     block = obs.load(wide)
     every = obs.from_calvis(read_calvis(wide), str(wide), silent_tolerance=0.0)
     assert block.n_uv == n_uv and every.n_uv == n_uv + n_far
