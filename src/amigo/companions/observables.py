@@ -222,10 +222,11 @@ def silent_uv_points(design: np.ndarray, errors: np.ndarray, tolerance: float) -
     (to first order) moves any fitted parameter by at most that many of its standard
     errors: for companions of flux ratio ``c``, ``|L_D| <~ c sqrt(2 |D|)``.
 
-    A calvis file's matrix spans the whole knot grid of the latent visibilities, and a
-    third to a half of its knots lie beyond the mask's transfer function, where the
-    DISCOs' weights are 1e-5 to 1e-2 of a supported knot's: they cost the companion
-    models as much as any other point and tell them nothing.
+    A calvis file's matrix spans the whole knot grid of the latent visibilities, knots
+    beyond the mask's transfer function included: on the AB Dor files 13-39 % of the
+    knots have, together, whitened columns of norm 0.01, where one knot inside a splodge
+    has 1.4-3.8 (the median). They cost the companion models as much as any other point
+    and tell them nothing.
     """
     design = np.asarray(design, dtype=float) / np.asarray(errors, dtype=float)[:, None]
     n_uv = design.shape[1] // 2
