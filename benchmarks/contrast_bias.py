@@ -29,9 +29,17 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from peers import CALIBRATOR, EXPOSURE, SHARED, _render, run_amigo, write_calints
+from peers import (
+    CALIBRATOR,
+    CALIBRATOR_XY,
+    EXPOSURE,
+    SCIENCE_XY,
+    SHARED,
+    _render,
+    run_amigo,
+    write_calints,
+)
 
-SCIENCE_XY, CALIBRATOR_XY = (45.35, 39.75), (45.20, 39.90)  # as in peers.py
 SHARED_CALIBRATOR_SEED = 1000
 
 

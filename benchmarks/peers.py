@@ -72,6 +72,8 @@ CASES = [(None, None, None)] + [
 QUICK_CASES = [(None, None, None), (150.0, 130.0, 6.5)]
 LIMIT_SEPS = (100.0, 200.0, 400.0)
 SIM_JITTER_MAS = 18.0
+#: Where the simulated stars sit (target acquisition's place in the real files, 0.2 pixel apart).
+SCIENCE_XY, CALIBRATOR_XY = (45.35, 39.75), (45.20, 39.90)
 
 
 # ---------------------------------------------------------------------- simulated files
@@ -319,7 +321,7 @@ def simulated(args, out: Path) -> list[dict]:
     save_instrument(Instrument.nominal(), model)
     template = SHARED / CALIBRATOR.format(EXPOSURE[args.filter])
     orientation = read_exposure(template).meta.orientation
-    cal_image = _render(args.filter, orientation, (45.20, 39.90), (None, None, None), args.seed)
+    cal_image = _render(args.filter, orientation, CALIBRATOR_XY, (None, None, None), args.seed)
     cal = write_calints(out / "jw09999002001_03102_00001_nis_calints.fits", template, cal_image,
                         "CAL-STAR", "002", args.seed + 1000)  # fmt: skip
     # amigo's first run compiles (cached on disk for the next): timed apart.
@@ -333,7 +335,7 @@ def simulated(args, out: Path) -> list[dict]:
     print(f"\nSimulated binaries, {args.filter} (amigo's simulator, real-file noise):\n{header}")
     for i, case in enumerate(QUICK_CASES if args.quick else CASES):
         label = "no companion" if case[0] is None else f"{case[0]:.0f} mas, dm {case[2]:.1f}"
-        image = _render(args.filter, orientation, (45.35, 39.75), case, args.seed)
+        image = _render(args.filter, orientation, SCIENCE_XY, case, args.seed)
         (out / f"case{i}").mkdir(exist_ok=True)
         sci = write_calints(out / f"case{i}" / "jw09999001001_03102_00001_nis_calints.fits",
                             template, image, "SCI-STAR", "001", args.seed + i)  # fmt: skip
