@@ -78,7 +78,15 @@ import click
     type=click.IntRange(min=10),
     default=1000,
     show_default=True,
-    help="NUTS samples per chain.",
+    help="NUTS samples per chain, at most (see --ess).",
+)
+@click.option(
+    "--ess",
+    type=click.IntRange(min=0),
+    default=400,
+    show_default=True,
+    help="Stop drawing NUTS samples once every parameter's median and error percentiles "
+    "have this effective sample size (0: draw all --samples).",
 )
 @click.option(
     "--chains", type=click.IntRange(min=1), default=2, show_default=True, help="NUTS chains."
@@ -106,6 +114,7 @@ def command(
     samples: int,
     chains: int,
     seed: int,
+    ess: int = 400,
     force: bool = False,
 ) -> None:
     """Search calibrated observables (calvis or OIFITS FILEs) for companions.
@@ -131,4 +140,5 @@ def command(
         chains=chains,
         seed=seed,
         force=force,
+        ess=ess,
     )

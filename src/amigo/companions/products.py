@@ -158,8 +158,14 @@ def companions_document(result: DetectionResult, inputs: list[str]) -> dict[str,
             "num_samples": post.num_samples,
             "r_hat_max": _r(post.r_hat_max),
             "ess_min": _r(post.ess_min, 1),
+            "ess_percentiles_min": _r(post.ess_percentiles_min, 1),
             "per_filter": {
-                f: {"r_hat_max": _r(p.r_hat_max), "ess_min": _r(p.ess_min, 1)}
+                f: {
+                    "num_samples": p.num_samples,
+                    "r_hat_max": _r(p.r_hat_max),
+                    "ess_min": _r(p.ess_min, 1),
+                    "ess_percentiles_min": _r(p.ess_percentiles_min, 1),
+                }
                 for f, p in result.per_filter_posteriors.items()
             },
         }

@@ -59,6 +59,7 @@ def detect(
     chains: int = 2,
     seed: int = 0,
     force: bool = False,
+    ess: int = 400,
 ) -> DetectResult:
     """Search calvis or OIFITS files for companions, as ``amigo detect``: writes
     ``out/companions.json``, ``out/contrast_limits.csv`` and figures.
@@ -67,8 +68,10 @@ def detect(
     (5 sigma), ``step_mas`` (None: lambda_min / 3 B_max), ``max_companions`` (3),
     ``observables`` (``"all"``, ``"phase"``, ``"amplitude"``), ``cp_correlation``
     (``"baseline"``, ``"independent"``), ``primary_diameter_mas`` (0), ``hmc`` (True),
-    ``per_filter`` (True), ``warmup`` (500), ``samples`` (1000), ``chains`` (2),
-    ``seed`` (0), ``force`` (False: keep a search of the same inputs and options).
+    ``per_filter`` (True), ``warmup`` (500), ``samples`` (1000: the most drawn per
+    chain), ``chains`` (2), ``seed`` (0), ``force`` (False: keep a search of the same
+    inputs and options), ``ess`` (400: stop drawing once every parameter's median and
+    error percentiles have this effective sample size; 0 draws all ``samples``).
     Returns a :class:`DetectResult` (``.companions``, ``.document``, ``.result``).
     """
     options = dict(locals())  # the parameters, before any other name is bound
@@ -91,7 +94,7 @@ def detect(
         result, document = _search(
             files, out, rmax_mas, threshold, step_mas, max_companions, observables,
             cp_correlation, primary_diameter_mas, hmc, per_filter, warmup, samples,
-            chains, seed, key,
+            chains, seed, key, ess,
         )  # fmt: skip
     return DetectResult(out, document, result)
 
@@ -146,6 +149,7 @@ def _search(
     chains,
     seed,
     key: str = "",
+    ess: int = 400,
 ):
     """Load, search, write the products (companions.json last, recording ``key``) and
     print the findings; return the search's DetectionResult and the companions.json
@@ -176,6 +180,7 @@ def _search(
         num_samples=samples,
         num_chains=chains,
         seed=seed,
+        ess_target=ess,
     )
     result = detect(dataset, settings)
 
