@@ -192,6 +192,9 @@ def sample_posterior(
         :data:`R_HAT_STOP`, checked every :data:`CHUNK` samples per chain (at most); 0
         draws all ``num_samples``. The posterior's ``num_samples`` is the number drawn
         per chain (:data:`ESS_TARGET`: what the default of 400 bounds).
+    laplace_mass
+        Start the warm-up from Laplace's covariance as the inverse mass matrix
+        (:func:`_laplace_inverse_mass`; default) rather than numpyro's identity.
     """
     import numpyro
     import numpyro.distributions as dist
