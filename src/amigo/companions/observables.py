@@ -584,6 +584,13 @@ class Dataset(eqx.Module):
         lookup = {g: i for i, g in enumerate(self.groups)}
         return np.array([lookup[(b.filter_name, KIND_NAMES[k])] for k in np.asarray(b.kinds)])
 
+    def group_counts(self) -> np.ndarray:
+        """(n_groups,) number of observables in each group."""
+        counts = np.zeros(self.n_groups)
+        for i in range(len(self.blocks)):
+            np.add.at(counts, self.group_index(i), 1)
+        return counts
+
     def subset(self, filter_name: str) -> Dataset:
         """The blocks of one filter."""
         return Dataset.from_blocks([b for b in self.blocks if b.filter_name == filter_name])

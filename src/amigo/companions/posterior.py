@@ -333,9 +333,7 @@ def _laplace_inverse_mass(
         "ddec": 2 * np.arange(k) + 1,
         "log10c": 2 * k + np.arange(k * f),
     }
-    counts = np.zeros(dataset.n_groups)
-    for i in range(len(dataset.blocks)):
-        np.add.at(counts, dataset.group_index(i), 1)
+    counts = dataset.group_counts()
     n_fit = 2 * k + k * f
     order = sorted(SITES)
     index = np.concatenate([where[name] for name in order if name != "scale"])

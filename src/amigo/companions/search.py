@@ -169,7 +169,7 @@ class DetectionResult:
     @property
     def sigma_scale(self) -> dict[str, float]:
         """One error scale per filter: the rms over its groups, weighted by observables."""
-        counts = _group_counts(self.dataset)
+        counts = self.dataset.group_counts()
         out = {}
         for f in self.dataset.filters:
             index = [g for g, (name, _) in enumerate(self.dataset.groups) if name == f]
@@ -187,13 +187,6 @@ class DetectionResult:
     @property
     def photon_limit_dmag(self) -> dict[str, float]:
         return {f: photon_limit_dmag(n) for f, n in self.photon_counts.items()}
-
-
-def _group_counts(dataset: Dataset) -> np.ndarray:
-    counts = np.zeros(dataset.n_groups)
-    for i in range(len(dataset.blocks)):
-        np.add.at(counts, dataset.group_index(i), 1)
-    return counts
 
 
 def _mean_wavelengths(dataset: Dataset) -> dict[str, float]:
