@@ -24,6 +24,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
         "amigo.progress",
         "amigo.cachedir",
         "amigo.runtime",
+        "amigo.heap",
         "amigo.niriss",
     ),
     ("amigo.orientation",),

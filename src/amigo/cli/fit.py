@@ -184,5 +184,6 @@ def command(
         superbias=superbias,
         first_group=not no_first_group,
         force=force,
+        keep_products=False,  # files only: each filter's memory is freed after it
     )
     return result.status

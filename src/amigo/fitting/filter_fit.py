@@ -63,6 +63,7 @@ import numpy as np
 import optax
 from jaxtyping import Array, Float
 
+from amigo import heap
 from amigo.fitting.newton import (
     JITTER_INDEX,
     N_LOCAL_SCALARS,
@@ -849,7 +850,10 @@ def latent_information(
     hessian = np.zeros((len(fit.targets), n, n))
     cross = np.zeros((n, len(names)))
     cal_hessian = np.zeros((n, n))
-    w = np.asarray(fit.pixels.inverse_sigma, dtype=np.float64) ** 2
+    # Whitened Jacobians J / sigma are written in float64 straight from the float32 ones
+    # (one float64 copy per Jacobian, ~60 MB for a real exposure, instead of a copy and
+    # a weighted product of it): J^T W J = (J / sigma)^T (J / sigma).
+    root_w = np.asarray(fit.pixels.inverse_sigma, dtype=np.float64).reshape(fit.n_exposures, -1)
     # The fit's own float32 instrument and setup: the programs the solver compiled.
     instrument, setup, params32 = fit.instrument, fit.setup, cast_floats(params, jnp.float32)
     point = eqx.tree_at(
@@ -870,24 +874,38 @@ def latent_information(
     for e in range(fit.n_exposures):
         if source[e] not in known:
             step(f"{label}: Hessian of {fit.exposures[e].name} ({n} latent visibilities)")
-            jac = np.asarray(fit.latent_jacobian(params32, e, instrument, setup), np.float64)
-            jac = jac.reshape(n, -1)
-            hessian[fit.source_index[e]] += (jac * w[e].ravel()) @ jac.T
+            heap.release()
+            jac = np.asarray(fit.latent_jacobian(params32, e, instrument, setup))
+            wj = _whitened(jac.reshape(n, -1), root_w[e])
+            del jac
+            hessian[fit.source_index[e]] += wj @ wj.T
+            del wj
         if fit.is_calibrator[e]:
             step(f"{label}: kernel Jacobians of {fit.exposures[e].name} (point source)")
+            heap.release()
             local, wave = fit.local_jacobians(point, e, instrument, setup, wavefront=True)
             assert wave is not None  # wavefront=True returns the optics block
-            jac0 = np.asarray(local[N_LOCAL_SCALARS:], np.float64).reshape(n, -1)
             # Columns in the order of nuisance_names(): Zernikes, log-flux, slope,
             # defocus, jitter (the instrument block is [Zernikes, defocus, geometry]).
             n_zernike = params.optics.zernikes_nm.size
             zernikes, defocus = wave[:n_zernike], wave[n_zernike : n_zernike + 1]
             jitter = local[JITTER_INDEX : JITTER_INDEX + 1]
             nuis = np.concatenate([zernikes, local[2:4], defocus, jitter])
-            nuis = np.asarray(nuis, np.float64).reshape(len(names), -1)
-            cross += (jac0 * w[e].ravel()) @ nuis.T
-            cal_hessian += (jac0 * w[e].ravel()) @ jac0.T
+            nuis = _whitened(np.asarray(nuis).reshape(len(names), -1), root_w[e])
+            wj0 = _whitened(np.asarray(local[N_LOCAL_SCALARS:]).reshape(n, -1), root_w[e])
+            del local, wave
+            cross += wj0 @ nuis.T
+            cal_hessian += wj0 @ wj0.T
+            del wj0
     return LatentInformation(hessian, cross, cal_hessian, time.perf_counter() - start)
+
+
+def _whitened(jac: np.ndarray, inverse_sigma: np.ndarray) -> np.ndarray:
+    """(n, pixels) float64 ``jac / sigma`` from a (n, pixels) Jacobian of any float type,
+    written into one new array."""
+    out = np.empty(jac.shape)
+    np.multiply(jac, inverse_sigma, out=out)
+    return out
 
 
 # Compiled as one program: called outside a jit (the products' model images, residuals)

@@ -73,6 +73,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from amigo import heap
 from amigo.fitting.params import FitParams
 from amigo.likelihood.pixels import PixelData
 from amigo.model.image import (
@@ -756,20 +757,29 @@ class _Problem:
         for e in self.members:
             residuals = "float64 residuals, " if self.float64 else ""
             step(f"{label}: {residuals}Jacobian of {fit.exposures[e].name}")
-            jac = np.asarray(
-                local_jacobian(thetas[e], instrument, setup, psfs, anchor), np.float64
-            ).reshape(len(self.locals[e]), -1)
+            heap.release()  # the peak of a fit's memory is here (amigo.heap)
+            parts = [
+                np.asarray(local_jacobian(thetas[e], instrument, setup, psfs, anchor)).reshape(
+                    len(self.locals[e]), -1
+                )
+            ]
             index = self.locals[e]
             if fit.is_calibrator[e]:
-                jo = np.asarray(
-                    optics_jacobian(wavefront, thetas[e], instrument, setup, anchor),
-                    np.float64,
-                ).reshape(len(lay.optics), -1)
-                jac = np.concatenate([jac, jo])
+                jo = optics_jacobian(wavefront, thetas[e], instrument, setup, anchor)
+                parts.append(np.asarray(jo).reshape(len(lay.optics), -1))
                 index = np.concatenate([index, lay.optics])
-            wj = jac * self.weight[e]  # whitened Jacobian
+            # The whitened Jacobian, written in float64 straight from the float32 blocks:
+            # the same numbers as converting, concatenating and then weighting, without
+            # those three intermediate float64 copies (~60 MB each for a real exposure).
+            wj = np.empty((len(index), parts[0].shape[1]))
+            row = 0
+            for part in parts:
+                np.multiply(part, self.weight[e], out=wj[row : row + len(part)])
+                row += len(part)
+            del parts
             fisher[np.ix_(index, index)] += wj @ wj.T
             grad[index] += wj @ r[e]
+            del wj
         fisher[lay.optics, lay.optics] += self.prior_precision
         grad[lay.optics] -= self.prior_precision * self._prior_offset(vector)
         fisher[np.diag_indices(n)] += self.jitter_precision
@@ -838,8 +848,10 @@ def levenberg_marquardt(
     history: list[float] = []
     converged, iterations, chords, change = True, 0, 0, 0.0
     decrement = 0.0
-    total = np.zeros((layout.size, layout.size))
-    last = np.zeros((layout.size, layout.size))
+    # The matrices summed over the stages; made when a stage returns one (each is
+    # (size, size) float64, ~40 MB for a real filter's pair of exposures).
+    total: np.ndarray | None = None
+    last: np.ndarray | None = None
     exact: list[int] = []
     cal_loss = 0.0
     for members, stage_label in stages:
@@ -854,15 +866,17 @@ def levenberg_marquardt(
             config.jitter_prior_mas,
             config.band_taper_prior,
         )
-        given, exact_given = None, True
-        indices = _stage_indices(layout, fit, members)
-        if fisher is not None and set(members.tolist()) <= set(exact_exposures):
-            given = _restricted(fisher, indices)
-        elif approximate is not None:
-            given, exact_given = _restricted(approximate, indices), False
-        result = minimise(problem, vector, config, stage_label, given, exact_given)
+        # The stage's part of a given matrix is passed without a name here, so that the
+        # solver can free it once it has new Jacobians.
+        result = minimise(
+            problem,
+            vector,
+            config,
+            stage_label,
+            *_given_matrix(layout, fit, members, fisher, exact_exposures, approximate),
+        )
         if result.last_fisher is not None:
-            last += result.last_fisher
+            last = result.last_fisher if last is None else last + result.last_fisher
         vector = result.vector
         converged &= result.converged
         iterations += result.iterations
@@ -872,8 +886,9 @@ def levenberg_marquardt(
         change = result.last_fall / len(members)
         decrement = max(decrement, result.decrement)
         if result.fisher is not None:
-            total += result.fisher
+            total = result.fisher if total is None else total + result.fisher
             exact.extend(int(e) for e in members)
+        del result
     return NewtonResult(
         params=layout.unpack(params, vector),
         converged=bool(converged),
@@ -882,11 +897,29 @@ def levenberg_marquardt(
         decrement=decrement,
         seconds=time.perf_counter() - start,
         chord_steps=chords,
-        fisher=total if exact else None,
+        fisher=total,
         exact_exposures=tuple(sorted(exact)),
         # The science stage leaves the calibrators' loss unchanged: its history already
         # holds the loss of all exposures.
         loss=float(history[-1]),
         loss_change=float(change),
-        last_fisher=last,
+        last_fisher=np.zeros((layout.size, layout.size)) if last is None else last,
     )
+
+
+def _given_matrix(
+    layout: Layout,
+    fit: JointFit,
+    members: np.ndarray,
+    fisher: np.ndarray | None,
+    exact_exposures: tuple[int, ...],
+    approximate: np.ndarray | None,
+) -> tuple[np.ndarray | None, bool]:
+    """The matrix a stage starts from and whether it is exact (:func:`levenberg_marquardt`'s
+    ``fisher`` / ``approximate``), restricted to the stage's entries, or ``(None, True)``."""
+    indices = _stage_indices(layout, fit, members)
+    if fisher is not None and set(members.tolist()) <= set(exact_exposures):
+        return _restricted(fisher, indices), True
+    if approximate is not None:
+        return _restricted(approximate, indices), False
+    return None, True

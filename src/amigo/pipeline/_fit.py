@@ -122,6 +122,7 @@ def fit(
     superbias: Sequence[str | Path] = (),
     first_group: bool = True,
     force: bool = False,
+    keep_products: bool = True,
 ) -> FitResult:
     """Fit science and calibrator exposures and extract calibrated observables, as ``amigo
     fit``: per science target and filter ``out/<TARGPROP>_<FILTER>_calvis.fits`` and
@@ -134,7 +135,10 @@ def fit(
     ``max_iterations``, ``polish``: optimiser bounds; ``wavefront_prior``: nm rms prior on
     the calibrators' wavefront; ``superbias``: calslope darks giving each pixel's reset
     level (calslope inputs; default the model's); ``first_group=False`` fits the group
-    differences only; ``force``: fit filters whose products are already complete.
+    differences only; ``force``: fit filters whose products are already complete;
+    ``keep_products=False``: the result's ``products`` stay empty (the command line's
+    choice: each filter's fit, Fisher matrices and Hessians, ~0.2 GB for a real filter,
+    are freed once its files are written, instead of held to the end).
 
     Returns a :class:`FitResult` (``.status``, ``.calvis``, ``.summary``,
     ``.plot_residuals()``). Numerical failures end their filter, not the call
@@ -247,8 +251,9 @@ def fit(
                 instrument, filter_name, items, config, out, grid, detector_model, reset, key
             )
             fitted_one = True
-            if product is not None:
+            if product is not None and keep_products:
                 products[filter_name] = product
+            del product
         filters_summary[filter_name] = record
         summary_exposures.extend(records)
         # After each filter: an interrupted run keeps what it finished (kept_records).
@@ -276,11 +281,15 @@ def _release_compiled_programs() -> None:
     band and its latent counts are compiled into them (docs/performance.md, "Programs
     compiled twice, and what two filters share"). Kept, every filter's stayed in memory
     to the end of the run. They stay in the disk cache; the few small programs that two
-    filters do share are read back from it.
+    filters do share are read back from it. The memory they and the last filter's arrays
+    held goes back to the system (:mod:`amigo.heap`).
     """
     import jax
 
+    from amigo import heap
+
     jax.clear_caches()
+    heap.release()
 
 
 def _superbias(paths: tuple[Path, ...], level: str):

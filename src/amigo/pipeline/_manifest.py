@@ -214,6 +214,7 @@ def _fit_and_detect(target: Target, folder: Path, settings: Mapping[str, Any], f
         superbias=target.superbias,
         first_group=settings["first_group"],
         force=force,
+        keep_products=False,
     )
     if not fitted.calvis:
         return fitted.status, None

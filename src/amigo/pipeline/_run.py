@@ -50,11 +50,13 @@ def run(
     superbias: Sequence[str | Path] = (),
     first_group: bool = True,
     force: bool = False,
+    keep_products: bool = True,
 ) -> RunResult:
     """Raw ramps to companions, as ``amigo run``: :func:`process`, :func:`fit` and
     :func:`detect` into ``out``, each keeping what an earlier run left complete for the
     same inputs (``force`` redoes all three). ``superbias``: raw dark ramps, processed
-    with the rest, whose reset levels let the first group's photons into the fit."""
+    with the rest, whose reset levels let the first group's photons into the fit.
+    ``keep_products``: as :func:`fit`'s."""
     from amigo.io.calslope import calslope_name
     from amigo.progress import step
 
@@ -82,6 +84,7 @@ def run(
         superbias=[slopes[p] for p in superbias_paths],
         first_group=first_group,
         force=force,
+        keep_products=keep_products,
     )
     # The products of this fit, as its summary lists them (not every calvis file in OUT:
     # one of an earlier fit of a filter that failed this time is not this run's).

@@ -282,6 +282,9 @@ def minimise(
         else:
             if estimate < tolerance():
                 to_float64()  # these Jacobians are expected to confirm convergence
+            # The old matrix and its decomposition are replaced: let them go before the
+            # new Jacobians are taken (the fits' matrices are tens of MB each).
+            fisher = solver = None
             fisher, grad = problem.normal_equations(vector, label)
             fisher_point, stale_tried = np.array(vector, copy=True), False
             solver = FisherSolve(fisher)
