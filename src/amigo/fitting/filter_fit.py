@@ -75,6 +75,7 @@ from amigo.fitting.newton import (
     optics_jacobian,
     optics_vector,
     psfs_of,
+    whitened,
 )
 from amigo.fitting.params import FitParams
 from amigo.likelihood.pixels import ImageData, PixelData
@@ -876,7 +877,7 @@ def latent_information(
             step(f"{label}: Hessian of {fit.exposures[e].name} ({n} latent visibilities)")
             heap.release()
             jac = np.asarray(fit.latent_jacobian(params32, e, instrument, setup))
-            wj = _whitened(jac.reshape(n, -1), root_w[e])
+            wj = whitened([jac.reshape(n, -1)], root_w[e])
             del jac
             hessian[fit.source_index[e]] += wj @ wj.T
             del wj
@@ -891,21 +892,13 @@ def latent_information(
             zernikes, defocus = wave[:n_zernike], wave[n_zernike : n_zernike + 1]
             jitter = local[JITTER_INDEX : JITTER_INDEX + 1]
             nuis = np.concatenate([zernikes, local[2:4], defocus, jitter])
-            nuis = _whitened(np.asarray(nuis).reshape(len(names), -1), root_w[e])
-            wj0 = _whitened(np.asarray(local[N_LOCAL_SCALARS:]).reshape(n, -1), root_w[e])
+            nuis = whitened([np.asarray(nuis).reshape(len(names), -1)], root_w[e])
+            wj0 = whitened([np.asarray(local[N_LOCAL_SCALARS:]).reshape(n, -1)], root_w[e])
             del local, wave
             cross += wj0 @ nuis.T
             cal_hessian += wj0 @ wj0.T
             del wj0
     return LatentInformation(hessian, cross, cal_hessian, time.perf_counter() - start)
-
-
-def _whitened(jac: np.ndarray, inverse_sigma: np.ndarray) -> np.ndarray:
-    """(n, pixels) float64 ``jac / sigma`` from a (n, pixels) Jacobian of any float type,
-    written into one new array."""
-    out = np.empty(jac.shape)
-    np.multiply(jac, inverse_sigma, out=out)
-    return out
 
 
 # Compiled as one program: called outside a jit (the products' model images, residuals)

@@ -768,14 +768,7 @@ class _Problem:
                 jo = optics_jacobian(wavefront, thetas[e], instrument, setup, anchor)
                 parts.append(np.asarray(jo).reshape(len(lay.optics), -1))
                 index = np.concatenate([index, lay.optics])
-            # The whitened Jacobian, written in float64 straight from the float32 blocks:
-            # the same numbers as converting, concatenating and then weighting, without
-            # those three intermediate float64 copies (~60 MB each for a real exposure).
-            wj = np.empty((len(index), parts[0].shape[1]))
-            row = 0
-            for part in parts:
-                np.multiply(part, self.weight[e], out=wj[row : row + len(part)])
-                row += len(part)
+            wj = whitened(parts, self.weight[e])
             del parts
             fisher[np.ix_(index, index)] += wj @ wj.T
             grad[index] += wj @ r[e]
@@ -785,6 +778,22 @@ class _Problem:
         fisher[np.diag_indices(n)] += self.jitter_precision
         grad -= self.jitter_precision * (vector - self.jitter_centre)
         return fisher, grad
+
+
+def whitened(blocks: list[np.ndarray], inverse_sigma: np.ndarray) -> np.ndarray:
+    """(rows, pixels) float64 ``J / sigma`` of a Jacobian given as row blocks, each
+    (n_i, pixels) of any float type, stacked in order.
+
+    Written straight into one new array: the same numbers as converting to float64,
+    stacking and then weighting, without those intermediate float64 copies (~60 MB each
+    for a real exposure).
+    """
+    out = np.empty((sum(len(block) for block in blocks), blocks[0].shape[1]))
+    row = 0
+    for block in blocks:
+        np.multiply(block, inverse_sigma, out=out[row : row + len(block)])
+        row += len(block)
+    return out
 
 
 def _stage_indices(layout: Layout, fit: JointFit, members: np.ndarray) -> np.ndarray:
