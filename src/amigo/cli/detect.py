@@ -69,9 +69,10 @@ import click
 @click.option(
     "--warmup",
     type=click.IntRange(min=10),
-    default=500,
-    show_default=True,
-    help="NUTS warm-up steps per chain.",
+    default=None,
+    help="NUTS warm-up steps per chain [default: 150, tuning the step size with Laplace's "
+    "covariance as the mass matrix; 500, adapting the mass matrix, where that covariance "
+    "is not positive definite].",
 )
 @click.option(
     "--samples",
@@ -110,7 +111,7 @@ def command(
     primary_diameter_mas: float,
     no_hmc: bool,
     no_per_filter: bool,
-    warmup: int,
+    warmup: int | None,
     samples: int,
     chains: int,
     seed: int,

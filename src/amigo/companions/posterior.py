@@ -47,6 +47,18 @@ R_HAT_STOP = 1.01
 #: The percentiles whose half-difference is a reported error (one sigma of a Gaussian).
 ERROR_PERCENTILES = (15.865, 84.135)
 
+#: Warm-up steps per chain when Laplace's covariance is the mass matrix: the warm-up
+#: then tunes the step size alone (dual averaging). Measured on AB Dor's three filters
+#: (docs/performance.md, a tenth session): that mass matrix gives as few leapfrogs per
+#: sample as one adapted over 500 warm-up steps (6.9 per sample in either) and the same
+#: effective sample size per draw; 75 warm-up steps were as good as 150, and a mass
+#: matrix adapted within 150 steps took 10.5 leapfrogs per sample.
+WARMUP_LAPLACE = 150
+#: Warm-up steps per chain when the mass matrix is adapted (Stan's windowed schedule,
+#: numpyro's default): 75 steps of step size alone, windows of 25, 50, 100 and 200, 50
+#: to finish.
+WARMUP_ADAPTIVE = 500
+
 #: Samples per chain drawn between two checks of the stopping rule (at most; the
 #: requested number is split into equal chunks, so each compiles once).
 CHUNK = 250
@@ -71,6 +83,8 @@ class Posterior:
 
     ``samples``: ``"dra"``, ``"ddec"`` (n, K) mas; ``"log10c"`` (n, K, F); ``"scale"``
     (n, n_groups). ``r_hat`` and ``ess`` map each site to arrays of its element values.
+    ``num_warmup`` is the warm-up per chain and ``mass_matrix`` how its mass matrix was
+    made: ``"laplace"`` (Laplace's covariance, kept) or ``"adapted"`` (by the warm-up).
     """
 
     samples: dict[str, np.ndarray]
@@ -80,6 +94,8 @@ class Posterior:
     num_samples: int
     warnings: tuple[str, ...] = field(default_factory=tuple)
     ess_percentiles: dict[str, np.ndarray] = field(default_factory=dict)
+    num_warmup: int = 0
+    mass_matrix: str = ""
 
     @property
     def r_hat_max(self) -> float:
@@ -152,7 +168,7 @@ def sample_posterior(
     best: CompanionFitResult,
     initial_scales: np.ndarray,
     *,
-    num_warmup: int = 500,
+    num_warmup: int | None = None,
     num_samples: int = 1000,
     num_chains: int = 2,
     seed: int = 0,
@@ -175,7 +191,9 @@ def sample_posterior(
     initial_scales
         (n_groups,) starting error scales (e.g. the maximum-likelihood estimates).
     num_warmup, num_samples, num_chains
-        NUTS settings; ``num_samples`` per chain is the most drawn (see ``ess_target``).
+        NUTS settings; ``num_samples`` per chain is the most drawn (see ``ess_target``),
+        ``num_warmup`` per chain defaults to :data:`WARMUP_LAPLACE` where Laplace's
+        covariance is the mass matrix, else :data:`WARMUP_ADAPTIVE`.
         Chains run one after the other by default: vectorised chains
         (``chain_method="vectorized"``) move in lockstep, each tree as deep as the
         deeper of the two, and their products with the observable matrices do not share
@@ -193,8 +211,10 @@ def sample_posterior(
         draws all ``num_samples``. The posterior's ``num_samples`` is the number drawn
         per chain (:data:`ESS_TARGET`: what the default of 400 bounds).
     laplace_mass
-        Start the warm-up from Laplace's covariance as the inverse mass matrix
-        (:func:`_laplace_inverse_mass`; default) rather than numpyro's identity.
+        Use Laplace's covariance as the inverse mass matrix (:func:`_laplace_inverse_mass`;
+        default): the warm-up then tunes the step size only. Otherwise (or where that
+        matrix is not positive definite) the warm-up starts from numpyro's identity and
+        adapts a dense mass matrix in Stan's windows.
     """
     import numpyro
     import numpyro.distributions as dist
@@ -245,15 +265,19 @@ def sample_posterior(
             numpyro.factor("potential", -_potential(z, data, boxes, diameter))
 
         boxes = jax.tree.map(jnp.asarray, bounds)
+        inverse_mass = (
+            _laplace_inverse_mass(dataset, best, scales0, start, bounds) if laplace_mass else None
+        )
+        if num_warmup is None:
+            num_warmup = WARMUP_ADAPTIVE if inverse_mass is None else WARMUP_LAPLACE
         kernel = NUTS(
             model,
             dense_mass=True,
+            inverse_mass_matrix=inverse_mass,
+            # Laplace's covariance is kept: a mass matrix adapted from a short warm-up's
+            # draws was worse (more leapfrogs per sample, see WARMUP_LAPLACE).
+            adapt_mass_matrix=inverse_mass is None,
             target_accept_prob=0.85,
-            inverse_mass_matrix=(
-                _laplace_inverse_mass(dataset, best, scales0, start, bounds)
-                if laplace_mass
-                else None
-            ),
         )
         # The draws in equal chunks, so that the one compiled sampling loop serves all.
         n_chunks = -(-num_samples // CHUNK) if ess_target > 0 else 1
@@ -309,6 +333,8 @@ def sample_posterior(
         num_samples=drawn,
         warnings=tuple(messages),
         ess_percentiles=tails,
+        num_warmup=num_warmup,
+        mass_matrix="adapted" if inverse_mass is None else "laplace",
     )
 
 

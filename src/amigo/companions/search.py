@@ -80,7 +80,7 @@ class SearchSettings:
     primary_diameter_mas: float = 0.0
     hmc: bool = True
     per_filter: bool = True
-    num_warmup: int = 500
+    num_warmup: int | None = None  # posterior.WARMUP_LAPLACE or WARMUP_ADAPTIVE
     num_samples: int = 1000
     num_chains: int = 2
     ess_target: float = ESS_TARGET
@@ -612,7 +612,8 @@ def _detect(given: Dataset, settings: SearchSettings) -> DetectionResult:
         if settings.hmc:
             step(
                 f"NUTS: {k} companion(s), {dataset.n_filters} filter(s), "
-                f"{settings.num_chains}x({settings.num_warmup}+{settings.num_samples}) steps"
+                f"{settings.num_chains}x({settings.num_warmup or 'auto'}+{settings.num_samples}) "
+                "steps"
             )
             posterior = sample_posterior(
                 dataset,

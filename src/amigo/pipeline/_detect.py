@@ -54,7 +54,7 @@ def detect(
     primary_diameter_mas: float = 0.0,
     hmc: bool = True,
     per_filter: bool = True,
-    warmup: int = 500,
+    warmup: int | None = None,
     samples: int = 1000,
     chains: int = 2,
     seed: int = 0,
@@ -68,8 +68,9 @@ def detect(
     (5 sigma), ``step_mas`` (None: lambda_min / 3 B_max), ``max_companions`` (3),
     ``observables`` (``"all"``, ``"phase"``, ``"amplitude"``), ``cp_correlation``
     (``"baseline"``, ``"independent"``), ``primary_diameter_mas`` (0), ``hmc`` (True),
-    ``per_filter`` (True), ``warmup`` (500), ``samples`` (1000: the most drawn per
-    chain), ``chains`` (2), ``seed`` (0), ``force`` (False: keep a search of the same
+    ``per_filter`` (True), ``warmup`` (None: 150 steps tuning the step size from
+    Laplace's covariance, 500 adapting the mass matrix where that covariance is not
+    available), ``samples`` (1000: the most drawn per chain), ``chains`` (2), ``seed`` (0), ``force`` (False: keep a search of the same
     inputs and options), ``ess`` (400: stop drawing once every parameter's median and
     error percentiles have this effective sample size; 0 draws all ``samples``).
     Returns a :class:`DetectResult` (``.companions``, ``.document``, ``.result``).
