@@ -229,3 +229,42 @@ def test_laplaces_mass_matrix_needs_only_a_short_warm_up(tmp_path):
         np.testing.assert_allclose(np.std(a, axis=0), sd, rtol=0.2)
     # as many effective draws of the error percentiles (the binding ones), to a factor
     assert kept.ess_percentiles_min > 0.6 * adapted.ess_percentiles_min
+
+
+def test_fits_side_by_side_take_the_steps_each_takes_alone(tmp_path):
+    """`fit_companions_many` (the search's candidate fits, batched) ends each fit where
+    `fit_companions` ends it alone, from starts that converge in different numbers of
+    steps (near the truth, at a noise peak, far off); no start gives no fit, and starts
+    of different companion counts are refused."""
+    import pytest
+
+    from amigo.companions import fit as fitting
+
+    with jax.enable_x64(True):
+        dataset = _dataset(tmp_path)
+        scales = np.array([1.3, 0.8, 1.1, 0.9])[: dataset.n_groups]
+        f = dataset.n_filters
+        starts = [
+            (np.array([[TRUTH[0] + 3.0, TRUTH[1] - 2.0]]), np.full((1, f), -1.5)),
+            (np.array([[150.0, -220.0]]), np.full((1, f), -3.0)),
+            (np.array([[TRUTH[0] + 40.0, TRUTH[1] + 25.0]]), np.full((1, f), -2.5)),
+        ]
+        for tolerance in (0.0, 1e-3):
+            together = fitting.fit_companions_many(
+                dataset, starts, scales, chi2_tolerance=tolerance
+            )
+            alone = [
+                fitting.fit_companions(dataset, o, c, scales, chi2_tolerance=tolerance)
+                for o, c in starts
+            ]
+            for a, b in zip(together, alone, strict=True):
+                assert a.converged == b.converged
+                np.testing.assert_allclose(a.offsets_mas, b.offsets_mas, rtol=0, atol=1e-6)
+                np.testing.assert_allclose(a.log10_contrasts, b.log10_contrasts, atol=1e-8)
+                np.testing.assert_allclose(a.chi2, b.chi2, rtol=1e-10)
+                np.testing.assert_allclose(a.covariance, b.covariance, rtol=1e-6, atol=1e-12)
+        assert fitting.fit_companions_many(dataset, [], scales) == []
+        with pytest.raises(ValueError, match="same number of companions"):
+            fitting.fit_companions_many(
+                dataset, [starts[0], (np.zeros((2, 2)), np.full((2, f), -2.0))], scales
+            )

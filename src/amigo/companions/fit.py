@@ -172,6 +172,96 @@ def _residual_and_jacobian(flat, args):
     return jnp.concatenate(residuals), jnp.concatenate(jacobians, axis=0)
 
 
+@eqx.filter_jit
+def _residuals_and_jacobians(flats, args):
+    """:func:`_residual_and_jacobian` of several points at once (B, n): residuals (B, m)
+    and Jacobians (B, m, n). One pass over the observable matrices serves every point (a
+    batch of 20 cost 2.3 ms a point against 7.7 ms alone on AB Dor's three filters)."""
+    return jax.vmap(lambda flat: _residual_and_jacobian(flat, args))(flats)
+
+
+class _Marquardt:
+    """One problem's Levenberg-Marquardt iteration (Marquardt's diagonal scaling), stepped
+    from outside so that several problems can share each evaluation.
+
+    Each iteration: :meth:`proposal` gives the next point to evaluate (or ``None``: the
+    problem has finished, or its damped system was singular and the damping grew), then
+    :meth:`accept` takes the residuals and Jacobian there.
+    """
+
+    def __init__(
+        self, x: np.ndarray, r: np.ndarray, j: np.ndarray, rtol: float, decrement_tol: float
+    ):
+        self.x, self.r, self.j = x, r, j
+        self.chi2 = float(r @ r)
+        self.damping = 1e-3
+        self.rtol, self.decrement_tol = rtol, decrement_tol
+        self.finished = self.converged = False
+        self._step = np.zeros_like(x)
+
+    def _finish(self) -> None:
+        self.finished = self.converged = True
+
+    def proposal(self) -> np.ndarray | None:
+        fisher = self.j.T @ self.j
+        gradient = self.j.T @ self.r
+        if self.decrement_tol > 0.0:
+            newton = np.linalg.lstsq(fisher, gradient, rcond=None)[0]
+            if float(gradient @ newton) <= self.decrement_tol:
+                self._finish()
+                return None
+        scale = np.maximum(np.diag(fisher), 1e-30)
+        try:
+            self._step = np.linalg.solve(fisher + self.damping * np.diag(scale), -gradient)
+        except np.linalg.LinAlgError:
+            self.damping *= 10.0
+            return None
+        return self.x + self._step
+
+    def accept(self, r_new: np.ndarray, j_new: np.ndarray) -> None:
+        chi2_new = float(r_new @ r_new)
+        if np.isfinite(chi2_new) and chi2_new <= self.chi2:
+            self.x, self.r, self.j = self.x + self._step, r_new, j_new
+            gain, self.chi2 = self.chi2 - chi2_new, chi2_new
+            self.damping = max(self.damping / 3.0, 1e-12)
+            if gain <= self.rtol * max(self.chi2, 1.0):
+                self._finish()
+        else:
+            self.damping *= 4.0
+            if self.damping > 1e10:
+                self._finish()  # no downhill step left: a (local) minimum
+
+
+Evaluate = Callable[[list[np.ndarray]], list[tuple[np.ndarray, np.ndarray]]]
+
+
+def _marquardt_all(
+    evaluate: Evaluate,
+    starts: list[np.ndarray],
+    max_steps: int,
+    rtol: float,
+    decrement_tol: float,
+) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, bool]]:
+    """Run :class:`_Marquardt` from each start in lockstep, every iteration evaluating the
+    points of all problems still running in one call of ``evaluate`` (points -> their
+    ``(r, J)``, in order). Each problem takes exactly the steps it would take alone."""
+    states = [
+        _Marquardt(np.asarray(x, dtype=float), r, j, rtol, decrement_tol)
+        for x, (r, j) in zip(starts, evaluate([np.asarray(x, float) for x in starts]), strict=True)
+    ]
+    for _ in range(max_steps):
+        running = [s for s in states if not s.finished]
+        if not running:
+            break
+        proposed = [(s, s.proposal()) for s in running]
+        todo = [(s, point) for s, point in proposed if point is not None]
+        if todo:
+            values = evaluate([point for _, point in todo])
+            for (s, _), (r, j) in zip(todo, values, strict=True):
+                s.accept(r, j)
+    return [(s.x, s.r, s.j, s.converged) for s in states]
+
+
 def levenberg_marquardt(
     function: Callable[[np.ndarray], tuple[Any, Any]],
     x0: np.ndarray,
@@ -194,36 +284,15 @@ def levenberg_marquardt(
     100-odd evaluations to reach ``rtol``) while the chi2 left to gain is already
     negligible.
     """
-    x = np.asarray(x0, dtype=float)
-    r, j = (np.asarray(a) for a in function(x))
-    chi2 = float(r @ r)
-    damping = 1e-3
-    for _ in range(max_steps):
-        fisher = j.T @ j
-        gradient = j.T @ r
-        if decrement_tol > 0.0:
-            newton = np.linalg.lstsq(fisher, gradient, rcond=None)[0]
-            if float(gradient @ newton) <= decrement_tol:
-                return x, r, j, True
-        scale = np.maximum(np.diag(fisher), 1e-30)
-        try:
-            step = np.linalg.solve(fisher + damping * np.diag(scale), -gradient)
-        except np.linalg.LinAlgError:
-            damping *= 10.0
-            continue
-        r_new, j_new = (np.asarray(a) for a in function(x + step))
-        chi2_new = float(r_new @ r_new)
-        if np.isfinite(chi2_new) and chi2_new <= chi2:
-            x, r, j = x + step, r_new, j_new
-            gain, chi2 = chi2 - chi2_new, chi2_new
-            damping = max(damping / 3.0, 1e-12)
-            if gain <= rtol * max(chi2, 1.0):
-                return x, r, j, True
-        else:
-            damping *= 4.0
-            if damping > 1e10:
-                return x, r, j, True  # no downhill step left: a (local) minimum
-    return x, r, j, False
+
+    def evaluate(points: list[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
+        out = []
+        for x in points:
+            r, j = function(x)
+            out.append((np.asarray(r), np.asarray(j)))
+        return out
+
+    return _marquardt_all(evaluate, [np.asarray(x0)], max_steps, rtol, decrement_tol)[0]
 
 
 def fit_companions(
@@ -248,32 +317,81 @@ def fit_companions(
         (:func:`levenberg_marquardt`'s ``decrement_tol``); 0 (default): converge to the
         relative chi2 change of ``1e-10``.
     """
+    return fit_companions_many(
+        dataset,
+        [(offsets_mas, log10_contrasts)],
+        group_scales,
+        primary_diameter_mas,
+        max_steps,
+        chi2_tolerance,
+    )[0]
+
+
+def fit_companions_many(
+    dataset: Dataset,
+    starts: list[tuple[np.ndarray, np.ndarray]],
+    group_scales: np.ndarray | None = None,
+    primary_diameter_mas: float = 0.0,
+    max_steps: int = 200,
+    chi2_tolerance: float = 0.0,
+) -> list[CompanionFitResult]:
+    """:func:`fit_companions` from each of several starts ``(offsets_mas (K, 2),
+    log10_contrasts (K, F))``, all with the same ``K``: independent fits whose
+    evaluations are batched (:func:`_residuals_and_jacobians`). A fit takes the same steps
+    as alone; its numbers may differ in their last bits (the batched products sum in
+    another order). One start is evaluated unbatched, by the program of a single fit.
+    """
+    if not starts:
+        return []
     scales = np.ones(dataset.n_groups) if group_scales is None else np.asarray(group_scales)
     scale_vectors = dataset.scale_vectors(scales)
-    offsets0 = np.asarray(offsets_mas, dtype=float).reshape(-1, 2)
-    log10c0 = np.clip(
-        np.asarray(log10_contrasts, dtype=float).reshape(offsets0.shape[0], -1),
-        LOG10_CONTRAST_FLOOR + 1,
-        -1e-3,
-    )
-    k = offsets0.shape[0]
+    firsts = []
+    for offsets_mas, log10_contrasts in starts:
+        offsets0 = np.asarray(offsets_mas, dtype=float).reshape(-1, 2)
+        log10c0 = np.clip(
+            np.asarray(log10_contrasts, dtype=float).reshape(offsets0.shape[0], -1),
+            LOG10_CONTRAST_FLOOR + 1,
+            -1e-3,
+        )
+        firsts.append((offsets0, log10c0))
+    counts = {offsets0.shape[0] for offsets0, _ in firsts}
+    if len(counts) > 1:
+        raise ValueError(f"every start must have the same number of companions, got {counts}")
+    k = counts.pop()
     args = (dataset, scale_vectors, k, float(primary_diameter_mas))
-    y0 = np.concatenate([offsets0.ravel(), log10c0.ravel()])
-    best, residual, jacobian, converged = levenberg_marquardt(
-        lambda y: _residual_and_jacobian(jnp.asarray(y), args),
-        y0,
-        max_steps,
-        decrement_tol=chi2_tolerance,
-    )
-    covariance = np.linalg.pinv(jacobian.T @ jacobian, rcond=1e-12, hermitian=True)
-    return CompanionFitResult(
-        offsets_mas=best[: 2 * k].reshape(k, 2),
-        log10_contrasts=np.clip(best[2 * k :].reshape(k, -1), LOG10_CONTRAST_FLOOR, 0.0),
-        covariance=covariance,
-        chi2=float(residual @ residual),
-        group_scales=scales,
-        converged=converged,
-    )
+
+    def evaluate(points: list[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
+        if len(points) == 1:
+            r, j = _residual_and_jacobian(jnp.asarray(points[0]), args)
+            return [(np.asarray(r), np.asarray(j))]
+        # Padded to a few sizes (repeating the last point), so that a handful of compiled
+        # programs serve every count of running fits.
+        size = _batch_size(len(points))
+        padded = np.stack(points + [points[-1]] * (size - len(points)))
+        r, j = (np.asarray(a) for a in _residuals_and_jacobians(jnp.asarray(padded), args))
+        return [(r[i], j[i]) for i in range(len(points))]
+
+    y0s = [np.concatenate([o.ravel(), c.ravel()]) for o, c in firsts]
+    fits = _marquardt_all(evaluate, y0s, max_steps, 1e-10, chi2_tolerance)
+    out = []
+    for best, residual, jacobian, converged in fits:
+        covariance = np.linalg.pinv(jacobian.T @ jacobian, rcond=1e-12, hermitian=True)
+        out.append(
+            CompanionFitResult(
+                offsets_mas=best[: 2 * k].reshape(k, 2),
+                log10_contrasts=np.clip(best[2 * k :].reshape(k, -1), LOG10_CONTRAST_FLOOR, 0.0),
+                covariance=covariance,
+                chi2=float(residual @ residual),
+                group_scales=scales,
+                converged=converged,
+            )
+        )
+    return out
+
+
+def _batch_size(n: int) -> int:
+    """The compiled batch that holds ``n`` points: 8, then multiples of 8."""
+    return -(-n // 8) * 8
 
 
 def scaled_chi2(

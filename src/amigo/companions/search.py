@@ -246,31 +246,24 @@ def _search_one(
             chi2_before = _chi2(dataset, offsets, log10c, scales, diameter)
         else:
             chi2_before = fitting.background_chi2(dataset, scales, diameter)
-        candidates = []
-        fitted: dict[tuple[float, float], fitting.CompanionFitResult] = {}
-        for x, y, _ in result.peaks(settings.n_candidates):
+        peaks = [(x, y) for x, y, _ in result.peaks(settings.n_candidates)]
+        starts = []
+        for x, y in peaks:
             before = previous.get((x, y))
             if before is not None:
-                start_offsets, start_log10c = before.offsets_mas, before.log10_contrasts
-            else:
-                iy = int(np.argmin(np.abs(grid.y_mas - y)))
-                ix = int(np.argmin(np.abs(grid.x_mas - x)))
-                start = [
-                    np.log10(max(m.contrast[iy, ix], m.sigma[iy, ix], 1e-8)) for m in result.maps
-                ]
-                start_offsets = np.vstack([offsets, [[x, y]]])
-                start_log10c = np.vstack([log10c, [start]])
-            trial = fitting.fit_companions(
-                dataset,
-                start_offsets,
-                start_log10c,
-                scales,
-                diameter,
-                chi2_tolerance=CANDIDATE_CHI2_TOLERANCE,
-            )
-            fitted[(x, y)] = trial
-            candidates.append(_Candidate(trial, chi2_before - trial.chi2, scales))
-        previous = fitted
+                starts.append((before.offsets_mas, before.log10_contrasts))
+                continue
+            iy = int(np.argmin(np.abs(grid.y_mas - y)))
+            ix = int(np.argmin(np.abs(grid.x_mas - x)))
+            start = [np.log10(max(m.contrast[iy, ix], m.sigma[iy, ix], 1e-8)) for m in result.maps]
+            starts.append((np.vstack([offsets, [[x, y]]]), np.vstack([log10c, [start]])))
+        # The peaks' fits are independent: fitted side by side, each evaluation of all the
+        # running fits one pass over the observable matrices.
+        trials = fitting.fit_companions_many(
+            dataset, starts, scales, diameter, chi2_tolerance=CANDIDATE_CHI2_TOLERANCE
+        )
+        candidates = [_Candidate(t, chi2_before - t.chi2, scales) for t in trials]
+        previous = dict(zip(peaks, trials, strict=True))
         if not candidates:
             return result, []
         candidates.sort(key=lambda c: -c.dchi2)
