@@ -97,6 +97,8 @@ def test_calvis_end_to_end(tmp_path, capsys):
     (companion,) = doc["companions"]
     assert COMPANION_KEYS <= set(companion)
     assert companion["method"] == "hmc" and companion["detection_sigma"] > 20
+    # the sampler's settings as run: the warm-up asked for, Laplace's mass matrix kept
+    assert (doc["hmc"]["num_warmup"], doc["hmc"]["mass_matrix"]) == (60, "laplace")
     # Loose check here (60 samples); the 2-sigma recovery is tested in test_companions_search.
     assert abs(companion["sep_mas"] - np.hypot(*truth)) < 5 * companion["sep_err_mas"] + 1
     assert set(doc["contrast_limits"]["F480M"]) >= {"sep_mas", "dmag_3sigma"}

@@ -155,12 +155,16 @@ def companions_document(result: DetectionResult, inputs: list[str]) -> dict[str,
         post = result.posterior
         document["hmc"] = {
             "num_chains": post.num_chains,
+            "num_warmup": post.num_warmup,
+            "mass_matrix": post.mass_matrix,
             "num_samples": post.num_samples,
             "r_hat_max": _r(post.r_hat_max),
             "ess_min": _r(post.ess_min, 1),
             "ess_percentiles_min": _r(post.ess_percentiles_min, 1),
             "per_filter": {
                 f: {
+                    "num_warmup": p.num_warmup,
+                    "mass_matrix": p.mass_matrix,
                     "num_samples": p.num_samples,
                     "r_hat_max": _r(p.r_hat_max),
                     "ess_min": _r(p.ess_min, 1),
