@@ -74,7 +74,7 @@ def main() -> None:
     print("per filter (sum of chi2 over the filter's exposures):")
     print(f"{'filter':<6} {'cov':<5} {'chi2 full':>12} {'chi2 linear':>12} {'reduction':>9} "
           f"{'z std full':>10} {'z std lin':>9}")  # fmt: skip
-    summary = defaultdict(lambda: defaultdict(list))
+    summary: defaultdict[tuple, defaultdict[str, list]] = defaultdict(lambda: defaultdict(list))
     for r in rows:
         summary[(r["filter"], r["covariance"])][r["detector"]].append(r)
     table = []

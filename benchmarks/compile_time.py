@@ -71,11 +71,11 @@ class StageDurations:
     def __init__(self) -> None:
         self.table: dict[str, list[float]] = defaultdict(lambda: [0, 0.0])
 
-    def __call__(self, event: str, duration: float, **_: object) -> None:
+    def __call__(self, event: str, duration_secs: float, **_: str | int) -> None:
         if event in STAGE_EVENTS:
             row = self.table[event]
             row[0] += 1
-            row[1] += duration
+            row[1] += duration_secs
 
 
 def main() -> None:

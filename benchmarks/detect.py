@@ -122,7 +122,9 @@ def main() -> None:
                 ("1 filter", observables.Dataset.from_blocks([three.blocks[0]])),
                 ("3 filters", three),
             ):
-                best_fit = fit.fit_companions(data, [[-320.0, 60.0]], [[-2.0] * data.n_filters])
+                best_fit = fit.fit_companions(
+                    data, np.array([[-320.0, 60.0]]), np.full((1, data.n_filters), -2.0)
+                )
 
                 def run(d=data, b=best_fit):
                     posterior.sample_posterior(

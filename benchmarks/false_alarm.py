@@ -65,15 +65,15 @@ def main() -> None:
             faps.append(sig.false_alarm_probability)
             peaks.append(sig.local_sigma)
     seconds = time.perf_counter() - start
-    faps = np.asarray(faps)
-    n = faps.size
+    fap = np.asarray(faps)
+    n = fap.size
     print(f"{n} null realisations, F380M + F480M, r_max {args.rmax_mas:g} mas, ")
     print(f"inner working angle {iwa:.1f} mas, {trials:.0f} trials, {seconds:.0f} s\n")
     print("| FAP below | fraction | expected | binomial error |")
     print("|---|---|---|---|")
     for q in (0.05, 0.1, 0.25, 0.5, 0.75):
-        print(f"| {q:g} | {np.mean(faps < q):.3f} | {q:g} | {np.sqrt(q * (1 - q) / n):.3f} |")
-    ks = stats.kstest(faps, "uniform")
+        print(f"| {q:g} | {np.mean(fap < q):.3f} | {q:g} | {np.sqrt(q * (1 - q) / n):.3f} |")
+    ks = stats.kstest(fap, "uniform")
     print(f"\nKS distance to uniform {ks.statistic:.3f} (p = {ks.pvalue:.2f});")
     print(f"highest local peak: median {np.median(peaks):.2f} sigma, max {np.max(peaks):.2f}")
 

@@ -71,8 +71,9 @@ def _instrument(row: str) -> Instrument:
     """The nominal instrument with the detector of ``row`` (see the module notes)."""
     ipc = ROWS.index(row) >= ROWS.index("ipc")
     if row == "before":
-        old = dict(rotation_deg=0.561, anisotropy=1.00765, skew_deg=0.0, scale=1.0)
-        detector = LinearDetector.create(ipc=False, **old)
+        detector = LinearDetector.create(
+            ipc=False, rotation_deg=0.561, anisotropy=1.00765, skew_deg=0.0, scale=1.0
+        )
     else:
         detector = LinearDetector.create(ipc=ipc)
     return eqx.tree_at(lambda i: i.detector, Instrument.nominal(), detector)

@@ -64,7 +64,12 @@ PRIMARY = {
     "TIME-OBS": "00:00:00.000",
     "DATAMODL": "Level1bModel",
 }
-ROLL = {"ROLL_REF": 171.8, "V3I_YANG": 0.56126717, "VPARITY": -1, "PA_APER": 172.36126717}
+ROLL: dict[str, float] = {
+    "ROLL_REF": 171.8,
+    "V3I_YANG": 0.56126717,
+    "VPARITY": -1,
+    "PA_APER": 172.36126717,
+}
 BIAS_DN, BIAS_RMS_DN, RESET_DN, READ_DN, ADC_DN = 12000.0, 300.0, 10.0, 12.0, 2.0
 
 
@@ -88,7 +93,7 @@ def _image(filter_name: str, position_arcsec, companions, flux_e_s: float) -> np
     setup = FilterSetup.create(filter_name, instrument)
     optics = OpticsParams.from_instrument(instrument)
     jitter = float(instrument.detector.jitter_arcsec) * 1000.0
-    orientation = Orientation(pa_aper_deg=ROLL["PA_APER"], vparity=ROLL["VPARITY"],
+    orientation = Orientation(pa_aper_deg=ROLL["PA_APER"], vparity=int(ROLL["VPARITY"]),
                               v3_idl_y_angle_deg=ROLL["V3I_YANG"])  # fmt: skip
     sky_to_optical = sky_to_optical_matrix(orientation, instrument.detector)
     sources = [(np.asarray(position_arcsec), 1.0)]
@@ -103,7 +108,7 @@ def _image(filter_name: str, position_arcsec, companions, flux_e_s: float) -> np
                                   jnp.log(jnp.float32(flux_e_s * ratio)),
                                   jnp.float32(jitter))  # fmt: skip
         total += np.asarray(
-            image_from_log_vis(instrument, setup, optics, 0.0, exposure, None, None)
+            image_from_log_vis(instrument, setup, optics, jnp.asarray(0.0), exposure, None, None)
         )
     return total
 
@@ -138,7 +143,7 @@ def _write_uncal(path: Path, raw: np.ndarray, **primary) -> Path:
     return path
 
 
-def _amigo(*args: str) -> float:
+def _amigo(*args: str | Path) -> float:
     start = time.perf_counter()
     subprocess.run([sys.executable, "-m", "amigo", *map(str, args)], check=True)
     return time.perf_counter() - start
@@ -218,9 +223,9 @@ def main() -> None:
         ("first group", ["--superbias", calslope["dark1"], calslope["dark2"]]),
     ):
         tag = label.replace(" ", "_")
-        sci = [calslope[f"sci {f}"] for f in filters]
-        cal = [calslope[f"cal {f}"] for f in filters]
-        fit_s = _amigo("fit", "--sci", *sci, "--cal", *cal, "--model", model,
+        sci_files = [calslope[f"sci {f}"] for f in filters]
+        cal_files = [calslope[f"cal {f}"] for f in filters]
+        fit_s = _amigo("fit", "--sci", *sci_files, "--cal", *cal_files, "--model", model,
                        "--out", out / f"fit_{tag}", *extra)  # fmt: skip
         calvis = sorted((out / f"fit_{tag}").glob("*_calvis.fits"))
         detect_s = _amigo("detect", *calvis, "--out", out / f"detect_{tag}", "--no-hmc")

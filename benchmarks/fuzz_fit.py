@@ -93,7 +93,9 @@ def _saturated(sci, err, dq, rng):
     return np.minimum(sci, 0.2 * sci.max()), err, dq
 
 
-CASES: dict[str, tuple[str, Damage]] = {
+#: Each case: the exposure it damages ("sci" or "cal") and how; "same" gives the calibrator
+#: the science file itself.
+CASES: dict[str, tuple[str, Damage | str]] = {
     "none": ("cal", lambda s, e, d, r: (s, e, d)),
     "flux 1e-30": ("cal", lambda s, e, d, r: (s * 1e-30, e * 1e-30, d)),
     "flux 1e30": ("sci", lambda s, e, d, r: (s * 1e30, e * 1e30, d)),
@@ -127,7 +129,7 @@ def write_case(name: str, folder: Path, image, error) -> tuple[Path, Path]:
             else (image + error * rng.standard_normal(image.shape))
         )
         err, dq = error, np.zeros(image.shape, np.uint32)
-        if which == role and damage != "same":
+        if which == role and not isinstance(damage, str):  # "same" damages nothing
             sci, err, dq = damage(sci, err, dq, rng)
         files[which] = write_level2(
             folder / f"{which}_cal.fits",
@@ -157,7 +159,7 @@ def run_case(sci: Path, cal: Path, model: Path, out: Path, timeout: float) -> di
     seconds = time.perf_counter() - start
     lines = [line for line in done.stderr.splitlines() if line.startswith(("amigo:", "warn"))]
     broken = done.returncode not in (0, 2, 3, 4) or "Traceback" in done.stderr
-    record = {
+    record: dict[str, object] = {
         "status": done.returncode,
         "seconds": seconds,
         "outcome": "BROKEN" if broken else "ok",

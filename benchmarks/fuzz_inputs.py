@@ -69,7 +69,7 @@ def main() -> None:
     outcomes = ("accepted", "refused", "not applicable", "BROKEN")
     print(f"| kind | damage | {' | '.join(outcomes)} |")
     print("|---|---|" + "---|" * len(outcomes))
-    totals = collections.Counter()
+    totals: collections.Counter[str] = collections.Counter()
     for (kind, damage), counter in sorted(counts.items()):
         totals.update(counter)
         print(f"| {kind} | {damage} | " + " | ".join(str(counter[o]) for o in outcomes) + " |")

@@ -36,7 +36,9 @@ def _run(args: list[str]) -> float:
 def _truth(raw: Path) -> tuple[list[Path], list[Path], list[dict]]:
     """Science and calibrator ramps, and the companions with their delta-mag per filter
     (each truth file gives the delta-mag in its own filter)."""
-    sci, cal, companions = [], [], []
+    sci: list[Path] = []
+    cal: list[Path] = []
+    companions: list[dict] = []
     for path in sorted(raw.glob("*_truth.json")):
         doc = json.loads(path.read_text())
         uncal = raw / doc["uncal"]

@@ -22,6 +22,7 @@ import argparse
 import os
 import time
 from importlib import resources
+from typing import Any
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
@@ -47,7 +48,9 @@ def reference(spec, state) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]
     """Noiseless data (e- over the exposure) and its noise, from the simulator's optics."""
     xy = (REFERENCE_PIXEL_XY[0] + spec.offset_pix[0], REFERENCE_PIXEL_XY[1] + spec.offset_pix[1])
     scene = DetectorScene((DetectorSource(*xy, 1.0),))
-    image = bin_pixels(OpticalModelIllumination().render(scene, spec.filter, state, 4), 4)
+    image = bin_pixels(
+        jnp.asarray(OpticalModelIllumination().render(scene, spec.filter, state, 4)), 4
+    )
     image = image / image.sum()
     total = spec.nints_full * spec.peak_dn * niriss.GAIN_E_PER_DN / image.max()
     data = image * total
@@ -139,7 +142,7 @@ def main() -> None:
         np.random.default_rng(state_seed), scenario.spread, scenario.filters
     )
     wanted = args.filters.split(",")
-    specs = {}
+    specs: dict[str, Any] = {}
     for spec in scenario.exposures:  # the first exposure of each filter (observation 3)
         specs.setdefault(spec.filter, spec)
     print(f"{'filter':<6} {'pupil':>5} {'defocus':<17} {'chi2 floor':>10} {'pixels':>6} {'s':>5}")

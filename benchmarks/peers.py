@@ -48,6 +48,7 @@ import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from astropy.io import fits
@@ -57,7 +58,7 @@ CALIBRATOR = "jw01093015001_{}_00001_nis_cal.fits"
 SCIENCE = "jw01093012001_{}_00001_nis_cal.fits"
 EXPOSURE = {"F480M": "03102", "F430M": "03103", "F380M": "03104"}
 #: Published AB Dor C (the paper's joint fit; PA in the files' WCS convention, data README)
-ABDOR_C = {"sep_mas": 328.85, "pa_deg": 280.5, "dmag": {"F380M": 4.313, "F430M": 4.354, "F480M": 4.381}}  # fmt: skip
+ABDOR_C: dict[str, Any] = {"sep_mas": 328.85, "pa_deg": 280.5, "dmag": {"F380M": 4.313, "F430M": 4.354, "F480M": 4.381}}  # fmt: skip
 
 #: AMICAL's documented recipe (tutorial): cleaning, extraction, CANDID-style analysis.
 AMICAL_CLEAN = {"isz": 69, "r1": 31, "dr": 2, "apod": True, "window": 32, "clip": False}
@@ -274,12 +275,13 @@ def _errors(result: Result, truth: tuple, filter_name: str) -> str:
     if sep is None:
         found = "none" if result.sep is None else f"false {result.sep:.0f} mas"
         return f"{found:>34}"
-    if result.sep is None:
+    if result.sep is None or result.pa is None:
         return f"{'not found':>34}"
+    sep_err, pa_err = result.sep_err or np.nan, result.pa_err or np.nan
     d_sep = result.sep - sep
     d_pa = _angle(result.pa, pa)
     d_dm = result.dmag.get(filter_name, np.nan) - dm
-    z = (d_sep / result.sep_err, d_pa / result.pa_err,
+    z = (d_sep / sep_err, d_pa / pa_err,
          d_dm / result.dmag_err.get(filter_name, np.nan))  # fmt: skip
     return (f"{d_sep:+7.2f} ({z[0]:+5.1f}) {d_pa:+6.2f} ({z[1]:+5.1f}) "
             f"{d_dm:+6.3f} ({z[2]:+5.1f})")  # fmt: skip

@@ -72,7 +72,8 @@ class _Stamped:
     """stderr that keeps every line with the time it was written (and still shows it)."""
 
     def __init__(self, stream, start: float) -> None:
-        self.stream, self.start, self.lines, self._part = stream, start, [], ""
+        self.stream, self.start, self._part = stream, start, ""
+        self.lines: list[tuple[float, str]] = []
 
     def write(self, text: str) -> int:
         self.stream.write(text)
@@ -92,7 +93,8 @@ class _Stamped:
 class _Compiles(logging.Handler):
     def __init__(self, start: float) -> None:
         super().__init__(level=logging.DEBUG)
-        self.start, self.events = start, []
+        self.start = start
+        self.events: list[tuple[float, float]] = []
 
     def emit(self, record: logging.LogRecord) -> None:
         found = _COMPILED.match(record.getMessage())

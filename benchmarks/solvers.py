@@ -133,15 +133,35 @@ def optimistix_levenberg_marquardt(residuals, x0, data, rtol: float, max_steps: 
     """What would replace :func:`amigo.companions.fit.levenberg_marquardt`: the same
     ``(x, r, J, converged)`` from optimistix (the Jacobian at the optimum is the
     covariance's), compiled as one program."""
-    solver = optx.LevenbergMarquardt(rtol=rtol, atol=rtol)
-    solution = optx.least_squares(residuals, solver, x0, data, max_steps=max_steps, throw=False)
+    solver: optx.LevenbergMarquardt = optx.LevenbergMarquardt(rtol=rtol, atol=rtol)
+    solution: optx.Solution = optx.least_squares(
+        residuals, solver, x0, data, max_steps=max_steps, throw=False
+    )
     x = solution.value
     converged = solution.result == optx.RESULTS.successful
     return x, residuals(x, data), jax.jacfwd(residuals)(x, data), converged, solution.stats
 
 
+def _flat_residual(y, args):
+    """The companion fits' whitened residuals at the flat parameters ``[offsets.ravel(),
+    log10c.ravel()]``: what :func:`amigo.companions.fit._residual_and_jacobian`
+    differentiates block by block, in one vector."""
+    dataset, scale_vectors, k, diameter = args
+    offsets = y[: 2 * k].reshape(k, 2)
+    log10c = jnp.clip(y[2 * k :], companion_fit.LOG10_CONTRAST_FLOOR, 0.0).reshape(k, -1)
+    return jnp.concatenate(
+        [
+            companion_fit.block_residual(
+                block, offsets, 10.0 ** log10c[:, dataset.filter_index(i)], diameter
+            )
+            / scale_vectors[i]
+            for i, block in enumerate(dataset.blocks)
+        ]
+    )
+
+
 def _companion_residuals(y, data):
-    return companion_fit._flat_residual(y, (*data, 1, 0.0))
+    return _flat_residual(y, (*data, 1, 0.0))
 
 
 def companion_case(dataset, truth) -> tuple[list[str], list[str]]:
@@ -194,7 +214,7 @@ class _Residuals(eqx.Module):
     diameter: float = eqx.field(static=True)
 
     def __call__(self, y, data):
-        return companion_fit._flat_residual(y, (*data, self.k, self.diameter))
+        return _flat_residual(y, (*data, self.k, self.diameter))
 
 
 def optimistix_fit_companions(
@@ -444,21 +464,21 @@ def image(n_zernike: int) -> None:
         )  # fmt: skip
 
     # The costs the chord steps trade: one set of Jacobians against one gradient.
-    problem = newton._Problem(fit, params, members)
+    plain = newton._Problem(fit, params, members)
     unit_costs = []
     for precision in (False, True):
-        problem.float64 = precision
-        problem.normal_equations(start, "warm-up")
-        problem.gradient(start)
+        plain.float64 = precision
+        plain.normal_equations(start, "warm-up")
+        plain.gradient(start)
         unit_costs.append(
-            (wall(lambda: problem.normal_equations(start, "bench"))[1],
-             wall(lambda: problem.gradient(start))[1])
+            (wall(lambda: plain.normal_equations(start, "bench"))[1],
+             wall(lambda: plain.gradient(start))[1])
         )  # fmt: skip
 
     # optimistix on the packed vector, float64: raw (capped) and Jacobi-scaled.
-    problem = newton._Problem(fit, params, members)
+    packed = newton._Problem(fit, params, members)
     with jax.enable_x64(True):
-        residuals, data = residual_function(problem)
+        residuals, data = residual_function(packed)
         jacobian_of = jax.jit(jax.jacfwd(residuals))
         start64 = jnp.asarray(start)
         jacobian, jac_seconds = wall(lambda: jacobian_of(start64, data))
@@ -482,7 +502,7 @@ def image(n_zernike: int) -> None:
                     record, values["num_steps"][1], values["loss_last_accepted_step"][1]
                 )
 
-            solver = optx.LevenbergMarquardt(
+            solver: optx.LevenbergMarquardt = optx.LevenbergMarquardt(
                 rtol=IMAGE_TOLERANCE, atol=IMAGE_TOLERANCE, verbose=verbose
             )
             function, y0, arguments = (
@@ -533,7 +553,7 @@ def image(n_zernike: int) -> None:
         reach.append(
             [name, first_within(run_["log"], best, 1.0), first_within(run_["log"], best, 0.1)]
         )
-    n_pixels = int(np.count_nonzero(problem.weight[0]))
+    n_pixels = int(np.count_nonzero(packed.weight[0]))
     table(
         f"Image fit ({layout.size} parameters, {n_pixels} pixels + priors; float64 judge): "
         "distance = sqrt(dx^T F dx) to the best solution; Jacobians = full Jacobian "
