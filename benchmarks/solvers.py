@@ -328,7 +328,8 @@ def companions() -> None:
     table(
         f"A whole detection of the {BINARIES[1][0]:.0f} mas binary (detect, no HMC, rmax 600 "
         "mas) in a fresh process with the persistent compilation cache: fits = companion fits "
-        "(the search's candidates included), layouts = distinct (filters, companions) compiled; seconds of detect()",
+        "(the search's candidates included), layouts = distinct (filters, companions) "
+        "compiled; seconds of detect()",
         ["solver", "fits", "layouts", "empty cache s", "second run s",
          "companions found (sep, PA)"],
         detection(),

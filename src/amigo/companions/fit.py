@@ -23,6 +23,8 @@ from amigo.companions.observables import Dataset, Observables
 
 #: Lowest log10 flux ratio allowed in the fits (a companion 25 magnitudes fainter).
 LOG10_CONTRAST_FLOOR = -10.0
+#: A fit has converged when a step lowers chi2 by less than this fraction of it.
+CHI2_RTOL = 1e-10
 
 
 # Compiled as one program per dataset layout and companion count: evaluated op by op,
@@ -266,7 +268,7 @@ def levenberg_marquardt(
     function: Callable[[np.ndarray], tuple[Any, Any]],
     x0: np.ndarray,
     max_steps: int = 200,
-    rtol: float = 1e-10,
+    rtol: float = CHI2_RTOL,
     decrement_tol: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
     """Minimise ``|r(x)|^2`` by Levenberg-Marquardt with Marquardt's diagonal scaling.
@@ -315,7 +317,7 @@ def fit_companions(
     chi2_tolerance
         Stop once the linearised model could gain no more than this in chi2
         (:func:`levenberg_marquardt`'s ``decrement_tol``); 0 (default): converge to the
-        relative chi2 change of ``1e-10``.
+        relative chi2 change of :data:`CHI2_RTOL` (1e-10).
     """
     return fit_companions_many(
         dataset,
@@ -372,7 +374,7 @@ def fit_companions_many(
         return [(r[i], j[i]) for i in range(len(points))]
 
     y0s = [np.concatenate([o.ravel(), c.ravel()]) for o, c in firsts]
-    fits = _marquardt_all(evaluate, y0s, max_steps, 1e-10, chi2_tolerance)
+    fits = _marquardt_all(evaluate, y0s, max_steps, CHI2_RTOL, chi2_tolerance)
     out = []
     for best, residual, jacobian, converged in fits:
         covariance = np.linalg.pinv(jacobian.T @ jacobian, rcond=1e-12, hermitian=True)
