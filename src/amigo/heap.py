@@ -43,3 +43,14 @@ def release() -> bool:
     Costs a walk over the heaps (milliseconds). Returns whether memory was released."""
     trim = _trim()
     return bool(trim(0)) if trim is not None else False
+
+
+def release_programs() -> bool:
+    """Drop JAX's in-memory compiled programs and caches (``jax.clear_caches``), then
+    :func:`release`: for a step whose programs serve nothing after it (a filter's fit, a
+    posterior's sampling loops). What runs later reloads what it needs from the
+    persistent compilation cache. Returns whether memory was released."""
+    import jax  # here: the rest of this module needs only ctypes
+
+    jax.clear_caches()
+    return release()

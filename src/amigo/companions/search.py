@@ -501,8 +501,7 @@ def _release_programs() -> None:
     this (2026-11-29). What runs after reloads its programs from the persistent
     compilation cache (seconds). The memory goes back to the system (:mod:`amigo.heap`).
     """
-    jax.clear_caches()
-    heap.release()
+    heap.release_programs()
 
 
 def _estimate_from_samples(dra, ddec, log10c, filters) -> Estimate:

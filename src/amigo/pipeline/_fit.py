@@ -284,12 +284,9 @@ def _release_compiled_programs() -> None:
     filters do share are read back from it. The memory they and the last filter's arrays
     held goes back to the system (:mod:`amigo.heap`).
     """
-    import jax
-
     from amigo import heap
 
-    jax.clear_caches()
-    heap.release()
+    heap.release_programs()
 
 
 def _superbias(paths: tuple[Path, ...], level: str):
