@@ -218,10 +218,11 @@ def test_a_given_fisher_matrix_saves_jacobians_and_changes_no_optimum():
 
 
 def test_a_float64_gradient_confirms_convergence_with_the_last_matrix(monkeypatch):
-    """Chord steps that end near their Jacobians (``dx^T F dx`` about 2.3 tolerances,
-    within STALE_FISHER_REACH): the float64 gradient weighed by the last matrix confirms
-    convergence, with no float64 Jacobians; the optimum is the one float64 normal
-    equations confirm (a reach of 0 asks for them)."""
+    """Chord steps that end near their Jacobians (``dx^T F dx`` about 2.3 tolerances over
+    three parameters, within STALE_FISHER_REACH of one tolerance per parameter): the
+    float64 gradient weighed by the last matrix confirms convergence, with no float64
+    Jacobians; the optimum is the one float64 normal equations confirm (a reach of 0 asks
+    for them, and so does a start beyond the reach)."""
     from amigo.solvers import levenberg_marquardt as lm
 
     reference = lm.minimise(_Curve(), np.array([1.0, 1.0, 0.0]), _Settings(), "reference")
@@ -241,6 +242,14 @@ def test_a_float64_gradient_confirms_convergence_with_the_last_matrix(monkeypatc
     assert confirmed.converged and confirmed.fisher is not None and strict.jacobians[-1]
     np.testing.assert_allclose(found.vector, confirmed.vector, rtol=1e-7)
     np.testing.assert_allclose(found.vector, reference.vector, rtol=1e-7)
+    monkeypatch.setattr(lm, "STALE_FISHER_REACH", 1.0)
+    # Twice as far: 9 tolerances over three parameters, beyond the reach.
+    far = _Curve()
+    beyond = lm.minimise(
+        far, reference.vector + 2.0 * (start - reference.vector), _Settings(), "far"
+    )
+    assert beyond.converged and far.jacobians[-1] and len(far.jacobians) == 2
+    np.testing.assert_allclose(beyond.vector, reference.vector, rtol=1e-7)
 
 
 def test_jacobian_batch_is_the_default_unless_the_environment_sets_it(monkeypatch):

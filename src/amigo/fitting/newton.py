@@ -211,7 +211,7 @@ class NewtonResult:
     ``fisher`` is the Fisher matrix ``F`` of the global vector (:class:`Layout`) from the
     last Jacobians of the stages whose convergence float64 residuals confirmed, summed
     over the exposures ``exact_exposures`` of those stages (``None`` if none): evaluated
-    within a few tolerances (about 2 sigma) of ``params``, which is one undamped
+    within about one sigma per parameter (root mean square) of ``params``, which is one undamped
     Gauss-Newton step from the point of confirmation
     (:func:`amigo.solvers.levenberg_marquardt.minimise`, "Confirmation").
     """

@@ -36,11 +36,20 @@ Jacobians' relative change over a displacement is the displacement over the scal
 which the model is non-linear; on the real F480M pair of docs/performance.md, taking
 the matrix up to ~2 sigma from the optimum instead of ~1 moved the DISCOs' information
 matrix by 1.4e-3 and their errors by at most 1.2e-3 of themselves). So where the vector
-is still within :data:`STALE_FISHER_REACH` (``dx^T F dx`` per group, in tolerances) of
-the point of the last Jacobians, the float64 gradient there is weighed by that matrix,
-and new Jacobians are evaluated only if it does not confirm convergence. The returned
-matrix is then the one of those Jacobians, and that distance is the one the caller's
-covariances are taken across.
+is still within :data:`STALE_FISHER_REACH` of the point of the last Jacobians, the
+float64 gradient there is weighed by that matrix, and new Jacobians are evaluated only if
+it does not confirm convergence. The returned matrix is then the one of those Jacobians,
+and that distance is the one the caller's covariances are taken across.
+
+The reach is a distance *per parameter*: ``dx^T F dx`` over the number of parameters the
+matrix informs, in tolerances, at most 1, i.e. a root-mean-square move of about one
+sigma per parameter at the default tolerance. A fit's matrix changes on the scale on
+which its model is non-linear, many sigma for the bright stars of AMI, and over a move of
+this size it changes by about as much as over the few-sigma moves of the per-group
+reach it replaced (4 tolerances per exposure, 2026-11-28): the real fits' refits after
+a detector correction move by a decrement of 30-900 per exposure of ~1100 parameters,
+which the per-group reach sent to new Jacobians (6 of a three-filter fit's 20 sets;
+docs/performance.md, the eleventh session).
 """
 
 from __future__ import annotations
@@ -62,11 +71,12 @@ CHORD_EFFICIENCY = 0.05
 #: smaller eigenvalues are set by rounding, and the gradient's rounding noise along them
 #: would dominate both the step and the Newton decrement.
 EIGEN_FLOOR = 1e-7
-#: How far (``dx^T F dx`` per group, in units of the tolerance) the vector may have moved
-#: from where the last Jacobians were evaluated for that Fisher matrix to confirm
-#: convergence with a float64 gradient alone (module notes, "Confirmation"): 4, i.e.
-#: within about 2 sigma (Mahalanobis) at the default tolerance.
-STALE_FISHER_REACH = 4.0
+#: How far (``dx^T F dx`` per parameter the matrix informs, in units of the tolerance)
+#: the vector may have moved from where the last Jacobians were evaluated for that Fisher
+#: matrix to confirm convergence with a float64 gradient alone (module notes,
+#: "Confirmation"): 1, a root-mean-square move of about one sigma per parameter at the
+#: default tolerance.
+STALE_FISHER_REACH = 1.0
 
 
 class Problem(Protocol):
@@ -159,7 +169,7 @@ def marginal_errors(fisher: np.ndarray | None, indices: np.ndarray) -> np.ndarra
 class Solution:
     """Outcome of :func:`minimise`: the final vector, and ``fisher`` when float64
     residuals confirmed convergence, else ``None``: the matrix of the last Jacobians,
-    evaluated within :data:`STALE_FISHER_REACH` tolerances of the point of confirmation,
+    evaluated within :data:`STALE_FISHER_REACH` (per parameter) of the point of confirmation,
     from which the final vector is one undamped Gauss-Newton step (module notes,
     "Confirmation")."""
 
@@ -215,11 +225,13 @@ def minimise(
 
     def near(matrix: np.ndarray | None, point: np.ndarray | None) -> bool:
         """Whether ``vector`` is within :data:`STALE_FISHER_REACH` of ``point``, where
-        the Jacobians of ``matrix`` were evaluated (``dx^T F dx`` per group)."""
+        the Jacobians of ``matrix`` were evaluated (``dx^T F dx`` per parameter with
+        information: a stage of a fit sees its own block of a larger matrix)."""
         if matrix is None or point is None or not config.float64_check:
             return False
         dx = vector - point
-        return float(dx @ matrix @ dx) / n_groups <= STALE_FISHER_REACH * tolerance()
+        informed = max(int(np.count_nonzero(np.diag(matrix) > 0)), 1)
+        return float(dx @ matrix @ dx) / informed <= STALE_FISHER_REACH * tolerance()
 
     def damped_step(solver, grad) -> float | None:
         """A Levenberg-Marquardt step from ``vector``: the fall of the loss, or None if
