@@ -129,8 +129,9 @@ def test_synthetic_single_and_binary():
     # confirming matrix may come from up to about one sigma per parameter (root mean
     # square) before the returned parameters (amigo.solvers.levenberg_marquardt,
     # STALE_FISHER_REACH): the calibrator's here from its second Jacobians, whose point
-    # the chord steps then moved by a decrement of 149 (its jitter by several sigma,
-    # and the blur's transfer at the longest baselines with it): entries agree to 1.5e-4
+    # the chord steps then moved by a decrement of 149 (its jitter most: by 43 of its
+    # conditional errors 1/sqrt(F_jj), and the blur's transfer at the longest baselines
+    # with it; 0.64 tolerances per parameter in all): entries agree to 1.5e-4
     # of the largest, the diagonal to 0.9 % of itself, the errors to 5.4e-3
     # (2026-11-29; with new Jacobians for that confirmation, 6e-5 and 1.1e-4, as with
     # float64 derivatives).

@@ -43,13 +43,15 @@ and that distance is the one the caller's covariances are taken across.
 
 The reach is a distance *per parameter*: ``dx^T F dx`` over the number of parameters the
 matrix informs, in tolerances, at most 1, i.e. a root-mean-square move of about one
-sigma per parameter at the default tolerance. A fit's matrix changes on the scale on
-which its model is non-linear, many sigma for the bright stars of AMI, and over a move of
-this size it changes by about as much as over the few-sigma moves of the per-group
-reach it replaced (4 tolerances per exposure, 2026-11-28): the real fits' refits after
-a detector correction move by a decrement of 30-900 per exposure of ~1100 parameters,
-which the per-group reach sent to new Jacobians (6 of a three-filter fit's 20 sets;
-docs/performance.md, the eleventh session).
+sigma per parameter at the default tolerance. It replaced 4 tolerances per group
+(2026-11-28), which sent the real fits' refits after a detector correction to new
+Jacobians only to confirm (they move by a decrement of 30-900 per exposure of ~1100
+parameters; 6 of a three-filter fit's 20 sets, docs/performance.md, the eleventh
+session). The price is in the covariances' last digits: where a parameter to which the
+matrix is sensitive moved far on the way (the jitter: the blur's transfer at the longest
+baselines changes by ~1 % per sigma of a real fit's jitter), the matrix differs from the
+optimum's by up to ~1 % on its diagonal and the errors by up to ~0.5 % (0.01 % within
+the old reach), below the ~2 % to which the data calibrate the errors afterwards.
 """
 
 from __future__ import annotations
