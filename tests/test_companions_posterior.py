@@ -194,7 +194,8 @@ def test_sampling_stops_once_the_errors_percentiles_are_sampled_enough(tmp_path)
         settings = dict(num_warmup=100, num_chains=1, seed=1, num_samples=1000)
         stopped = sample_posterior(dataset, best, scales, ess_target=50, **settings)
         n = stopped.num_samples
-        assert n in (250, 500, 750)  # chunks of 250; one check met the target before 1000
+        # A chunk of 250, then half chunks; one check met the target before 1000.
+        assert n in (250, 375, 500, 625, 750, 875)
         assert stopped.samples["dra"].shape == (n, 1)
         assert min(stopped.ess_min, stopped.ess_percentiles_min) >= 50
         assert stopped.r_hat_max <= R_HAT_STOP

@@ -59,9 +59,15 @@ WARMUP_LAPLACE = 150
 #: to finish.
 WARMUP_ADAPTIVE = 500
 
-#: Samples per chain drawn between two checks of the stopping rule (at most; the
-#: requested number is split into equal chunks, so each compiles once).
+#: Samples per chain drawn with the warm-up before the first check of the stopping rule
+#: (at most; the requested number is split into equal chunks).
 CHUNK = 250
+#: Samples per chain drawn between the later checks, as a fraction of :data:`CHUNK`
+#: (every continuation the same size, so one compiled loop serves them all). Half: on
+#: AB Dor's four posteriors the error percentiles' ESS after the first chunk was 251-398
+#: of the 400 asked, after a second full chunk 674-783 (docs/performance.md, an eleventh
+#: session): a whole chunk more drew up to twice what the rule needed.
+CONTINUATION = 0.5
 
 
 class PosteriorWarning(UserWarning):
@@ -207,7 +213,8 @@ def sample_posterior(
     ess_target
         Stop drawing once every parameter's effective sample size, for its median and
         for its error's percentiles, reaches this and its R-hat is at most
-        :data:`R_HAT_STOP`, checked every :data:`CHUNK` samples per chain (at most); 0
+        :data:`R_HAT_STOP`, checked after the first :data:`CHUNK` samples per chain and
+        then every :data:`CONTINUATION` of a chunk (at most); 0
         draws all ``num_samples``. The posterior's ``num_samples`` is the number drawn
         per chain (:data:`ESS_TARGET`: what the default of 400 bounds).
     laplace_mass
@@ -293,6 +300,16 @@ def sample_posterior(
         )
         mcmc.run(jax.random.PRNGKey(seed), evaluated, boxes, init_params=init)
         parts = [_box_samples(mcmc, bounds)]
+        last = mcmc  # the run whose last state the next continues from
+        more = MCMC(
+            kernel,
+            num_warmup=0,
+            num_samples=max(1, int(np.ceil(CONTINUATION * chunk))),
+            num_chains=num_chains,
+            chain_method=chain_method,
+            progress_bar=progress_bar,
+            jit_model_args=True,
+        )
         while True:
             grouped = {
                 name: np.concatenate([p[name] for p in parts], axis=1)[:, :num_samples]
@@ -304,10 +321,11 @@ def sample_posterior(
             if drawn >= num_samples or _converged(stats, tails, ess_target):
                 break
             # Continue every chain from its last state, adapted step size and mass matrix
-            # kept (no new warm-up).
-            mcmc.post_warmup_state = mcmc.last_state
-            mcmc.run(mcmc.post_warmup_state.rng_key, evaluated, boxes)
-            parts.append(_box_samples(mcmc, bounds))
+            # kept (no new warm-up): the same chain as one long run.
+            more.post_warmup_state = last.last_state
+            more.run(more.post_warmup_state.rng_key, evaluated, boxes)
+            parts.append(_box_samples(more, bounds))
+            last = more
     r_hat = {name: np.atleast_1d(np.asarray(s["r_hat"], float)) for name, s in stats.items()}
     ess = {name: np.atleast_1d(np.asarray(s["n_eff"], float)) for name, s in stats.items()}
     flat = {name: v.reshape(-1, *v.shape[2:]) for name, v in grouped.items()}
