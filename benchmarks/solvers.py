@@ -149,15 +149,8 @@ def _flat_residual(y, args):
     dataset, scale_vectors, k, diameter = args
     offsets = y[: 2 * k].reshape(k, 2)
     log10c = jnp.clip(y[2 * k :], companion_fit.LOG10_CONTRAST_FLOOR, 0.0).reshape(k, -1)
-    return jnp.concatenate(
-        [
-            companion_fit.block_residual(
-                block, offsets, 10.0 ** log10c[:, dataset.filter_index(i)], diameter
-            )
-            / scale_vectors[i]
-            for i, block in enumerate(dataset.blocks)
-        ]
-    )
+    blocks = companion_fit.block_residuals(dataset, offsets, 10.0**log10c, diameter)
+    return jnp.concatenate([r / scale for r, scale in zip(blocks, scale_vectors, strict=True)])
 
 
 def _companion_residuals(y, data):

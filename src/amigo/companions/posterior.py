@@ -286,7 +286,8 @@ def sample_posterior(
             adapt_mass_matrix=inverse_mass is None,
             target_accept_prob=0.85,
         )
-        # The draws in equal chunks, so that the one compiled sampling loop serves all.
+        # The first draws with the warm-up, then equal continuations (CONTINUATION): one
+        # compiled sampling loop serves every continuation.
         n_chunks = -(-num_samples // CHUNK) if ess_target > 0 else 1
         chunk = -(-num_samples // n_chunks)
         mcmc = MCMC(

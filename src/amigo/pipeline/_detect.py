@@ -71,8 +71,9 @@ def detect(
     ``per_filter`` (True), ``warmup`` (None: 150 steps tuning the step size from
     Laplace's covariance, 500 adapting the mass matrix where that covariance is not
     available), ``samples`` (1000: the most drawn per chain), ``chains`` (2), ``seed``
-    (0), ``force`` (False: keep a search of the same inputs and options), ``ess`` (400: stop drawing once every parameter's median and
-    error percentiles have this effective sample size; 0 draws all ``samples``).
+    (0), ``force`` (False: keep a search of the same inputs and options), ``ess`` (400:
+    stop drawing once every parameter's median and error percentiles have this effective
+    sample size; 0 draws all ``samples``).
     Returns a :class:`DetectResult` (``.companions``, ``.document``, ``.result``).
     """
     options = dict(locals())  # the parameters, before any other name is bound
