@@ -27,7 +27,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
         "amigo.heap",
         "amigo.niriss",
     ),
-    ("amigo.orientation",),
+    ("amigo.orientation", "amigo.programs"),
     ("amigo.io",),
     ("amigo.processing",),
     ("amigo.model",),

@@ -19,6 +19,7 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import functools
+from collections.abc import Callable
 
 
 @functools.cache
@@ -45,6 +46,17 @@ def release() -> bool:
     return bool(trim(0)) if trim is not None else False
 
 
+#: What else holds programs in memory (:func:`holds_programs`), emptied with JAX's caches.
+_HOLDERS: list[Callable[[], None]] = []
+
+
+def holds_programs(forget: Callable[[], None]) -> None:
+    """Have :func:`release_programs` call ``forget`` too (a cache of programs above this
+    module, e.g. :func:`amigo.programs.release`)."""
+    if forget not in _HOLDERS:
+        _HOLDERS.append(forget)
+
+
 def release_programs() -> bool:
     """Drop JAX's in-memory compiled programs and caches (``jax.clear_caches``), then
     :func:`release`: for a step whose programs serve nothing after it (a filter's fit, a
@@ -53,4 +65,6 @@ def release_programs() -> bool:
     import jax  # here: the rest of this module needs only ctypes
 
     jax.clear_caches()
+    for forget in _HOLDERS:
+        forget()
     return release()

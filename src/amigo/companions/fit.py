@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 import numpy.typing as npt
 
+from amigo import programs
 from amigo.companions.models import scene_visibility
 from amigo.companions.observables import Dataset, Observables
 
@@ -143,7 +144,7 @@ def _block_columns(k: int, n_filters: int, f: int) -> np.ndarray:
     return np.concatenate([np.arange(2 * k), 2 * k + np.arange(k) * n_filters + f])
 
 
-@eqx.filter_jit
+@programs.jit
 def _residual_and_jacobian(flat, args):
     """Residual vector and its Jacobian of flattened parameters ``[offsets.ravel(),
     log10c.ravel()]`` (forward mode: few parameters, many residuals).
@@ -174,7 +175,7 @@ def _residual_and_jacobian(flat, args):
     return jnp.concatenate(residuals), jnp.concatenate(jacobians, axis=0)
 
 
-@eqx.filter_jit
+@programs.jit
 def _residuals_and_jacobians(flats, args):
     """:func:`_residual_and_jacobian` of several points at once (B, n): residuals (B, m)
     and Jacobians (B, m, n). One pass over the observable matrices serves every point (a

@@ -19,12 +19,14 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, field
+from typing import Any
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from amigo import programs
 from amigo.companions.fit import CompanionFitResult, block_residuals
 from amigo.companions.observables import Dataset
 
@@ -58,6 +60,8 @@ WARMUP_LAPLACE = 150
 #: numpyro's default): 75 steps of step size alone, windows of 25, 50, 100 and 200, 50
 #: to finish.
 WARMUP_ADAPTIVE = 500
+#: NUTS's target acceptance probability during the warm-up's step-size tuning.
+TARGET_ACCEPT = 0.85
 
 #: Samples per chain drawn with the warm-up before the first check of the stopping rule
 #: (at most; the requested number is split into equal chunks).
@@ -169,6 +173,83 @@ def _potential(z: dict, dataset: Dataset, bounds: dict, primary_diameter_mas: fl
     return -(loglike + log_jacobian)
 
 
+@programs.jit
+def _nuts_draws(
+    start: Any,
+    dataset: Dataset,
+    bounds: dict,
+    primary_diameter_mas: float,
+    inverse_mass: jax.Array | None,
+    num_warmup: int,
+    num_draws: int,
+) -> tuple[dict, Any]:
+    """One chain's NUTS draws: ``(draws, state)``, each site's draws (num_draws, ...) in
+    the unconstrained coordinates and the sampler's last state.
+
+    ``start`` is either ``(z, rng_key)``, a new chain (``num_warmup`` steps of warm-up,
+    tuning the step size and, where ``inverse_mass`` is ``None``, a dense mass matrix in
+    Stan's windows, then the draws), or the ``HMCState`` a previous call returned: the
+    same chain continued, its adapted step size and mass matrix kept (``num_warmup`` is
+    then the warm-up the chain began with, which the sampler's state counts against).
+
+    numpyro's functional NUTS (``numpyro.infer.hmc.hmc``) in one program with the
+    observables and the boxes as arguments: the program is the same for every chain and
+    target of these shapes, and kept on disk (:mod:`amigo.programs`); numpyro's ``MCMC``
+    lowered a sampling loop of its own for every chain and every run (16 per AB Dor
+    detection, 8 s of a warm run on a 2-core CPU).
+    """
+    from numpyro.infer.hmc import HMCState, hmc
+
+    init_kernel, sample_kernel = hmc(
+        potential_fn=lambda z: _potential(z, dataset, bounds, primary_diameter_mas), algo="NUTS"
+    )
+    continuing = isinstance(start, HMCState)
+    z0, key = (start.z, start.rng_key) if continuing else start
+    # Sets the sampler's settings (numpyro keeps them in the closure of sample_kernel);
+    # a continued chain then takes its own state instead of the new one.
+    state = init_kernel(
+        z0,
+        num_warmup,
+        inverse_mass_matrix=inverse_mass,
+        adapt_mass_matrix=inverse_mass is None,
+        dense_mass=True,
+        target_accept_prob=TARGET_ACCEPT,
+        rng_key=key,
+    )
+    if continuing:
+        state = start
+    else:
+        state = jax.lax.fori_loop(0, num_warmup, lambda _, s: sample_kernel(s), state)
+
+    def draw(s: Any, _: Any) -> tuple[Any, dict]:
+        s = sample_kernel(s)
+        return s, s.z
+
+    state, draws = jax.lax.scan(draw, state, None, length=num_draws)
+    return draws, state
+
+
+@programs.jit
+def _nuts_draws_vectorized(
+    starts: Any,
+    dataset: Dataset,
+    bounds: dict,
+    primary_diameter_mas: float,
+    inverse_mass: jax.Array | None,
+    num_warmup: int,
+    num_draws: int,
+) -> tuple[dict, Any]:
+    """:func:`_nuts_draws` of every chain at once (``starts`` stacked on a first axis):
+    vectorised chains move in lockstep."""
+
+    def one(start: Any) -> tuple[dict, Any]:
+        return _nuts_draws(
+            start, dataset, bounds, primary_diameter_mas, inverse_mass, num_warmup, num_draws
+        )
+
+    return jax.vmap(one)(starts)
+
+
 def sample_posterior(
     dataset: Dataset,
     best: CompanionFitResult,
@@ -180,7 +261,6 @@ def sample_posterior(
     seed: int = 0,
     priors: Priors | None = None,
     primary_diameter_mas: float = 0.0,
-    progress_bar: bool = False,
     chain_method: str = "sequential",
     single_precision: bool = True,
     ess_target: float = ESS_TARGET,
@@ -223,11 +303,7 @@ def sample_posterior(
         matrix is not positive definite) the warm-up starts from numpyro's identity and
         adapts a dense mass matrix in Stan's windows.
     """
-    import numpyro
-    import numpyro.distributions as dist
     from numpyro.diagnostics import summary
-    from numpyro.distributions import constraints
-    from numpyro.infer import MCMC, NUTS
 
     priors = priors or Priors()
     with jax.enable_x64(True):
@@ -250,67 +326,48 @@ def sample_posterior(
             "log10c": np.clip(best.log10_contrasts, lo_c + 1e-6, hi_c - 1e-6),
             "scale": scales0,
         }
-        z0 = {name: _from_box(start[name], *bounds[name]) for name in SITES}
-        if num_chains > 1:
-            z0 = {name: np.broadcast_to(v, (num_chains, *v.shape)) for name, v in z0.items()}
-        init = {name: jnp.asarray(v) for name, v in z0.items()}
+        z0 = {name: jnp.asarray(_from_box(start[name], *bounds[name])) for name in SITES}
         diameter = float(primary_diameter_mas)
         evaluated = dataset.single_precision() if single_precision else dataset
-        shapes = {name: np.shape(start[name]) for name in SITES}
-
-        def model(data: Dataset, boxes: dict) -> None:
-            # The sites are the unconstrained coordinates themselves (flat improper
-            # priors; the box priors and their Jacobians are in the potential). The
-            # observables and the boxes are the model's *arguments*, traced by the
-            # compiled sampling loops (jit_model_args): a potential that closed over them
-            # would put every matrix into each loop's program as a constant (21-85 MB a
-            # program in the compilation cache), and a new target would compile anew.
-            z = {
-                name: numpyro.sample(name, dist.ImproperUniform(constraints.real, (), shapes[name]))
-                for name in SITES
-            }
-            numpyro.factor("potential", -_potential(z, data, boxes, diameter))
-
         boxes = jax.tree.map(jnp.asarray, bounds)
         inverse_mass = (
             _laplace_inverse_mass(dataset, best, scales0, start, bounds) if laplace_mass else None
         )
         if num_warmup is None:
             num_warmup = WARMUP_ADAPTIVE if inverse_mass is None else WARMUP_LAPLACE
-        kernel = NUTS(
-            model,
-            dense_mass=True,
-            inverse_mass_matrix=inverse_mass,
-            # Laplace's covariance is kept: a mass matrix adapted from a short warm-up's
-            # draws was worse (more leapfrogs per sample, see WARMUP_LAPLACE).
-            adapt_mass_matrix=inverse_mass is None,
-            target_accept_prob=0.85,
-        )
+        mass = None if inverse_mass is None else jnp.asarray(inverse_mass)
+        keys = jax.random.split(jax.random.PRNGKey(seed), num_chains)
+        vectorized = chain_method == "vectorized"
+        if chain_method not in ("sequential", "vectorized"):
+            raise ValueError(f"chain_method must be sequential or vectorized, got {chain_method!r}")
+
+        def run(starts: list, n: int) -> tuple[dict[str, np.ndarray], list]:
+            """Every chain's next ``n`` draws from ``starts``: (chains, n, ...) per site in
+            the physical box, and the chains' last states."""
+            common = (evaluated, boxes, diameter, mass, num_warmup, n)
+            if vectorized:
+                stacked = jax.tree.map(lambda *x: jnp.stack(x), *starts)
+                draws, states = _nuts_draws_vectorized(stacked, *common)
+                ends = [jax.tree.map(lambda x, c=c: x[c], states) for c in range(num_chains)]
+                per_chain = [{k: v[c] for k, v in draws.items()} for c in range(num_chains)]
+            else:
+                results = [_nuts_draws(start, *common) for start in starts]
+                per_chain, ends = [r[0] for r in results], [r[1] for r in results]
+            boxed = {
+                name: _to_box_numpy(
+                    np.stack([np.asarray(d[name]) for d in per_chain]), *bounds[name]
+                )
+                for name in SITES
+            }
+            return boxed, ends
+
         # The first draws with the warm-up, then equal continuations (CONTINUATION): one
         # compiled sampling loop serves every continuation.
         n_chunks = -(-num_samples // CHUNK) if ess_target > 0 else 1
         chunk = -(-num_samples // n_chunks)
-        mcmc = MCMC(
-            kernel,
-            num_warmup=num_warmup,
-            num_samples=chunk,
-            num_chains=num_chains,
-            chain_method=chain_method,
-            progress_bar=progress_bar,
-            jit_model_args=True,
-        )
-        mcmc.run(jax.random.PRNGKey(seed), evaluated, boxes, init_params=init)
-        parts = [_box_samples(mcmc, bounds)]
-        last = mcmc  # the run whose last state the next continues from
-        more = MCMC(
-            kernel,
-            num_warmup=0,
-            num_samples=max(1, int(np.ceil(CONTINUATION * chunk))),
-            num_chains=num_chains,
-            chain_method=chain_method,
-            progress_bar=progress_bar,
-            jit_model_args=True,
-        )
+        first, states = run([(z0, key) for key in keys], chunk)
+        parts = [first]
+        more = max(1, int(np.ceil(CONTINUATION * chunk)))
         while True:
             grouped = {
                 name: np.concatenate([p[name] for p in parts], axis=1)[:, :num_samples]
@@ -323,10 +380,8 @@ def sample_posterior(
                 break
             # Continue every chain from its last state, adapted step size and mass matrix
             # kept (no new warm-up): the same chain as one long run.
-            more.post_warmup_state = last.last_state
-            more.run(more.post_warmup_state.rng_key, evaluated, boxes)
-            parts.append(_box_samples(more, bounds))
-            last = more
+            part, states = run(states, more)
+            parts.append(part)
     r_hat = {name: np.atleast_1d(np.asarray(s["r_hat"], float)) for name, s in stats.items()}
     ess = {name: np.atleast_1d(np.asarray(s["n_eff"], float)) for name, s in stats.items()}
     flat = {name: v.reshape(-1, *v.shape[2:]) for name, v in grouped.items()}
@@ -401,15 +456,6 @@ def _laplace_inverse_mass(
     except np.linalg.LinAlgError:
         return None
     return inverse_mass if np.all(np.isfinite(inverse_mass)) else None
-
-
-def _box_samples(mcmc, bounds: dict) -> dict[str, np.ndarray]:
-    """The last run's samples, (chains, draws, ...) per site, in the physical box.
-
-    In NumPy float64: eager JAX would compile each operation of the transform on its own.
-    """
-    z = mcmc.get_samples(group_by_chain=True)
-    return {name: _to_box_numpy(np.asarray(z[name]), *bounds[name]) for name in SITES}
 
 
 def _percentile_ess(x: np.ndarray) -> np.ndarray:

@@ -63,7 +63,7 @@ import numpy as np
 import optax
 from jaxtyping import Array, Float
 
-from amigo import heap
+from amigo import heap, programs
 from amigo.fitting.newton import (
     JITTER_INDEX,
     N_LOCAL_SCALARS,
@@ -903,7 +903,7 @@ def latent_information(
 
 # Compiled as one program: called outside a jit (the products' model images, residuals)
 # the model ran op by op, each operation compiling on its own (minutes on a 2-core CPU).
-@eqx.filter_jit
+@programs.jit
 def _model_images(
     params: FitParams,
     instrument: Instrument,

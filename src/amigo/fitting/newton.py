@@ -73,7 +73,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from amigo import heap
+from amigo import heap, programs
 from amigo.fitting.params import FitParams
 from amigo.likelihood.pixels import PixelData
 from amigo.model.image import (
@@ -465,7 +465,7 @@ def _columns(function, x: Array, blocks: tuple[int, ...] = ()) -> Array:
     return jnp.concatenate(parts)
 
 
-@eqx.filter_jit
+@programs.jit
 def local_jacobian(
     theta: Array, instrument: Instrument, setup: FilterSetup, psfs: Array, anchor: Array
 ) -> Float[Array, "n 80 80"]:
@@ -506,7 +506,7 @@ def _windows(instrument: Instrument) -> HoleWindows | None:
     return windows if windows.size < 0.8 * min(optics.grid.shape) else None
 
 
-@eqx.filter_jit
+@programs.jit
 def _optics_jacobian(
     block: Array,
     theta: Array,
@@ -550,7 +550,7 @@ def _optics_jacobian(
     return jnp.concatenate([columns.reshape(n_zernike, *columns.shape[2:]), rest])
 
 
-@eqx.filter_jit
+@programs.jit
 def psfs_of(
     instrument: Instrument, setup: FilterSetup, optics: OpticsParams, anchor: Array | None
 ) -> Float[Array, "l 264 264"]:
@@ -558,12 +558,12 @@ def psfs_of(
     return filter_psfs(instrument, setup, optics, anchor)
 
 
-@eqx.filter_jit
+@programs.jit
 def _images(thetas, instrument, setup, psfs, anchor) -> Float[Array, "e 80 80"]:
     return jax.vmap(lambda t: _local_image(t, instrument, setup, psfs, anchor))(thetas)
 
 
-@eqx.filter_jit
+@programs.jit
 def _gradient(thetas, block, instrument, setup, anchor, pull, members, calibrator):
     """Gradient of ``L = sum_e |W_e (d_e - m_e)|^2 / 2`` over the exposures with
     ``members[e] = 1`` w.r.t. every exposure's local vector (E, n) and the instrument

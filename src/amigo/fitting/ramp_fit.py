@@ -41,11 +41,11 @@ import dataclasses
 import time
 from dataclasses import dataclass
 
-import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from amigo import programs
 from amigo.fitting.filter_fit import FilterFit, FilterFitResult, FitConfig, FitExposure
 from amigo.fitting.newton import (
     levenberg_marquardt,
@@ -199,7 +199,7 @@ class Level2Input:
         return dataclasses.replace(self, data=dataclasses.replace(self.data, error=error))
 
 
-@eqx.filter_jit
+@programs.jit
 def _slopes_and_image(
     base: BaseModel,
     instrument: Instrument,

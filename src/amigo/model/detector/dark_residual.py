@@ -35,12 +35,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from amigo import programs
 from amigo.model.detector.pipeline_slope import pipeline_group_slope
 
 #: Prior width of each group read's offset (DN): of 0.8 / 1.6 / 3.2 / 6.4, the width whose
@@ -73,7 +73,7 @@ def offset_jacobian(
     return jnp.pad(columns, ((0, max(n_offsets - ngroups, 0)), (0, 0), (0, 0)))
 
 
-@eqx.filter_jit
+@programs.jit
 def _responses(differences, unit_differences, group_time: float, gain: float, nframes: int):
     """The estimator's response (G, ny, nx) to each row of ``unit_differences`` (G, m)."""
 

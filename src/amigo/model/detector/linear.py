@@ -53,7 +53,7 @@ import numpy as np
 from jax.typing import DTypeLike
 from jaxtyping import Array, Float
 
-from amigo import niriss
+from amigo import niriss, programs
 from amigo.model.optics.propagation import keys_cubic
 
 if TYPE_CHECKING:
@@ -339,7 +339,7 @@ class LinearDetector(eqx.Module):
         blurred = jnp.fft.irfft(jnp.fft.rfft(eye, axis=0) * transfer[:, None], n=n, axis=0)
         return blurred[pad : pad + size].astype(dtype)
 
-    @eqx.filter_jit
+    @programs.jit
     def resample(self, image: Float[Array, "n m"]) -> Float[Array, "n m"]:
         """Optical oversampled grid -> detector oversampled grid (cubic, flux conserving:
         the resampled samples are divided by ``det G``)."""

@@ -30,7 +30,7 @@ import numpy as np
 import numpy.typing as npt
 from jaxtyping import Array, Complex, Float
 
-from amigo import niriss
+from amigo import niriss, programs
 from amigo.model.optics import propagation
 from amigo.model.optics.aperture import (
     Aperture,
@@ -383,7 +383,7 @@ class NRMOptics(eqx.Module):
 
         return psfs, of_hole
 
-    @eqx.filter_jit
+    @programs.jit
     def psfs(
         self, wavelengths_m: Float[Array, " n"], position_arcsec: Float[Array, " 2"]
     ) -> Float[Array, "n m m"]:

@@ -1,0 +1,390 @@
+"""Traced programs kept on disk: a second run skips JAX's tracing and lowering too.
+
+JAX's persistent compilation cache (:func:`amigo.cachedir.enable_compilation_cache`) keeps
+XLA's *compiled* programs, but a new process still traces every Python function into a
+jaxpr and lowers it to StableHLO before it can even look the program up: on a 2-core CPU,
+29 of the 36 s that a warm three-filter ``amigo fit`` spent compiling (docs/performance.md).
+:func:`jit` is :func:`equinox.filter_jit` that also keeps the lowered program, serialized
+by :mod:`jax.export`, in ``cache_dir() / "programs"``; the next process with the same key
+deserializes it (milliseconds) and hands it to XLA, whose own cache then has it compiled.
+
+The key is exact, never approximate: a program is reused only where tracing again would
+give the same program. It holds
+
+* the package's source (a hash of every ``.py`` file of amigo: an edit is a new program),
+  the versions of JAX and jaxlib, the backend, the precision flags, and every ``AMIGO_*``
+  variable of the environment (some are read while tracing, e.g. ``AMIGO_JVP_BATCH``);
+* the function's module and qualified name;
+* the arguments' structure, with every static value in full (the fields of a module marked
+  static, the non-array leaves: numbers, strings, tuples, NumPy arrays by their bytes) and
+  every array by its shape, dtype and weak type only (what tracing sees).
+
+An argument that cannot be fingerprinted exactly (a closure, an object of unknown kind) or
+a program that :mod:`jax.export` refuses (a host callback) falls back to plain
+:func:`equinox.filter_jit`, as does a call made while tracing (the function is inlined
+into its caller's program). So does every call when the compilation cache is off: the
+programs live beside the compiled ones and are switched on and off with them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import functools
+import hashlib
+import importlib
+import inspect
+import json
+import logging
+import os
+import sys
+import tempfile
+import types
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import equinox as eqx
+import jax
+import numpy as np
+
+from amigo import heap
+from amigo.cachedir import cache_dir
+
+#: Bumped when the file format or the key's recipe changes.
+FORMAT = 1
+
+_log = logging.getLogger("amigo.programs")
+
+
+class _Uncacheable(Exception):
+    """An argument whose value cannot be fingerprinted exactly."""
+
+
+# ---------------------------------------------------------------------------- the key
+def _named(obj: Any) -> str | None:
+    """``module:qualname`` when that name imports back to ``obj`` itself (module-level
+    functions and classes, JAX's functions), else ``None``."""
+    module = getattr(obj, "__module__", None)
+    qualname = getattr(obj, "__qualname__", None)
+    if not isinstance(module, str) or not isinstance(qualname, str) or "<" in qualname:
+        return None
+    target: Any = sys.modules.get(module)
+    for part in qualname.split("."):
+        target = getattr(target, part, None)
+    return f"{module}:{qualname}" if target is obj else None
+
+
+def _static(obj: Any, out: list[str]) -> None:
+    """Append an exact fingerprint of a static value to ``out`` (raise
+    :class:`_Uncacheable` where none is known)."""
+    if obj is None or isinstance(obj, (bool, int, float, complex, str, bytes)):
+        out.append(f"{type(obj).__name__}:{obj!r}")  # repr of a float is exact
+    elif isinstance(obj, np.generic):
+        out.append(f"np.{obj.dtype.str}:{obj.item()!r}")
+    elif isinstance(obj, np.ndarray):
+        digest = hashlib.sha256(np.ascontiguousarray(obj).tobytes()).hexdigest()
+        out.append(f"ndarray:{obj.dtype.str}:{obj.shape}:{digest}")
+    elif isinstance(obj, jax.Array):
+        raise _Uncacheable("a JAX array in a static position")
+    elif isinstance(obj, (tuple, list, frozenset, set)):
+        items = sorted(obj, key=repr) if isinstance(obj, (set, frozenset)) else obj
+        out.append(f"{type(obj).__name__}[{len(items)}]")
+        for item in items:
+            _static(item, out)
+    elif isinstance(obj, dict):
+        out.append(f"dict[{len(obj)}]")
+        for key in sorted(obj, key=repr):
+            _static(key, out)
+            _static(obj[key], out)
+    elif isinstance(obj, enum.Enum):
+        out.append(f"enum:{_named(type(obj))}:{obj.name}")
+    elif isinstance(obj, functools.partial):
+        out.append("partial")
+        _static((obj.func, obj.args, obj.keywords), out)
+    elif dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        name = _named(type(obj))
+        if name is None:
+            raise _Uncacheable(f"a dataclass of a local class {type(obj).__qualname__}")
+        fields = dataclasses.fields(obj)
+        out.append(f"dataclass:{name}[{len(fields)}]")
+        for field in fields:
+            out.append(field.name)
+            _static(getattr(obj, field.name), out)
+    elif (name := _named(obj)) is not None:
+        out.append(f"named:{name}")  # a module-level function or class
+    elif _stateless(obj):
+        out.append(f"stateless:{_named(type(obj))}")  # a sentinel, e.g. equinox's Missing
+    else:
+        raise _Uncacheable(f"no exact fingerprint of a {type(obj).__qualname__}")
+
+
+def _stateless(obj: Any) -> bool:
+    """Whether ``obj`` is an instance of a module-level class that holds no state."""
+    if _named(type(obj)) is None or isinstance(obj, types.FunctionType):
+        return False
+    if getattr(obj, "__dict__", None):
+        return False
+    return not any(hasattr(obj, slot) for slot in getattr(type(obj), "__slots__", ()))
+
+
+def _structure(treedef: Any, out: list[str]) -> None:
+    """Fingerprint a pytree's structure, static data of every node included."""
+    node = treedef.node_data()
+    if node is None:
+        out.append("*")
+        return
+    kind, aux = node
+    name = "NoneType" if kind is type(None) else _named(kind)
+    if name is None:
+        raise _Uncacheable(f"a pytree node of a local class {kind.__qualname__}")
+    out.append(f"node:{name}")
+    _static(aux, out)
+    children = treedef.children()
+    out.append(f"children[{len(children)}]")
+    for child in children:
+        _structure(child, out)
+
+
+def _encode(treedef: Any) -> Any:
+    """An output structure as JSON: plain containers and module-level named tuples only
+    (their types are found again by name), leaves as ``"*"``."""
+    node = treedef.node_data()
+    if node is None:
+        return "*"
+    kind, aux = node
+    children = [_encode(child) for child in treedef.children()]
+    if kind in (tuple, list):
+        return {"type": kind.__name__, "children": children}
+    if kind is type(None):
+        return {"type": "None"}
+    if kind is dict and all(isinstance(k, str) for k in aux):
+        return {"type": "dict", "keys": list(aux), "children": children}
+    if issubclass(kind, tuple) and hasattr(kind, "_fields") and (name := _named(kind)):
+        return {"type": "namedtuple", "name": name, "children": children}
+    raise _Uncacheable(f"an output of a kind not kept: {kind.__qualname__}")
+
+
+def _decode(code: Any) -> Any:
+    """The structure :func:`_encode` wrote, as a pytree whose leaves are ``0``."""
+    if code == "*":
+        return 0
+    kind = code["type"]
+    children = [_decode(c) for c in code.get("children", ())]
+    if kind == "None":
+        return None
+    if kind == "dict":
+        return dict(zip(code["keys"], children, strict=True))
+    if kind == "namedtuple":
+        module, qualname = code["name"].split(":")
+        target: Any = importlib.import_module(module)
+        for part in qualname.split("."):
+            target = getattr(target, part)
+        return target(*children)
+    return tuple(children) if kind == "tuple" else children
+
+
+def _aval(leaf: Any) -> tuple[tuple[int, ...], np.dtype, bool]:
+    """(shape, dtype, weak type) of an array leaf: all that tracing sees of it."""
+    aval = jax.typeof(leaf) if hasattr(jax, "typeof") else jax.core.get_aval(leaf)
+    return tuple(aval.shape), np.dtype(aval.dtype), bool(getattr(aval, "weak_type", False))
+
+
+@functools.cache
+def _source_digest() -> str:
+    """Hash of amigo's Python source: any edit makes every program new."""
+    digest = hashlib.sha256()
+    root = Path(__file__).resolve().parent
+    for path in sorted(root.rglob("*.py")):
+        digest.update(str(path.relative_to(root)).encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()
+
+
+@functools.cache
+def _file_digest(path: str) -> str:
+    try:
+        return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    except OSError:
+        return "unreadable"
+
+
+def _environment() -> list[str]:
+    """What besides the arguments decides the traced program."""
+    import jaxlib
+
+    return [
+        f"format:{FORMAT}",
+        f"source:{_source_digest()}",
+        f"jax:{jax.__version__}:{jaxlib.__version__}",
+        f"backend:{jax.default_backend()}",
+        f"x64:{jax.config.jax_enable_x64}",
+        f"matmul:{jax.config.jax_default_matmul_precision}",
+        f"prng:{jax.config.jax_default_prng_impl}",
+        f"promotion:{jax.config.jax_numpy_dtype_promotion}:{jax.config.jax_numpy_rank_promotion}",
+        *sorted(f"{k}={v}" for k, v in os.environ.items() if k.startswith("AMIGO_")),
+    ]
+
+
+# ------------------------------------------------------------------------ the store
+def _folder() -> Path | None:
+    """``cache_dir() / "programs"`` while JAX's compilation cache is on, else ``None``."""
+    if not jax.config.jax_compilation_cache_dir:
+        return None
+    return cache_dir() / "programs"
+
+
+def _write(path: Path, skeleton: str, blob: bytes) -> None:
+    """Write atomically: concurrent runs write the same bytes, the last rename wins."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=".tmp-")
+        with os.fdopen(handle, "wb") as stream:
+            header = skeleton.encode()
+            stream.write(len(header).to_bytes(8, "little") + header + blob)
+        os.replace(temporary, path)
+    except OSError:
+        pass  # a full or read-only disk: the program is only not kept
+
+
+def _read(path: Path) -> tuple[str, bytes] | None:
+    try:
+        data = path.read_bytes()
+    except OSError:
+        return None
+    size = int.from_bytes(data[:8], "little")
+    return data[8 : 8 + size].decode(), data[8 + size :]
+
+
+#: Programs of this process by key: the deserialized export (compiled) and its output's
+#: structure, or ``None`` for a program that cannot be exported. Emptied by :func:`release`.
+_LOADED: dict[str, tuple[Any, Any] | None] = {}
+
+
+def release() -> None:
+    """Forget the programs held in memory (they are read again from disk if needed)."""
+    _LOADED.clear()
+
+
+heap.holds_programs(release)  # a filter's or a posterior's programs go with JAX's own
+
+
+def _caller(exported: Any) -> Callable[..., Any]:
+    """The exported program as a compiled function: ``Exported.call`` alone would look its
+    program up in XLA's cache again at every call."""
+    return jax.jit(exported.call)
+
+
+# ---------------------------------------------------------------------- the wrapper
+class _Program:
+    """A function compiled by :func:`equinox.filter_jit`, its traced program kept on disk."""
+
+    def __init__(self, function: Callable[..., Any]) -> None:
+        self.function = function
+        self.jitted = eqx.filter_jit(function)
+        self.name = f"{function.__module__}:{function.__qualname__}"
+        # A function outside amigo (a user's, a test's) is keyed on its own file too.
+        source = inspect.getsourcefile(function)
+        self.source = _file_digest(source) if source else "unknown"
+        functools.update_wrapper(self, function)
+
+    def __get__(self, instance: Any, owner: Any = None) -> Any:
+        # A method: the instance is the first argument (a module, fingerprinted as such).
+        return self if instance is None else functools.partial(self, instance)
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        folder = _folder()
+        if folder is None:
+            return self.jitted(*args, **kwargs)
+        leaves, treedef = jax.tree_util.tree_flatten((args, kwargs))
+        if any(isinstance(leaf, jax.core.Tracer) for leaf in leaves):
+            return self.jitted(*args, **kwargs)  # inside a caller's trace: inlined
+        try:
+            key = self._key(treedef, leaves)
+        except _Uncacheable as reason:
+            _log.debug("%s: traced, not kept (%s)", self.name, reason)
+            return self.jitted(*args, **kwargs)
+        arrays = [leaf for leaf in leaves if eqx.is_array(leaf)]
+        program = self._program(key, folder / f"{key}.bin", treedef, leaves)
+        if program is None:
+            return self.jitted(*args, **kwargs)
+        caller, out_tree = program
+        return jax.tree.unflatten(out_tree, caller(*arrays))
+
+    def _key(self, treedef: Any, leaves: list[Any]) -> str:
+        parts = [*_environment(), f"function:{self.name}:{self.source}"]
+        _structure(treedef, parts)
+        for leaf in leaves:
+            if eqx.is_array(leaf):
+                shape, dtype, weak = _aval(leaf)
+                parts.append(f"array:{dtype.str}:{shape}:{weak}")
+            else:
+                _static(leaf, parts)  # a non-array leaf is static under filter_jit
+        return hashlib.sha256("\n".join(parts).encode()).hexdigest()
+
+    def _program(
+        self, key: str, path: Path, treedef: Any, leaves: list[Any]
+    ) -> tuple[Any, Any] | None:
+        """The program of this key: held, read from disk, or traced and written."""
+        if key in _LOADED:
+            return _LOADED[key]
+        if path.with_suffix(".none").exists():
+            _LOADED[key] = None
+            return None
+        stored = _read(path)
+        if stored is not None:
+            skeleton, blob = stored
+            try:
+                out_tree = jax.tree.structure(_decode(json.loads(skeleton)))
+                program: tuple[Any, Any] | None = (_caller(jax.export.deserialize(blob)), out_tree)
+            except Exception:  # a damaged file: trace again
+                program = self._export(treedef, leaves, path)
+        else:
+            program = self._export(treedef, leaves, path)
+        _LOADED[key] = program
+        return program
+
+    def _export(self, treedef: Any, leaves: list[Any], path: Path) -> tuple[Any, Any] | None:
+        """Trace and lower the function at these arguments, keep it on disk."""
+        is_array = [eqx.is_array(leaf) for leaf in leaves]
+        statics = [None if flag else leaf for flag, leaf in zip(is_array, leaves, strict=True)]
+        trees: list[Any] = []
+
+        def flat(*arrays: Any) -> tuple[Any, ...]:
+            it = iter(arrays)
+            full = [next(it) if flag else s for flag, s in zip(is_array, statics, strict=True)]
+            args, kwargs = jax.tree_util.tree_unflatten(treedef, full)
+            outputs, out_tree = jax.tree_util.tree_flatten(self.jitted(*args, **kwargs))
+            if not all(eqx.is_array(o) for o in outputs):
+                raise _Uncacheable("a static output")
+            trees.append(out_tree)
+            return tuple(outputs)
+
+        specs = []
+        for leaf, flag in zip(leaves, is_array, strict=True):
+            if flag:
+                shape, dtype, weak = _aval(leaf)
+                specs.append(jax.ShapeDtypeStruct(shape, dtype, weak_type=weak))
+        try:
+            exported = jax.export.export(jax.jit(flat))(*specs)
+            out_tree = trees[-1]
+            skeleton = json.dumps(_encode(out_tree))
+            if jax.tree.structure(_decode(json.loads(skeleton))) != out_tree:
+                return None  # a structure that does not read back the same: not kept
+            blob = exported.serialize()
+        except Exception as reason:  # not exportable: plain filter_jit from now on
+            _log.debug("%s: not exportable (%r)", self.name, reason)
+            _write(path.with_suffix(".none"), "", b"")  # later runs need not try again
+            return None
+        _write(path, skeleton, bytes(blob))
+        return _caller(exported), out_tree
+
+
+def jit(function: Callable[..., Any]) -> Callable[..., Any]:
+    """:func:`equinox.filter_jit` whose traced program is kept on disk (module notes).
+
+    Use it on functions called at the top level with concrete arguments; called while
+    tracing, it is :func:`equinox.filter_jit` (inlined into the caller's program)."""
+    if "<" in function.__qualname__:
+        raise TypeError(f"programs.jit needs a module-level function, not {function.__qualname__}")
+    return _Program(function)

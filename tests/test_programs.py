@@ -1,0 +1,185 @@
+"""Traced programs kept on disk (amigo.programs): exact keys, the same results, no
+tracing in a second process, and plain filter_jit wherever a program cannot be kept."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from amigo import programs
+
+#: Python-side calls of the functions below while JAX traces them.
+TRACES: list[str] = []
+
+
+class Pair(NamedTuple):
+    total: jax.Array
+    scaled: jax.Array
+
+
+class Weights(eqx.Module):
+    values: jax.Array
+    table: tuple[float, ...] = eqx.field(static=True)
+    power: int = eqx.field(static=True)
+
+
+@programs.jit
+def weighted(weights: Weights, x: jax.Array, offset: float) -> Pair:
+    TRACES.append("weighted")
+    y = weights.values * x**weights.power + sum(weights.table) + offset
+    return Pair(total=jnp.sum(y), scaled=y * 2.0)
+
+
+@programs.jit
+def with_dict(x: jax.Array, options: dict) -> dict:
+    TRACES.append("with_dict")
+    return {"a": x * options["factor"], "b": (x, None, [x + 1.0])}
+
+
+@pytest.fixture
+def store(tmp_path, monkeypatch):
+    """A fresh program folder (the compilation cache is on in the tests: conftest)."""
+    monkeypatch.setenv("AMIGO_CACHE_DIR", str(tmp_path))
+    programs.release()
+    TRACES.clear()
+    yield tmp_path / "programs"
+    programs.release()
+
+
+def _weights(table=(1.0, 2.0), power=2) -> Weights:
+    return Weights(jnp.arange(3.0), tuple(table), power)
+
+
+def test_a_kept_program_gives_filter_jits_results_and_is_written_once(store):
+    x = jnp.linspace(0.0, 1.0, 3)
+    reference = eqx.filter_jit(weighted.function)(_weights(), x, 0.5)
+    out = weighted(_weights(), x, 0.5)
+    assert isinstance(out, Pair)
+    np.testing.assert_array_equal(out.total, reference.total)
+    np.testing.assert_array_equal(out.scaled, reference.scaled)
+    assert len(list(store.glob("*.bin"))) == 1
+    TRACES.clear()
+    programs.release()  # forget it in memory: read from disk, not traced
+    again = weighted(_weights(), x + 1.0, 0.5)
+    assert TRACES == []
+    np.testing.assert_allclose(
+        again.total, eqx.filter_jit(weighted.function)(_weights(), x + 1.0, 0.5).total
+    )
+
+
+def test_every_static_value_is_in_the_key(store):
+    x = jnp.ones(3)
+    weighted(_weights(), x, 0.5)
+    weighted(_weights(), x, 0.5)  # same shapes and statics: the same program
+    weighted(_weights(), 2.0 * x, 0.5)  # other array values: the same program
+    assert len(list(store.glob("*.bin"))) == 1
+    weighted(_weights(), x, 0.25)  # a Python float leaf is static
+    weighted(_weights(table=(1.0, 2.0 + 1e-15)), x, 0.5)  # a static value, to the last bit
+    weighted(_weights(power=3), x, 0.5)  # a static field
+    weighted(_weights(), jnp.ones((2, 3)), 0.5)  # a shape
+    weighted(_weights(), jnp.ones(3, jnp.int32), 0.5)  # a dtype
+    assert len(list(store.glob("*.bin"))) == 6
+    np.testing.assert_allclose(
+        weighted(_weights(table=(1.0, 3.0)), x, 0.5).total,
+        eqx.filter_jit(weighted.function)(_weights(table=(1.0, 3.0)), x, 0.5).total,
+    )
+
+
+def test_plain_containers_come_back_in_their_structure(store):
+    out = with_dict(jnp.ones(2), {"factor": 3.0})
+    assert set(out) == {"a", "b"}
+    assert out["b"][1] is None and isinstance(out["b"][2], list)
+    np.testing.assert_array_equal(out["a"], [3.0, 3.0])
+    programs.release()
+    again = with_dict(jnp.ones(2), {"factor": 3.0})
+    assert jax.tree.structure(again) == jax.tree.structure(out)
+
+
+def test_what_cannot_be_fingerprinted_or_traced_falls_back_to_filter_jit(store):
+    # A closure is static under filter_jit but has no exact fingerprint: not kept.
+    out = with_dict(jnp.ones(2), {"factor": 2.0, "f": lambda v: v})
+    np.testing.assert_array_equal(out["a"], [2.0, 2.0])
+    assert not store.exists() or not list(store.glob("*.bin"))
+    # Called while tracing, the function is inlined: jit, grad and vmap work through it.
+    grad = jax.grad(lambda v: weighted(_weights(), v, 0.5).total)(jnp.ones(3))
+    np.testing.assert_allclose(grad, 2.0 * jnp.arange(3.0))
+    assert not store.exists() or not list(store.glob("*.bin"))
+
+
+def test_a_local_function_is_refused():
+    with pytest.raises(TypeError, match="module-level"):
+        programs.jit(lambda x: x)
+
+
+def test_off_with_the_compilation_cache(store):
+    jax.config.update("jax_compilation_cache_dir", None)
+    try:
+        weighted(_weights(), jnp.ones(3), 0.5)
+        assert not store.exists()
+    finally:
+        jax.config.update("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE_DIR"])
+
+
+SCRIPT = textwrap.dedent(
+    """
+    import sys
+    import jax.numpy as jnp
+    from amigo import programs
+
+    @programs.jit
+    def f(x, n):
+        print("traced", file=sys.stderr)
+        return jnp.cumsum(x) ** n
+
+    print(f(jnp.arange(4.0), 2).tolist())
+    """
+)
+
+
+def test_a_second_process_does_not_trace(tmp_path):
+    script = tmp_path / "script.py"
+    script.write_text(SCRIPT)
+    env = {**os.environ, "AMIGO_CACHE_DIR": str(tmp_path / "cache")}
+    env["JAX_COMPILATION_CACHE_DIR"] = str(tmp_path / "xla")
+    runs = [
+        subprocess.run([sys.executable, str(script)], env=env, capture_output=True, text=True)
+        for _ in range(2)
+    ]
+    for run in runs:
+        assert run.returncode == 0, run.stderr
+        assert run.stdout.strip() == "[0.0, 1.0, 9.0, 36.0]"
+    assert "traced" in runs[0].stderr
+    assert "traced" not in runs[1].stderr
+    assert len(list(Path(tmp_path / "cache" / "programs").glob("*.bin"))) == 1
+    # An edit of the function's file is a new program.
+    script.write_text(SCRIPT.replace("** n", "** n + 0.0"))
+    edited = subprocess.run([sys.executable, str(script)], env=env, capture_output=True, text=True)
+    assert "traced" in edited.stderr
+
+
+def test_fingerprints_are_exact_or_refused():
+    def fingerprint(value):
+        out: list[str] = []
+        programs._static(value, out)
+        return out
+
+    a = np.linspace(0.0, 1.0, 2000)  # longer than NumPy prints in full
+    b = a.copy()
+    b[1000] = np.nextafter(b[1000], 2.0)
+    assert fingerprint(a) != fingerprint(b)
+    assert fingerprint((1, 2.0)) != fingerprint((1.0, 2))  # types count
+    assert fingerprint(0.1) != fingerprint(0.1 + 1e-17 * 10)
+    assert fingerprint(np.sum) == [f"named:{np.sum.__module__}:{np.sum.__qualname__}"]
+    for refused in (lambda x: x, jnp.ones(2), object.__new__(type("Local", (), {"x": 1}))):
+        with pytest.raises(programs._Uncacheable):
+            fingerprint(refused)
