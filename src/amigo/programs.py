@@ -186,8 +186,9 @@ def _decode(code: Any) -> Any:
 
 def _aval(leaf: Any) -> tuple[tuple[int, ...], np.dtype, bool]:
     """(shape, dtype, weak type) of an array leaf: all that tracing sees of it."""
-    aval = jax.typeof(leaf) if hasattr(jax, "typeof") else jax.core.get_aval(leaf)
-    return tuple(aval.shape), np.dtype(aval.dtype), bool(getattr(aval, "weak_type", False))
+    # NumPy's float64 is traced as float32 unless x64 is on: the canonical dtype.
+    dtype = np.dtype(jax.dtypes.canonicalize_dtype(leaf.dtype))
+    return tuple(np.shape(leaf)), dtype, bool(getattr(leaf, "weak_type", False))
 
 
 @functools.cache
@@ -209,6 +210,11 @@ def _file_digest(path: str) -> str:
         return "unreadable"
 
 
+def _config(name: str) -> Any:
+    """A JAX option's value in this thread (``jax.enable_x64`` and the like included)."""
+    return getattr(jax.config, name)
+
+
 def _environment() -> list[str]:
     """What besides the arguments decides the traced program."""
     import jaxlib
@@ -218,10 +224,10 @@ def _environment() -> list[str]:
         f"source:{_source_digest()}",
         f"jax:{jax.__version__}:{jaxlib.__version__}",
         f"backend:{jax.default_backend()}",
-        f"x64:{jax.config.jax_enable_x64}",
-        f"matmul:{jax.config.jax_default_matmul_precision}",
-        f"prng:{jax.config.jax_default_prng_impl}",
-        f"promotion:{jax.config.jax_numpy_dtype_promotion}:{jax.config.jax_numpy_rank_promotion}",
+        f"x64:{_config('jax_enable_x64')}",
+        f"matmul:{_config('jax_default_matmul_precision')}",
+        f"prng:{_config('jax_default_prng_impl')}",
+        f"promotion:{_config('jax_numpy_dtype_promotion')}:{_config('jax_numpy_rank_promotion')}",
         *sorted(f"{k}={v}" for k, v in os.environ.items() if k.startswith("AMIGO_")),
     ]
 
@@ -229,7 +235,7 @@ def _environment() -> list[str]:
 # ------------------------------------------------------------------------ the store
 def _folder() -> Path | None:
     """``cache_dir() / "programs"`` while JAX's compilation cache is on, else ``None``."""
-    if not jax.config.jax_compilation_cache_dir:
+    if not _config("jax_compilation_cache_dir"):
         return None
     return cache_dir() / "programs"
 
@@ -336,7 +342,10 @@ class _Program:
             skeleton, blob = stored
             try:
                 out_tree = jax.tree.structure(_decode(json.loads(skeleton)))
-                program: tuple[Any, Any] | None = (_caller(jax.export.deserialize(blob)), out_tree)
+                program: tuple[Any, Any] | None = (
+                    _caller(jax.export.deserialize(bytearray(blob))),
+                    out_tree,
+                )
             except Exception:  # a damaged file: trace again
                 program = self._export(treedef, leaves, path)
         else:
