@@ -52,7 +52,7 @@ def store(tmp_path, monkeypatch):
     monkeypatch.setenv("AMIGO_CACHE_DIR", str(tmp_path))
     programs.release()
     TRACES.clear()
-    yield tmp_path / "programs"
+    yield tmp_path / "programs" / programs._source_digest()[:16]
     programs.release()
 
 
@@ -125,7 +125,7 @@ def test_off_with_the_compilation_cache(store):
     jax.config.update("jax_compilation_cache_dir", None)
     try:
         weighted(_weights(), jnp.ones(3), 0.5)
-        assert not store.exists()
+        assert not store.parent.exists()
     finally:
         jax.config.update("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE_DIR"])
 
@@ -160,7 +160,7 @@ def test_a_second_process_does_not_trace(tmp_path):
         assert run.stdout.strip() == "[0.0, 1.0, 9.0, 36.0]"
     assert "traced" in runs[0].stderr
     assert "traced" not in runs[1].stderr
-    assert len(list(Path(tmp_path / "cache" / "programs").glob("*.bin"))) == 1
+    assert len(list(Path(tmp_path / "cache" / "programs").glob("*/*.bin"))) == 1
     # An edit of the function's file is a new program.
     script.write_text(SCRIPT.replace("** n", "** n + 0.0"))
     edited = subprocess.run([sys.executable, str(script)], env=env, capture_output=True, text=True)
@@ -183,3 +183,15 @@ def test_fingerprints_are_exact_or_refused():
     for refused in (lambda x: x, jnp.ones(2), object.__new__(type("Local", (), {"x": 1}))):
         with pytest.raises(programs._Uncacheable):
             fingerprint(refused)
+
+
+def test_other_versions_programs_are_pruned_when_stale(store):
+    stale, recent = store.parent / ("0" * 16), store.parent / ("1" * 16)
+    for folder in (stale, recent):
+        folder.mkdir(parents=True)
+        (folder / "a.bin").write_bytes(b"x")
+    old = 1e9  # 2001
+    os.utime(stale, (old, old))
+    programs._prune.cache_clear()
+    weighted(_weights(), jnp.ones(3), 0.5)
+    assert not stale.exists() and recent.exists() and store.exists()

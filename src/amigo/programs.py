@@ -146,6 +146,30 @@ def _structure(treedef: Any, out: list[str]) -> None:
         _structure(child, out)
 
 
+#: Digests of the structures met in this process. A structure equal to a known one (by
+#: the equality of its static data, as JAX's own jit caches compare them) has its digest:
+#: the fingerprint of a dataset's structure walks ~10^5 static values (3 ms).
+_DIGESTS: dict[Any, str] = {}
+
+
+def _structure_digest(treedef: Any) -> str:
+    """:func:`_structure`'s fingerprint of ``treedef``, hashed, remembered per structure."""
+    try:
+        return _DIGESTS[treedef]
+    except KeyError:
+        pass
+    except TypeError:  # unhashable static data: fingerprinted every time
+        return _digest_of(treedef)
+    digest = _DIGESTS[treedef] = _digest_of(treedef)
+    return digest
+
+
+def _digest_of(treedef: Any) -> str:
+    parts: list[str] = []
+    _structure(treedef, parts)
+    return hashlib.sha256("\n".join(parts).encode()).hexdigest()
+
+
 def _encode(treedef: Any) -> Any:
     """An output structure as JSON: plain containers and module-level named tuples only
     (their types are found again by name), leaves as ``"*"``."""
@@ -233,17 +257,40 @@ def _environment() -> list[str]:
 
 
 # ------------------------------------------------------------------------ the store
+#: A version's programs (a folder per source digest) unused this long are deleted when
+#: another version first writes one: each release of amigo would otherwise leave its own.
+STALE_DAYS = 7.0
+
+
 def _folder() -> Path | None:
-    """``cache_dir() / "programs"`` while JAX's compilation cache is on, else ``None``."""
+    """``cache_dir() / "programs" / <source digest>`` while JAX's compilation cache is on,
+    else ``None``."""
     if not _config("jax_compilation_cache_dir"):
         return None
-    return cache_dir() / "programs"
+    return cache_dir() / "programs" / _source_digest()[:16]
+
+
+@functools.cache
+def _prune(folder: Path) -> None:
+    """Delete the other versions' folders beside ``folder`` not written for
+    :data:`STALE_DAYS` (once per process; best effort)."""
+    import shutil
+    import time
+
+    cutoff = time.time() - STALE_DAYS * 86400.0
+    try:
+        for other in folder.parent.iterdir():
+            if other != folder and other.is_dir() and other.stat().st_mtime < cutoff:
+                shutil.rmtree(other, ignore_errors=True)
+    except OSError:
+        pass
 
 
 def _write(path: Path, skeleton: str, blob: bytes) -> None:
     """Write atomically: concurrent runs write the same bytes, the last rename wins."""
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
+        _prune(path.parent)
         handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=".tmp-")
         with os.fdopen(handle, "wb") as stream:
             header = skeleton.encode()
@@ -270,15 +317,22 @@ _LOADED: dict[str, tuple[Any, Any] | None] = {}
 def release() -> None:
     """Forget the programs held in memory (they are read again from disk if needed)."""
     _LOADED.clear()
+    _DIGESTS.clear()
 
 
 heap.holds_programs(release)  # a filter's or a posterior's programs go with JAX's own
 
 
 def _caller(exported: Any) -> Callable[..., Any]:
-    """The exported program as a compiled function: ``Exported.call`` alone would look its
-    program up in XLA's cache again at every call."""
-    return jax.jit(exported.call)
+    """The exported program, compiled (XLA's persistent cache has it after the first run).
+
+    Compiled ahead of its call and kept without its exporter: a jitted ``Exported.call``
+    would keep the program's lowered module beside the executable (~20 MB a program of
+    the fit; 70 MB more at the peak of a three-filter fit, docs/performance.md)."""
+    specs = [
+        jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=a.weak_type) for a in exported.in_avals
+    ]
+    return jax.jit(exported.call).lower(*specs).compile()
 
 
 # ---------------------------------------------------------------------- the wrapper
@@ -318,8 +372,7 @@ class _Program:
         return jax.tree.unflatten(out_tree, caller(*arrays))
 
     def _key(self, treedef: Any, leaves: list[Any]) -> str:
-        parts = [*_environment(), f"function:{self.name}:{self.source}"]
-        _structure(treedef, parts)
+        parts = [*_environment(), f"function:{self.name}:{self.source}", _structure_digest(treedef)]
         for leaf in leaves:
             if eqx.is_array(leaf):
                 shape, dtype, weak = _aval(leaf)
