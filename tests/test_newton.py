@@ -9,7 +9,7 @@ import pytest
 from amigo.fitting.newton import Layout
 from amigo.fitting.params import FitParams
 from amigo.model.image import ExposureParams, OpticsParams, SourceParams
-from amigo.solvers.levenberg_marquardt import FisherSolve
+from amigo.solvers.levenberg_marquardt import FisherSolve, marginal_errors
 
 
 def _params(rng, n_exposures=3, n_targets=2, n_amp=4, n_phase=5):
@@ -72,6 +72,40 @@ def test_undamped_step_is_the_newton_step_and_degeneracies_get_none():
     assert d[1] * np.sqrt(fisher[1, 1]) == pytest.approx(d[6] * np.sqrt(fisher[6, 6]), rel=1e-6)
     # Damping shortens the step.
     assert np.linalg.norm(FisherSolve(fisher)(grad, 10.0)) < np.linalg.norm(d)
+
+
+def test_marginal_errors_of_blocks_are_those_of_the_whole_matrix():
+    rng = np.random.default_rng(2)
+
+    def block(n, scale):
+        a = rng.normal(size=(3 * n, n)) * scale
+        return a.T @ a
+
+    # Two groups that never meet, a parameter without information, and a degeneracy
+    # (a duplicated column) in the first block: the blocks are decomposed apart, under
+    # the whole matrix's floor.
+    a = rng.normal(size=(40, 8)) * np.array([1e3, 1, 1e-2, 5, 1, 1, 1, 1])
+    a = np.column_stack([a, a[:, 3]])
+    first, second = a.T @ a, block(6, 1e-3)
+    fisher = np.zeros((16, 16))
+    fisher[:9, :9], fisher[10:, 10:] = first, second
+    solver = FisherSolve(fisher)
+    expected = []
+    for i in range(16):
+        unit = np.zeros(16)
+        unit[i] = 1.0
+        variance = solver(unit)[i]
+        expected.append(np.sqrt(variance) if variance > 0 else np.nan)
+    errors = marginal_errors(fisher, np.arange(16))
+    np.testing.assert_allclose(errors, expected, rtol=1e-9)
+    assert np.isnan(errors[9]) and np.isfinite(errors[:9]).all() and np.isfinite(errors[10:]).all()
+    # Without the duplicate the first block is regular: its errors are sqrt(diag(F^-1)).
+    regular = np.zeros((14, 14))
+    regular[:8, :8], regular[8:, 8:] = first[:8, :8], second
+    np.testing.assert_allclose(
+        marginal_errors(regular, np.arange(14)), np.sqrt(np.diag(np.linalg.inv(regular))), rtol=1e-8
+    )
+    assert np.isnan(marginal_errors(None, np.arange(3))).all()
 
 
 @pytest.mark.slow
