@@ -229,27 +229,6 @@ def _nuts_draws(
     return draws, state
 
 
-@programs.jit
-def _nuts_draws_vectorized(
-    starts: Any,
-    dataset: Dataset,
-    bounds: dict,
-    primary_diameter_mas: float,
-    inverse_mass: jax.Array | None,
-    num_warmup: int,
-    num_draws: int,
-) -> tuple[dict, Any]:
-    """:func:`_nuts_draws` of every chain at once (``starts`` stacked on a first axis):
-    vectorised chains move in lockstep."""
-
-    def one(start: Any) -> tuple[dict, Any]:
-        return _nuts_draws(
-            start, dataset, bounds, primary_diameter_mas, inverse_mass, num_warmup, num_draws
-        )
-
-    return jax.vmap(one)(starts)
-
-
 def sample_posterior(
     dataset: Dataset,
     best: CompanionFitResult,
@@ -261,7 +240,6 @@ def sample_posterior(
     seed: int = 0,
     priors: Priors | None = None,
     primary_diameter_mas: float = 0.0,
-    chain_method: str = "sequential",
     single_precision: bool = True,
     ess_target: float = ESS_TARGET,
     laplace_mass: bool = True,
@@ -280,11 +258,12 @@ def sample_posterior(
         NUTS settings; ``num_samples`` per chain is the most drawn (see ``ess_target``),
         ``num_warmup`` per chain defaults to :data:`WARMUP_LAPLACE` where Laplace's
         covariance is the mass matrix, else :data:`WARMUP_ADAPTIVE`.
-        Chains run one after the other by default: vectorised chains
-        (``chain_method="vectorized"``) move in lockstep, each tree as deep as the
-        deeper of the two, and their products with the observable matrices do not share
-        the matrices' reads; on AB Dor's three filters (2-core CPU) two chains took 105
-        s vectorised and 102 s one after the other, on one filter 41 and 23 s.
+        Chains run one after the other, each through the same compiled program:
+        vectorised chains move in lockstep, each tree as deep as the deeper of the two,
+        and their products with the observable matrices do not share the matrices'
+        reads (on AB Dor's three filters, 2-core CPU, with numpyro's ``MCMC``: two
+        chains took 105 s vectorised and 102 s one after the other, on one filter 41
+        and 23 s).
     single_precision
         Evaluate the residuals in float32 (:meth:`Dataset.single_precision`; the sums,
         the priors and the chains stay float64). The potential's value and gradient then
@@ -337,22 +316,13 @@ def sample_posterior(
             num_warmup = WARMUP_ADAPTIVE if inverse_mass is None else WARMUP_LAPLACE
         mass = None if inverse_mass is None else jnp.asarray(inverse_mass)
         keys = jax.random.split(jax.random.PRNGKey(seed), num_chains)
-        vectorized = chain_method == "vectorized"
-        if chain_method not in ("sequential", "vectorized"):
-            raise ValueError(f"chain_method must be sequential or vectorized, got {chain_method!r}")
 
         def run(starts: list, n: int) -> tuple[dict[str, np.ndarray], list]:
             """Every chain's next ``n`` draws from ``starts``: (chains, n, ...) per site in
             the physical box, and the chains' last states."""
             common = (evaluated, boxes, diameter, mass, num_warmup, n)
-            if vectorized:
-                stacked = jax.tree.map(lambda *x: jnp.stack(x), *starts)
-                draws, states = _nuts_draws_vectorized(stacked, *common)
-                ends = [jax.tree.map(lambda x, c=c: x[c], states) for c in range(num_chains)]
-                per_chain = [{k: v[c] for k, v in draws.items()} for c in range(num_chains)]
-            else:
-                results = [_nuts_draws(start, *common) for start in starts]
-                per_chain, ends = [r[0] for r in results], [r[1] for r in results]
+            results = [_nuts_draws(start, *common) for start in starts]
+            per_chain, ends = [r[0] for r in results], [r[1] for r in results]
             boxed = {
                 name: _to_box_numpy(
                     np.stack([np.asarray(d[name]) for d in per_chain]), *bounds[name]
