@@ -4,6 +4,7 @@ tracing in a second process, and plain filter_jit wherever a program cannot be k
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 import textwrap
@@ -180,7 +181,11 @@ def test_fingerprints_are_exact_or_refused():
     assert fingerprint((1, 2.0)) != fingerprint((1.0, 2))  # types count
     assert fingerprint(0.1) != fingerprint(0.1 + 1e-17 * 10)
     assert fingerprint(np.sum) == [f"named:{np.sum.__module__}:{np.sum.__qualname__}"]
-    for refused in (lambda x: x, jnp.ones(2), object.__new__(type("Local", (), {"x": 1}))):
+    assert fingerprint(Pair(1, 2)) != fingerprint((1, 2))  # a named tuple's type counts
+    # A closure, a JAX array in a static position, an instance of a local class and an
+    # object of a compiled type (its state is not visible to Python) have no fingerprint.
+    local = object.__new__(type("Local", (), {"x": 1}))
+    for refused in (lambda x: x, jnp.ones(2), local, re.compile("a")):
         with pytest.raises(programs._Uncacheable):
             fingerprint(refused)
 

@@ -5,16 +5,19 @@ XLA's *compiled* programs, but a new process still traces every Python function 
 jaxpr and lowers it to StableHLO before it can even look the program up: on a 2-core CPU,
 29 of the 36 s that a warm three-filter ``amigo fit`` spent compiling (docs/performance.md).
 :func:`jit` is :func:`equinox.filter_jit` that also keeps the lowered program, serialized
-by :mod:`jax.export`, in ``cache_dir() / "programs"``; the next process with the same key
+by :mod:`jax.export`, in ``cache_dir() / "programs" / <source version>``; the next process with the same key
 deserializes it (milliseconds) and hands it to XLA, whose own cache then has it compiled.
 
 The key is exact, never approximate: a program is reused only where tracing again would
 give the same program. It holds
 
 * the package's source (a hash of every ``.py`` file of amigo: an edit is a new program),
-  the versions of JAX and jaxlib, the backend, the precision flags, and every ``AMIGO_*``
-  variable of the environment (some are read while tracing, e.g. ``AMIGO_JVP_BATCH``);
-* the function's module and qualified name;
+  the versions of the libraries traced into the programs (JAX, jaxlib, NumPy, equinox,
+  numpyro, optax, optimistix), the backend, the precision and promotion options, and
+  every ``AMIGO_*`` variable of the environment (some are read while tracing, e.g.
+  ``AMIGO_JVP_BATCH``);
+* the function's module, qualified name and file (a function outside amigo is keyed on
+  its own source);
 * the arguments' structure, with every static value in full (the fields of a module marked
   static, the non-array leaves: numbers, strings, tuples, NumPy arrays by their bytes) and
   every array by its shape, dtype and weak type only (what tracing sees).
@@ -89,7 +92,8 @@ def _static(obj: Any, out: list[str]) -> None:
         raise _Uncacheable("a JAX array in a static position")
     elif isinstance(obj, (tuple, list, frozenset, set)):
         items = sorted(obj, key=repr) if isinstance(obj, (set, frozenset)) else obj
-        out.append(f"{type(obj).__name__}[{len(items)}]")
+        kind = type(obj)  # a named tuple's type counts
+        out.append(f"{kind.__module__}.{kind.__qualname__}[{len(items)}]")
         for item in items:
             _static(item, out)
     elif isinstance(obj, dict):
@@ -120,12 +124,14 @@ def _static(obj: Any, out: list[str]) -> None:
 
 
 def _stateless(obj: Any) -> bool:
-    """Whether ``obj`` is an instance of a module-level class that holds no state."""
+    """Whether ``obj`` is an instance of a module-level Python class that holds no state:
+    an empty instance dictionary and no slots (an object of a compiled type, whose state
+    Python cannot see, never is)."""
     if _named(type(obj)) is None or isinstance(obj, types.FunctionType):
         return False
-    if getattr(obj, "__dict__", None):
+    if not hasattr(obj, "__dict__") or obj.__dict__:
         return False
-    return not any(hasattr(obj, slot) for slot in getattr(type(obj), "__slots__", ()))
+    return not getattr(type(obj), "__slots__", ())
 
 
 def _structure(treedef: Any, out: list[str]) -> None:
@@ -239,14 +245,30 @@ def _config(name: str) -> Any:
     return getattr(jax.config, name)
 
 
+#: Libraries whose code is traced into amigo's programs (numpyro's NUTS, equinox's
+#: modules, NumPy's constants): a new version is a new program.
+TRACED_LIBRARIES = ("jax", "jaxlib", "numpy", "equinox", "numpyro", "optax", "optimistix")
+
+
+@functools.cache
+def _versions() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    def one(name: str) -> str:
+        try:
+            return version(name)
+        except PackageNotFoundError:
+            return "none"
+
+    return ",".join(f"{name}={one(name)}" for name in TRACED_LIBRARIES)
+
+
 def _environment() -> list[str]:
     """What besides the arguments decides the traced program."""
-    import jaxlib
-
     return [
         f"format:{FORMAT}",
         f"source:{_source_digest()}",
-        f"jax:{jax.__version__}:{jaxlib.__version__}",
+        f"versions:{_versions()}",
         f"backend:{jax.default_backend()}",
         f"x64:{_config('jax_enable_x64')}",
         f"matmul:{_config('jax_default_matmul_precision')}",
