@@ -193,8 +193,10 @@ def _nuts_draws(
     then the warm-up the chain began with, which the sampler's state counts against).
 
     numpyro's functional NUTS (``numpyro.infer.hmc.hmc``) in one program with the
-    observables and the boxes as arguments: the program is the same for every chain and
-    target of these shapes, and kept on disk (:mod:`amigo.programs`); numpyro's ``MCMC``
+    observables and the boxes as arguments (a potential that closed over them would put
+    every matrix into the program as a constant, 21-85 MB a program, and a new target
+    would compile anew): the program is the same for every chain and target of these
+    shapes, and kept on disk (:mod:`amigo.programs`); numpyro's ``MCMC``
     lowered a sampling loop of its own for every chain and every run (16 per AB Dor
     detection, 8 s of a warm run on a 2-core CPU).
     """
