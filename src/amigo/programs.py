@@ -309,7 +309,8 @@ def _prune(folder: Path) -> None:
 
 
 def _write(path: Path, skeleton: str, blob: bytes) -> None:
-    """Write atomically: concurrent runs write the same bytes, the last rename wins."""
+    """Write atomically: concurrent runs write equivalent programs, the last rename wins."""
+    temporary = None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         _prune(path.parent)
@@ -318,17 +319,20 @@ def _write(path: Path, skeleton: str, blob: bytes) -> None:
             header = skeleton.encode()
             stream.write(len(header).to_bytes(8, "little") + header + blob)
         os.replace(temporary, path)
-    except OSError:
-        pass  # a full or read-only disk: the program is only not kept
+    except OSError:  # a full or read-only disk: the program is only not kept
+        if temporary is not None:
+            Path(temporary).unlink(missing_ok=True)
 
 
 def _read(path: Path) -> tuple[str, bytes] | None:
+    """The output structure (JSON) and the serialized program of a file, or ``None``
+    (absent, unreadable or damaged)."""
     try:
         data = path.read_bytes()
-    except OSError:
+        size = int.from_bytes(data[:8], "little")
+        return data[8 : 8 + size].decode(), data[8 + size :]
+    except (OSError, UnicodeDecodeError):
         return None
-    size = int.from_bytes(data[:8], "little")
-    return data[8 : 8 + size].decode(), data[8 + size :]
 
 
 #: Programs of this process by key: the deserialized export (compiled) and its output's
