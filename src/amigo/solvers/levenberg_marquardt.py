@@ -120,6 +120,15 @@ class Settings(Protocol):
     def float64_check(self) -> bool: ...
 
 
+def _jacobi_scaled(fisher: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(active, D, F_s)``: the parameters with information (``diag F > 0``), their
+    ``D = sqrt(diag F)``, and ``F_s = D^-1 F D^-1`` on them."""
+    diag = np.diag(fisher)
+    active = np.nonzero(diag > 0)[0]
+    root = np.sqrt(diag[active])
+    return active, root, fisher[np.ix_(active, active)] / np.outer(root, root)
+
+
 class FisherSolve:
     """``(F_s + mu I)^-1 g_s`` for one Fisher matrix and any gradient and damping.
 
@@ -131,11 +140,8 @@ class FisherSolve:
     """
 
     def __init__(self, fisher: np.ndarray) -> None:
-        diag = np.diag(fisher)
-        self.active = np.nonzero(diag > 0)[0]
         self.size = fisher.shape[0]
-        self.root = np.sqrt(diag[self.active])
-        scaled = fisher[np.ix_(self.active, self.active)] / np.outer(self.root, self.root)
+        self.active, self.root, scaled = _jacobi_scaled(fisher)
         evals, self.evecs = np.linalg.eigh(scaled)
         self.keep = evals > EIGEN_FLOOR * evals.max() if evals.size else evals > 0
         self.evals = np.where(self.keep, evals, 1.0)
@@ -165,12 +171,9 @@ def marginal_errors(fisher: np.ndarray | None, indices: np.ndarray) -> np.ndarra
     out = np.full(indices.shape, np.nan)
     if fisher is None:
         return out
-    diag = np.diag(fisher)
-    active = np.nonzero(diag > 0)[0]
+    active, root, scaled = _jacobi_scaled(fisher)
     if active.size == 0:
         return out
-    root = np.sqrt(diag[active])
-    scaled = fisher[np.ix_(active, active)] / np.outer(root, root)
     _, labels = connected_components(csr_matrix(scaled != 0), directed=False)
     blocks = [np.nonzero(labels == b)[0] for b in range(labels.max() + 1)]
     pairs = [np.linalg.eigh(scaled[np.ix_(block, block)]) for block in blocks]
