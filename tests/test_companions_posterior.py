@@ -12,6 +12,7 @@ import jax
 import jax.extend
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from amigo.companions import observables as obs
 from amigo.companions.posterior import _potential
@@ -232,15 +233,16 @@ def test_laplaces_mass_matrix_needs_only_a_short_warm_up(tmp_path):
     assert kept.ess_percentiles_min > 0.6 * adapted.ess_percentiles_min
 
 
-def test_fits_side_by_side_take_the_steps_each_takes_alone(tmp_path):
-    """`fit_companions_many` (the search's candidate fits, batched) ends each fit where
-    `fit_companions` ends it alone, from starts that converge in different numbers of
-    steps (near the truth, at a noise peak, far off); no start gives no fit, and starts
-    of different companion counts are refused."""
-    import pytest
-
+@pytest.mark.parametrize("singles", [True, False], ids=["singles-in-threads", "batched"])
+def test_fits_side_by_side_take_the_steps_each_takes_alone(tmp_path, monkeypatch, singles):
+    """`fit_companions_many` (the search's candidate fits, evaluated one by one in threads
+    while few are running, else batched) ends each fit where `fit_companions` ends it
+    alone, from starts that converge in different numbers of steps (near the truth, at a
+    noise peak, far off); no start gives no fit, and starts of different companion counts
+    are refused."""
     from amigo.companions import fit as fitting
 
+    monkeypatch.setattr(fitting, "_singles_up_to", lambda: 8 if singles else 1)
     with jax.enable_x64(True):
         dataset = _dataset(tmp_path)
         scales = np.array([1.3, 0.8, 1.1, 0.9])[: dataset.n_groups]

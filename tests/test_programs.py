@@ -216,3 +216,55 @@ def test_a_damaged_file_is_traced_again(store):
     assert abs(len(path.read_bytes()) - len(whole)) < 64
     programs.release()
     np.testing.assert_array_equal(weighted(_weights(), x, 0.5).total, expected)
+
+
+def test_side_by_side_gives_each_calls_result_in_order_in_the_callers_precision(store):
+    """Calls in threads: the results of one after the other, in order (finished arrays),
+    with the caller's ``jax.enable_x64`` in every thread (a per-thread setting), at most
+    ``workers`` at a time; a call's error reaches the caller."""
+    import threading
+
+    items = [jnp.linspace(0.0, 1.0, 3) + k for k in range(5)]
+    with jax.enable_x64(True):
+        wide = [jnp.asarray(np.arange(3.0) + k) for k in range(5)]
+        alone = [weighted(_weights(), x, 0.5) for x in wide]
+        threads: set[str] = set()
+
+        def call(x):
+            threads.add(threading.current_thread().name)
+            assert jax.config.jax_enable_x64
+            return weighted(_weights(), x, 0.5)
+
+        together = programs.side_by_side(call, wide, workers=2)
+    assert len(threads) == 2 and threading.current_thread().name not in threads
+    for a, b in zip(together, alone, strict=True):
+        assert a.total.dtype == np.float64
+        np.testing.assert_array_equal(a.total, b.total)
+        np.testing.assert_array_equal(a.scaled, b.scaled)
+    narrow = programs.side_by_side(lambda x: weighted(_weights(), x, 0.5), items)
+    assert [p.total.dtype for p in narrow] == [np.float32] * 5
+    assert programs.side_by_side(lambda x: x + 1, [1]) == [2]  # one item: this thread
+    assert programs.side_by_side(lambda x: x, []) == []
+    with pytest.raises(ZeroDivisionError):
+        programs.side_by_side(lambda x: 1 / x, [1, 0, 2])
+    assert programs.cores() >= 1
+
+
+def test_threads_that_want_one_program_at_once_read_it_once(store, monkeypatch):
+    """Two threads calling a kept program for the first time at once (NUTS's chains)
+    deserialize and compile it once, not once each (the loading lock)."""
+    x = jnp.linspace(0.0, 1.0, 3)
+    weighted(_weights(), x, 0.5)  # written to disk
+    programs.release()
+    TRACES.clear()
+    compiled = []
+    caller = programs._caller
+
+    def counting(exported):
+        compiled.append(exported)
+        return caller(exported)
+
+    monkeypatch.setattr(programs, "_caller", counting)
+    out = programs.side_by_side(lambda y: weighted(_weights(), y, 0.5), [x, x + 1.0, x + 2.0])
+    assert len(compiled) == 1 and TRACES == []  # read from disk, once
+    np.testing.assert_allclose(out[2].total, weighted.jitted(_weights(), x + 2.0, 0.5).total)

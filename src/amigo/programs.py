@@ -27,6 +27,10 @@ a program that :mod:`jax.export` refuses (a host callback) falls back to plain
 :func:`equinox.filter_jit`, as does a call made while tracing (the function is inlined
 into its caller's program). So does every call when the compilation cache is off: the
 programs live beside the compiled ones and are switched on and off with them.
+
+:func:`side_by_side` runs independent calls of compiled programs in threads: XLA runs
+amigo's matrix products on one thread each (:mod:`amigo.runtime`), so one program alone
+leaves part of a CPU idle.
 """
 
 from __future__ import annotations
@@ -42,8 +46,9 @@ import logging
 import os
 import sys
 import tempfile
+import threading
 import types
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -338,6 +343,10 @@ def _read(path: Path) -> tuple[str, bytes] | None:
 #: Programs of this process by key: the deserialized export (compiled) and its output's
 #: structure, or ``None`` for a program that cannot be exported. Emptied by :func:`release`.
 _LOADED: dict[str, tuple[Any, Any] | None] = {}
+#: Held while a program is looked up, read or exported: threads that want the same
+#: program at once (NUTS's chains, amigo.companions.posterior) read it once. Re-entrant:
+#: an export traces functions that may ask for programs of their own.
+_LOADING = threading.RLock()
 
 
 def release() -> None:
@@ -411,6 +420,12 @@ class _Program:
         self, key: str, path: Path, treedef: Any, leaves: list[Any]
     ) -> tuple[Any, Any] | None:
         """The program of this key: held, read from disk, or traced and written."""
+        with _LOADING:
+            return self._program_locked(key, path, treedef, leaves)
+
+    def _program_locked(
+        self, key: str, path: Path, treedef: Any, leaves: list[Any]
+    ) -> tuple[Any, Any] | None:
         if key in _LOADED:
             return _LOADED[key]
         if path.with_suffix(".none").exists():
@@ -476,3 +491,43 @@ def jit(function: Callable[..., Any]) -> Callable[..., Any]:
     if "<" in function.__qualname__:
         raise TypeError(f"programs.jit needs a module-level function, not {function.__qualname__}")
     return _Program(function)
+
+
+# ------------------------------------------------------------------ side by side
+def side_by_side(
+    function: Callable[[Any], Any], items: Sequence[Any], workers: int | None = None
+) -> list[Any]:
+    """``[function(item) for item in items]``, the calls in threads: each in its own, or
+    at most ``workers`` at a time (:func:`cores` for many small calls).
+
+    For independent computations of compiled programs (NUTS's chains, chunks of a grid):
+    XLA runs amigo's matrix products on one thread each (:mod:`amigo.runtime`), and a
+    program of small operations barely keeps two cores busy; two of them side by side do
+    (measured on a 2-core CPU: docs/performance.md, "Work side by side"). Each call's
+    results are waited for in its thread, so a caller gets finished arrays. The calls
+    share only their inputs, which they must not change: their results are the same bits
+    as one after the other. The calling thread's ``jax.enable_x64`` (a per-thread
+    setting) holds in every thread. One item or none: called in this thread.
+    """
+    items = list(items)
+    if len(items) < 2:
+        return [function(item) for item in items]
+    x64 = bool(_config("jax_enable_x64"))
+
+    def run(item: Any) -> Any:
+        with jax.enable_x64(x64):
+            return jax.block_until_ready(function(item))
+
+    from concurrent.futures import ThreadPoolExecutor
+
+    threads = min(len(items), workers or len(items))
+    with ThreadPoolExecutor(threads, thread_name_prefix="amigo") as pool:
+        return list(pool.map(run, items))
+
+
+def cores() -> int:
+    """The CPU cores this process may run on (its affinity, e.g. a batch job's share)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # no affinity on this platform (macOS)
+        return max(1, os.cpu_count() or 1)

@@ -32,6 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import ndimage
 
+from amigo import programs
 from amigo.companions.models import MAS_TO_RAD, scene_terms
 from amigo.companions.observables import Dataset, Observables, single_precision
 from amigo.companions.significance import log_chi2_sf, sigma_from_log_p
@@ -341,20 +342,13 @@ def _filter_scene(
     index = _filter_blocks(dataset, f)
     blocks = tuple(dataset.blocks[i] for i in index)
     terms = [
-        scene_terms(
-            jnp.asarray(b.uv_m),
-            jnp.asarray(b.wavelengths_m),
-            jnp.asarray(b.weights),
-            jnp.asarray(offsets),
-            jnp.asarray(flux[:, f]),
-            diameter,
-        )
+        _background_terms(b, jnp.asarray(offsets), jnp.asarray(flux[:, f]), diameter)
         for b in blocks
     ]
     return _FilterScene(
         blocks=blocks,
         background=_Background(tuple(t[0] for t in terms), tuple(t[1] for t in terms)),
-        residuals=tuple(b.residuals(t[0] / t[1]) for b, t in zip(blocks, terms, strict=True)),
+        residuals=tuple(t[2] for t in terms),
         x_phasors=tuple(
             _axis_phasors(b, grid.x_mas, 0) * np.asarray(b.weights)[None] for b in blocks
         ),
@@ -363,22 +357,43 @@ def _filter_scene(
     )
 
 
+# One program: run op by op, the scene and the residuals of each block cost ~0.1 s (AB
+# Dor's search builds nine of them, docs/performance.md, "Work side by side").
+@programs.jit
+def _background_terms(
+    block: Observables, offsets_mas: jax.Array, contrasts: jax.Array, diameter: float
+) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """A block's background scene: :func:`scene_terms`' numerator (n_uv,) and total flux,
+    and the block's whitened residuals (n_obs,) with unit error scales."""
+    numerator, denominator = scene_terms(
+        block.uv_m, block.wavelengths_m, block.weights, offsets_mas, contrasts, diameter
+    )
+    return numerator, denominator, block.residuals(numerator / denominator)
+
+
 def _over_columns(function, scene: _FilterScene, grid: Grid, chunk_columns: int | None):
     """``function(x_phasors_chunk)`` over chunks of grid columns, outputs joined on axis 1.
 
     Chunks hold about 2e5 uv-point evaluations (``chunk_columns`` columns if given); the
-    last is padded so that one compiled shape serves every chunk."""
+    last is padded so that one compiled shape serves every chunk. The chunks are
+    independent: evaluated side by side, one per core (:func:`amigo.programs.side_by_side`;
+    their matrix products run on one thread each)."""
     n_uv = sum(b.n_uv for b in scene.blocks)
     n_x = grid.x_mas.size
     step = chunk_columns or max(1, min(n_x, int(2e5 // (n_uv * grid.y_mas.size)) or 1))
-    outputs = []
-    for start in range(0, n_x, step):
+
+    def columns(start: int) -> list[np.ndarray]:
         stop = min(start + step, n_x)
         pad = step - (stop - start)
         chunk = tuple(
             jnp.asarray(np.pad(x[start:stop], ((0, pad), (0, 0), (0, 0)))) for x in scene.x_phasors
         )
-        outputs.append([np.asarray(a)[:, : stop - start] for a in function(chunk)])
+        return [np.asarray(a)[:, : stop - start] for a in function(chunk)]
+
+    starts = list(range(0, n_x, step))
+    # The first alone: it compiles (or reads) the program that the others then share.
+    outputs = [columns(starts[0])]
+    outputs += programs.side_by_side(columns, starts[1:], workers=programs.cores())
     return tuple(np.concatenate(parts, axis=1) for parts in zip(*outputs, strict=True))
 
 
