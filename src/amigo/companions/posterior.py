@@ -262,11 +262,12 @@ def sample_posterior(
         covariance is the mass matrix, else :data:`WARMUP_ADAPTIVE`.
         Chains run side by side in threads (:func:`amigo.programs.side_by_side`; on a
         2-core CPU AB Dor's joint posterior took 4.2-4.3 s instead of 6.5 s, one
-        filter's 1.1 s instead of 2.2 s), each through the same compiled program. Not vectorised: vectorised chains move in lockstep, each
-        tree as deep as the deeper of the two, and their products with the observable
-        matrices do not share the matrices' reads (on AB Dor's three filters, 2-core
-        CPU, with numpyro's ``MCMC``: two chains took 105 s vectorised and 102 s one
-        after the other, on one filter 41 and 23 s).
+        filter's 1.1 s instead of 2.2 s), each through the same compiled program. Not
+        vectorised: vectorised chains move in lockstep, each tree as deep as the deeper
+        of the two, and their products with the observable matrices do not share the
+        matrices' reads (on AB Dor's three filters, 2-core CPU, with numpyro's
+        ``MCMC``: two chains took 105 s vectorised and 102 s one after the other, on
+        one filter 41 and 23 s).
     single_precision
         Evaluate the residuals in float32 (:meth:`Dataset.single_precision`; the sums,
         the priors and the chains stay float64). The potential's value and gradient then

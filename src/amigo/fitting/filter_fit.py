@@ -362,8 +362,8 @@ class FilterFit:
         instrument, setup = self.instrument, self.setup
         optics = OpticsParams.from_instrument(instrument)
         jitter_mas = float(instrument.detector.jitter_arcsec) * 1000.0
-        # The nominal PSFs by the fit's own program (a program of their own would hold a
-        # second copy of the optics' transforms in memory), the image in one more.
+        # The nominal PSFs by the program the fit reads anyway, the image by one more
+        # (the products within 0.005 sigma of op by op: docs/performance.md).
         anchor = jnp.zeros(2, setup.wavelengths_m.dtype)  # centred: filter_psfs' default
         psfs = psfs_of(instrument, setup, optics, anchor)
         template = np.asarray(_template(instrument, setup, psfs, jnp.asarray(jitter_mas)))
