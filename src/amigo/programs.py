@@ -5,8 +5,9 @@ XLA's *compiled* programs, but a new process still traces every Python function 
 jaxpr and lowers it to StableHLO before it can even look the program up: on a 2-core CPU,
 29 of the 36 s that a warm three-filter ``amigo fit`` spent compiling (docs/performance.md).
 :func:`jit` is :func:`equinox.filter_jit` that also keeps the lowered program, serialized
-by :mod:`jax.export`, in ``cache_dir() / "programs" / <source version>``; the next process with the same key
-deserializes it (milliseconds) and hands it to XLA, whose own cache then has it compiled.
+by :mod:`jax.export`, in ``cache_dir() / "programs" / <source version>``; the next process
+with the same key deserializes it (milliseconds) and hands it to XLA, whose own cache then
+has it compiled.
 
 The key is exact, never approximate: a program is reused only where tracing again would
 give the same program. It holds
