@@ -229,14 +229,33 @@ def test_side_by_side_gives_each_calls_result_in_order_in_the_callers_precision(
         wide = [jnp.asarray(np.arange(3.0) + k) for k in range(5)]
         alone = [weighted(_weights(), x, 0.5) for x in wide]
         threads: set[str] = set()
+        # The first two calls wait for each other (they must run at once: a pool that ran
+        # them one after the other would time out here); the count of calls in flight
+        # shows no more than ``workers`` ran together. No timing is assumed: a fast call
+        # may otherwise leave its thread idle for the next, and one thread do them all.
+        meet = threading.Barrier(2, timeout=60)
+        lock = threading.Lock()
+        started = [0]
+        running = [0, 0]  # now, most
 
         def call(x):
+            with lock:
+                started[0] += 1
+                first_two = started[0] <= 2
+                running[0] += 1
+                running[1] = max(running)
             threads.add(threading.current_thread().name)
+            if first_two:
+                meet.wait()
             assert jax.config.jax_enable_x64
-            return weighted(_weights(), x, 0.5)
+            result = weighted(_weights(), x, 0.5)
+            with lock:
+                running[0] -= 1
+            return result
 
         together = programs.side_by_side(call, wide, workers=2)
     assert len(threads) == 2 and threading.current_thread().name not in threads
+    assert running[1] == 2
     for a, b in zip(together, alone, strict=True):
         assert a.total.dtype == np.float64
         np.testing.assert_array_equal(a.total, b.total)
