@@ -110,6 +110,26 @@ def test_manifest_and_exposures_exclude_each_other(files, tmp_path, capsys):
     assert "only with --manifest" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize(
+    ("cores", "targets", "workers"), [(8, 10, 4), (8, 3, 3), (1, 4, 1), (2, 4, 1), (16, 2, 2)]
+)
+def test_default_workers_follow_the_cores_the_process_may_use(cores, targets, workers, monkeypatch):
+    """One local worker per two of the process's cores (its affinity), one at least, one
+    per target at most."""
+    from amigo import runtime
+    from amigo.pipeline._manifest import default_workers
+
+    monkeypatch.setattr(runtime, "cores", lambda: cores)
+    assert default_workers(targets) == workers
+
+
+def test_the_process_cores_are_its_affinity():
+    from amigo import runtime
+
+    expected = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
+    assert runtime.cores() == (expected or max(1, os.cpu_count() or 1))
+
+
 # ---------------------------------------------------------------------------- slow
 N_TARGETS = 3
 #: Small and fast: a 3-wavelength instrument, a coarse uv grid, no NUTS, a short search.

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from amigo import programs
+from amigo import programs, runtime
 
 #: Python-side calls of the functions below while JAX traces them.
 TRACES: list[str] = []
@@ -266,7 +266,7 @@ def test_side_by_side_gives_each_calls_result_in_order_in_the_callers_precision(
     assert programs.side_by_side(lambda x: x, []) == []
     with pytest.raises(ZeroDivisionError):
         programs.side_by_side(lambda x: 1 / x, [1, 0, 2])
-    assert programs.cores() >= 1
+    assert runtime.cores() >= 1
 
 
 def test_threads_that_want_one_program_at_once_read_it_once(store, monkeypatch):

@@ -499,7 +499,7 @@ def side_by_side(
     function: Callable[[Any], Any], items: Sequence[Any], workers: int | None = None
 ) -> list[Any]:
     """``[function(item) for item in items]``, the calls in threads: each in its own, or
-    at most ``workers`` at a time (:func:`cores` for many small calls).
+    at most ``workers`` at a time (:func:`amigo.runtime.cores` for many small calls).
 
     For independent computations of compiled programs (NUTS's chains, chunks of a grid):
     XLA runs amigo's matrix products on one thread each (:mod:`amigo.runtime`), and a
@@ -524,11 +524,3 @@ def side_by_side(
     threads = min(len(items), workers or len(items))
     with ThreadPoolExecutor(threads, thread_name_prefix="amigo") as pool:
         return list(pool.map(run, items))
-
-
-def cores() -> int:
-    """The CPU cores this process may run on (its affinity, e.g. a batch job's share)."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # no affinity on this platform (macOS)
-        return max(1, os.cpu_count() or 1)

@@ -119,3 +119,12 @@ def _backend_started() -> bool:
     except ImportError:  # a JAX without this private module: assume the worst
         return True
     return bool(getattr(xla_bridge, "_backends", None))
+
+
+def cores() -> int:
+    """The CPU cores this process may run on: its affinity (a batch job's share, ``taskset``),
+    not the machine's count."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # no affinity on this platform (macOS)
+        return max(1, os.cpu_count() or 1)

@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 import numpy.typing as npt
 
-from amigo import programs
+from amigo import programs, runtime
 from amigo.companions.models import scene_visibility
 from amigo.companions.observables import Dataset, Observables
 
@@ -370,7 +370,7 @@ def fit_companions_many(
     def evaluate(points: list[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
         if len(points) <= _singles_up_to():
             # A few points: each by the single fit's program, side by side (one per core).
-            return programs.side_by_side(single, points, workers=programs.cores())
+            return programs.side_by_side(single, points, workers=runtime.cores())
         # Padded to a few sizes (repeating the last point), so that a handful of compiled
         # programs serve every count of running fits.
         size = _batch_size(len(points))
@@ -409,7 +409,7 @@ def _singles_up_to() -> int:
     """
     if jax.default_backend() != "cpu":
         return 1
-    return 3 * programs.cores()
+    return 3 * runtime.cores()
 
 
 def _batch_size(n: int) -> int:

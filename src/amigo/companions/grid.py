@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import ndimage
 
-from amigo import programs
+from amigo import programs, runtime
 from amigo.companions.models import MAS_TO_RAD, scene_terms
 from amigo.companions.observables import Dataset, Observables, single_precision
 from amigo.companions.significance import log_chi2_sf, sigma_from_log_p
@@ -393,7 +393,7 @@ def _over_columns(function, scene: _FilterScene, grid: Grid, chunk_columns: int 
     starts = list(range(0, n_x, step))
     # The first alone: it compiles (or reads) the program that the others then share.
     outputs = [columns(starts[0])]
-    outputs += programs.side_by_side(columns, starts[1:], workers=programs.cores())
+    outputs += programs.side_by_side(columns, starts[1:], workers=runtime.cores())
     return tuple(np.concatenate(parts, axis=1) for parts in zip(*outputs, strict=True))
 
 

@@ -28,6 +28,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from amigo import runtime
 from amigo.errors import AmigoError, InputError
 from amigo.io.manifest import Target, read_manifest
 
@@ -225,9 +226,10 @@ def _fit_and_detect(target: Target, folder: Path, settings: Mapping[str, Any], f
 
 
 def default_workers(n_targets: int) -> int:
-    """Local workers when none are asked for: one per two CPU cores (each worker's XLA
-    runs its own threads), at least one, at most one per target."""
-    return max(1, min(n_targets, (os.cpu_count() or 2) // 2))
+    """Local workers when none are asked for: one per two of the CPU cores this process
+    may run on (:func:`amigo.runtime.cores`: a batch job's share, not the machine's count;
+    each worker's XLA runs its own threads), at least one, at most one per target."""
+    return max(1, min(n_targets, runtime.cores() // 2))
 
 
 def run_manifest(
