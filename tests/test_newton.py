@@ -215,6 +215,9 @@ class _Curve:
     def gradient(self, v):
         return -self.jacobian(v).T @ self.residuals(v)
 
+    def refresh(self, v):
+        return False  # no noise model to measure
+
     def normal_equations(self, v, label):
         self.jacobians.append(self.float64)
         j = self.jacobian(v)

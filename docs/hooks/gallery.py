@@ -162,6 +162,7 @@ def _optics_figures(out: Path) -> None:
         chi2=float(np.sum(z**2)),
         dof=float(mask.sum()),
         zscore_std=float(np.std(z)),
+        zscore_std_whitened=float(np.std(z)),  # no stripes in this image
         converged=True,
         iterations=0,
         seconds=0.0,

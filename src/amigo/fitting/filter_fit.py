@@ -79,6 +79,7 @@ from amigo.fitting.newton import (
 )
 from amigo.fitting.params import FitParams
 from amigo.likelihood.pixels import ImageData, PixelData
+from amigo.likelihood.stripes import column_gains, decorrelate
 from amigo.model.image import (
     ExposureParams,
     FilterSetup,
@@ -245,6 +246,10 @@ class FilterFit:
         # Offset (x, y, arcsec) at which every exposure's PSFs are computed before the
         # exposure's own offset from it is applied; set by :meth:`initial_params`.
         self.anchor = jnp.zeros(2, jnp.float32)
+        # (E,) the 1/f column stripes' standard deviation (DN/s) marginalised in each
+        # exposure's likelihood (amigo.likelihood.stripes): measured by the Newton
+        # finish wherever it takes new Jacobians (amigo.fitting.newton), 0 until then.
+        self.stripe_sigma = np.zeros(len(self.exposures))
 
     def with_exposures(self, exposures: list[FitExposure]) -> FilterFit:
         """The same fit on other data of the same exposures (e.g. slopes corrected by the
@@ -255,7 +260,14 @@ class FilterFit:
             raise ValueError(f"other exposures: {names}")
         other = FilterFit(self.instrument, self.setup, exposures)
         other.anchor = self.anchor
+        other.stripe_sigma = self.stripe_sigma.copy()
         return other
+
+    @property
+    def stripe_gains(self) -> np.ndarray:
+        """(E, 80) float64 column gains of the stripes' whitening
+        (:func:`amigo.likelihood.stripes.column_gains`; 0: no stripes)."""
+        return column_gains(np.asarray(self.pixels.inverse_sigma), self.stripe_sigma)
 
     # ------------------------------------------------------------------ model
     @property
@@ -344,6 +356,9 @@ class FilterFit:
         """
         pixels = self.pixels if pixels is None else pixels
         r = (pixels.data - self.models(params, instrument, setup)) * pixels.inverse_sigma
+        if np.any(self.stripe_sigma > 0):  # the stripes' covariance (likelihood.stripes)
+            # The fit's own gains (NumPy, from its pixels): ``pixels`` may be traced.
+            r = decorrelate(r, pixels.inverse_sigma, jnp.asarray(self.stripe_gains, r.dtype))
         return jnp.sum(r * r, axis=(-2, -1))
 
     def loss(
@@ -405,6 +420,8 @@ class FilterFit:
         (``vis_mode="block"``, default: a Gauss-Newton step, the log-visibility model
         being nearly linear) or only its diagonal (``"diagonal"``: slower).
         """
+        # Independent pixels, the stripes left out: a preconditioner steers, the loss and
+        # the Newton finish decide (both with the stripes).
         w = self.pixels.inverse_sigma**2
         blocks: list[Array | None] = []
         for select in _SMALL:
@@ -466,10 +483,12 @@ class FilterFit:
         """
         n = params.sources.amp.shape[1] + params.sources.phase.shape[1]
         fisher = np.zeros((len(self.targets), n, n))
-        w = np.asarray(self.pixels.inverse_sigma, dtype=np.float64) ** 2
+        root_w = np.asarray(self.pixels.inverse_sigma, dtype=np.float64)
+        gains = self.stripe_gains
         for e in range(self.n_exposures):
-            jac = np.asarray(self.latent_jacobian(params, e), dtype=np.float64).reshape(n, -1)
-            fisher[self.source_index[e]] += (jac * w[e].ravel()) @ jac.T
+            jac = np.asarray(self.latent_jacobian(params, e)).reshape(n, -1)
+            wj = whitened([jac], root_w[e].ravel(), gains[e])
+            fisher[self.source_index[e]] += wj @ wj.T
         return fisher
 
     # ------------------------------------------------------------------ optimise
@@ -855,6 +874,7 @@ def latent_information(
     # (one float64 copy per Jacobian, ~60 MB for a real exposure, instead of a copy and
     # a weighted product of it): J^T W J = (J / sigma)^T (J / sigma).
     root_w = np.asarray(fit.pixels.inverse_sigma, dtype=np.float64).reshape(fit.n_exposures, -1)
+    gains = fit.stripe_gains  # and whitened again for the 1/f stripes (likelihood.stripes)
     # The fit's own float32 instrument and setup: the programs the solver compiled.
     instrument, setup, params32 = fit.instrument, fit.setup, cast_floats(params, jnp.float32)
     point = eqx.tree_at(
@@ -877,7 +897,7 @@ def latent_information(
             step(f"{label}: Hessian of {fit.exposures[e].name} ({n} latent visibilities)")
             heap.release()
             jac = np.asarray(fit.latent_jacobian(params32, e, instrument, setup))
-            wj = whitened([jac.reshape(n, -1)], root_w[e])
+            wj = whitened([jac.reshape(n, -1)], root_w[e], gains[e])
             del jac
             hessian[fit.source_index[e]] += wj @ wj.T
             del wj
@@ -892,8 +912,10 @@ def latent_information(
             zernikes, defocus = wave[:n_zernike], wave[n_zernike : n_zernike + 1]
             jitter = local[JITTER_INDEX : JITTER_INDEX + 1]
             nuis = np.concatenate([zernikes, local[2:4], defocus, jitter])
-            nuis = whitened([np.asarray(nuis).reshape(len(names), -1)], root_w[e])
-            wj0 = whitened([np.asarray(local[N_LOCAL_SCALARS:]).reshape(n, -1)], root_w[e])
+            nuis = whitened([np.asarray(nuis).reshape(len(names), -1)], root_w[e], gains[e])
+            wj0 = whitened(
+                [np.asarray(local[N_LOCAL_SCALARS:]).reshape(n, -1)], root_w[e], gains[e]
+            )
             del local, wave
             cross += wj0 @ nuis.T
             cal_hessian += wj0 @ wj0.T

@@ -76,6 +76,7 @@ from jaxtyping import Array, Float
 from amigo import heap, programs
 from amigo.fitting.params import FitParams
 from amigo.likelihood.pixels import PixelData
+from amigo.likelihood.stripes import column_gains, decorrelate_rows, stripe_sigma
 from amigo.model.image import (
     FilterSetup,
     Instrument,
@@ -143,6 +144,11 @@ class JointFit(Protocol):
     pixels: PixelData
     #: Offset (x, y, arcsec) at which the PSFs are computed.
     anchor: Any
+
+    #: (E,) the 1/f column stripes' standard deviation (DN/s) of each exposure
+    #: (:mod:`amigo.likelihood.stripes`): the solver measures it wherever it takes new
+    #: Jacobians and writes it here (:meth:`_Problem.refresh`).
+    stripe_sigma: np.ndarray
 
     @property
     def n_exposures(self) -> int: ...
@@ -650,6 +656,12 @@ class _Problem:
         self.jitter_centre = float(fit.instrument.detector.jitter_arcsec) * 1000.0
         self.data = np.asarray(fit.pixels.data, np.float64).reshape(fit.n_exposures, -1)
         self.weight = np.asarray(fit.pixels.inverse_sigma, np.float64).reshape(fit.n_exposures, -1)
+        # The 1/f stripes' whitening (amigo.likelihood.stripes): residuals and Jacobian
+        # rows alike, so that every sum below is the stripes' marginal likelihood's.
+        self.image_shape = tuple(np.shape(fit.pixels.inverse_sigma)[1:])
+        self.stripe_gains = column_gains(
+            self.weight.reshape(fit.n_exposures, *self.image_shape), fit.stripe_sigma
+        )
         self.locals = [
             self.layout.local(e, int(fit.source_index[e])) for e in range(fit.n_exposures)
         ]
@@ -658,6 +670,7 @@ class _Problem:
         self.float64 = False
         self._models64: tuple[Instrument, FilterSetup] | None = None
         self._last_residuals: tuple[tuple[bytes, bool], np.ndarray] | None = None
+        self._last_models: tuple[tuple[bytes, bool], np.ndarray] | None = None
 
     def _models(self, float64: bool | None = None):
         if not (self.float64 if float64 is None else float64):
@@ -687,27 +700,69 @@ class _Problem:
         optics = _split_block(block, self.layout.zernike_shape)
         return psfs_of(instrument, setup, optics, anchor)
 
-    def _residuals(self, instrument, setup, thetas, psfs, anchor) -> np.ndarray:
-        """(E, npix) whitened residuals ``(data - model) / sigma`` of every exposure
-        (0 where masked), in float64 from the model of the current precision."""
-        models = np.asarray(_images(thetas, instrument, setup, psfs, anchor), np.float64)
-        models = models.reshape(self.fit.n_exposures, -1)
-        return (self.data - models) * self.weight
+    def _images_at(self, vector: np.ndarray) -> np.ndarray:
+        """(E, npix) model images (DN/s) at ``vector``, float64 from the current precision."""
+        with self.precision():
+            instrument, setup, _, wavefront, thetas, anchor = self._inputs(vector)
+            psfs = self._psfs(instrument, setup, wavefront, anchor)
+            models = _images(thetas, instrument, setup, psfs, anchor)
+        return np.asarray(models, np.float64).reshape(self.fit.n_exposures, -1)
+
+    def _residuals(self, models: np.ndarray) -> np.ndarray:
+        """(E, npix) whitened residuals ``(data - model) / sigma`` of every exposure (0
+        where masked), whitened again for the exposure's 1/f stripes."""
+        r = (self.data - models) * self.weight
+        for e in range(self.fit.n_exposures):
+            decorrelate_rows(r[e : e + 1], self.weight[e], self.stripe_gains[e])
+        return r
+
+    def refresh(self, vector: np.ndarray) -> bool:
+        """Measure the members' 1/f stripes at ``vector`` (:func:`stripe_sigma` on the
+        plain residuals) and whiten for them from here on; ``True`` when the loss changed.
+
+        The solver calls this where it takes new Jacobians, so each Fisher matrix is the
+        likelihood's at its point: the first at the start (where the model's own errors
+        in the halo inflate the estimate), the last near the optimum. The values are
+        written to the fit (:attr:`JointFit.stripe_sigma`) for what follows (the latent
+        Hessians, the next stage, the detector's rounds).
+        """
+        models = self._models_at(vector)
+        changed = False
+        for e in self.members:
+            inverse_sigma = self.weight[e].reshape(self.image_shape)
+            model = models[e].reshape(self.image_shape)
+            peak = np.unravel_index(
+                np.argmax(np.where(inverse_sigma > 0, model, -np.inf)), model.shape
+            )
+            star = (float(peak[0]), float(peak[1]))  # (y, x) pixels
+            tau = stripe_sigma(self.data[e].reshape(self.image_shape) - model, inverse_sigma, star)
+            if tau != self.fit.stripe_sigma[e]:
+                self.fit.stripe_sigma[e] = tau
+                changed = True
+        if changed:
+            self.stripe_gains = column_gains(
+                self.weight.reshape(self.fit.n_exposures, *self.image_shape), self.fit.stripe_sigma
+            )
+            self._last_residuals = None  # whitened for the old stripes
+        return changed
 
     def _prior_offset(self, vector: np.ndarray) -> np.ndarray:
         """Instrument block minus the prior's centre."""
         return vector[self.layout.optics] - self.prior_centre
 
+    def _models_at(self, vector: np.ndarray) -> np.ndarray:
+        """:meth:`_images_at` with the last point's kept: the solver asks for the gradient,
+        or measures the stripes, where it has just taken the loss."""
+        key = (vector.tobytes(), self.float64)
+        if self._last_models is None or self._last_models[0] != key:
+            self._last_models = (key, self._images_at(vector))
+        return self._last_models[1]
+
     def _residuals_at(self, vector: np.ndarray) -> np.ndarray:
-        """:meth:`_residuals` at ``vector`` in the current precision (the last point's
-        kept: the solver asks for the gradient where it has just taken the loss)."""
+        """:meth:`_residuals` at ``vector`` in the current precision (the last point's kept)."""
         key = (vector.tobytes(), self.float64)
         if self._last_residuals is None or self._last_residuals[0] != key:
-            with self.precision():
-                instrument, setup, _, wavefront, thetas, anchor = self._inputs(vector)
-                psfs = self._psfs(instrument, setup, wavefront, anchor)
-                r = self._residuals(instrument, setup, thetas, psfs, anchor)
-            self._last_residuals = (key, r)
+            self._last_residuals = (key, self._residuals(self._models_at(vector)))
         return self._last_residuals[1]
 
     def loss(self, vector: np.ndarray) -> float:
@@ -723,7 +778,11 @@ class _Problem:
         """``g = -grad L`` at ``vector``: one float32 reverse-mode pass of the residuals
         of the current precision (module notes, "Precision")."""
         fit, lay = self.fit, self.layout
-        pull = self._residuals_at(vector) * self.weight
+        # J^T C^-1 r: the (stripe-)whitened residuals whitened once more, then / sigma.
+        pull = self._residuals_at(vector).copy()
+        for e in range(fit.n_exposures):
+            decorrelate_rows(pull[e : e + 1], self.weight[e], self.stripe_gains[e])
+        pull *= self.weight
         instrument, setup, dtype, wavefront, thetas, anchor = self._inputs(vector, float64=False)
         g_thetas, g_wave = _gradient(
             thetas,
@@ -768,7 +827,7 @@ class _Problem:
                 jo = optics_jacobian(wavefront, thetas[e], instrument, setup, anchor)
                 parts.append(np.asarray(jo).reshape(len(lay.optics), -1))
                 index = np.concatenate([index, lay.optics])
-            wj = whitened(parts, self.weight[e])
+            wj = whitened(parts, self.weight[e], self.stripe_gains[e])
             del parts
             fisher[np.ix_(index, index)] += wj @ wj.T
             grad[index] += wj @ r[e]
@@ -780,9 +839,13 @@ class _Problem:
         return fisher, grad
 
 
-def whitened(blocks: list[np.ndarray], inverse_sigma: np.ndarray) -> np.ndarray:
+def whitened(
+    blocks: list[np.ndarray], inverse_sigma: np.ndarray, stripe_gains: np.ndarray | None = None
+) -> np.ndarray:
     """(rows, pixels) float64 ``J / sigma`` of a Jacobian given as row blocks, each
-    (n_i, pixels) of any float type, stacked in order.
+    (n_i, pixels) of any float type, stacked in order; with ``stripe_gains`` (nx,) of
+    the image, whitened again for its 1/f column stripes
+    (:func:`amigo.likelihood.stripes.decorrelate_rows`).
 
     Written straight into one new array: the same numbers as converting to float64,
     stacking and then weighting, without those intermediate float64 copies (~60 MB each
@@ -793,6 +856,8 @@ def whitened(blocks: list[np.ndarray], inverse_sigma: np.ndarray) -> np.ndarray:
     for block in blocks:
         np.multiply(block, inverse_sigma, out=out[row : row + len(block)])
         row += len(block)
+    if stripe_gains is not None:
+        decorrelate_rows(out, inverse_sigma, stripe_gains)
     return out
 
 

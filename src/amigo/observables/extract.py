@@ -34,6 +34,7 @@ from amigo.fitting.filter_fit import (
     latent_information,
 )
 from amigo.fitting.ramp_fit import DetectorRecord, RampDetector, fit_through_detector
+from amigo.likelihood.stripes import decorrelate
 from amigo.model.basis import BasisInfo, load_basis
 from amigo.model.image import FilterSetup, Instrument
 from amigo.model.visibility import UVGrid
@@ -53,6 +54,9 @@ class ExposureStats:
     chi2: float
     dof: float
     zscore_std: float
+    #: The z-score spread with the 1/f column stripes' covariance whitened too (what the
+    #: likelihood uses; ``zscore_std`` where no stripes were measured).
+    zscore_std_whitened: float
     converged: bool
     iterations: int
     seconds: float
@@ -131,10 +135,16 @@ def exposure_stats(
     n_optics = p.optics.zernikes_nm.size + 1 + p.optics.geometry.size + 1
     per_target = np.bincount(fit.source_index, minlength=len(fit.targets))
     n_cal = max(int(fit.is_calibrator.sum()), 1)
+    gains = fit.stripe_gains
+    inverse_sigma = np.asarray(fit.pixels.inverse_sigma, np.float64)
     stats = []
     for e, exposure in enumerate(fit.exposures):
         image = exposure.image
         z = image.zscores(models[e])  # pixels, or slopes for a calslope exposure
+        z_whitened = z
+        if np.any(gains[e]) and image.whitened_slopes is None:  # a level-2 image's pixels
+            pixels = (np.asarray(fit.pixels.data[e], np.float64) - models[e]) * inverse_sigma[e]
+            z_whitened = decorrelate(pixels, inverse_sigma[e], gains[e])[inverse_sigma[e] > 0]
         share = 4 + n_latent / per_target[fit.source_index[e]]
         if fit.is_calibrator[e]:
             share += n_optics / n_cal
@@ -148,6 +158,7 @@ def exposure_stats(
                 chi2=float(np.sum(z * z)),
                 dof=float(z.size - share),
                 zscore_std=float(np.std(z)),
+                zscore_std_whitened=float(np.std(z_whitened)),
                 converged=bool(result.converged),
                 iterations=int(result.iterations),
                 seconds=float(seconds_each),

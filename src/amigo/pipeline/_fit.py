@@ -853,6 +853,7 @@ def _run_filter(
                 "chi2": _json_number(s.chi2, 3),
                 "dof": _json_number(s.dof, 3),
                 "zscore_std": _json_number(s.zscore_std, 5),
+                "zscore_std_whitened": _json_number(s.zscore_std_whitened, 5),
                 "status": status,
                 "converged": s.converged,
                 "iterations": s.iterations,
@@ -862,6 +863,7 @@ def _run_filter(
                 **geometry["filter"],
                 **geometry["exposures"][e],
                 **_dark_residual_record(detector, s.name),
+                "column_stripes_dn_s": _json_number(float(product.fit.stripe_sigma[e]), 4),
             }
             for e, s in enumerate(product.stats)
         ],

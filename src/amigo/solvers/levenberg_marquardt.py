@@ -103,6 +103,11 @@ class Problem(Protocol):
         """The Fisher matrix ``F`` and the gradient ``g`` at ``vector``."""
         ...
 
+    def refresh(self, vector: np.ndarray) -> bool:
+        """Re-measure, at ``vector``, what the noise model takes from the residuals (e.g.
+        1/f stripes); ``True`` when that changed the loss. Called before new Jacobians."""
+        ...
+
 
 class Settings(Protocol):
     """What :func:`minimise` reads of its settings (e.g. :class:`amigo.fitting.newton.NewtonConfig`)."""
@@ -325,6 +330,9 @@ def minimise(
             # The old matrix and its decomposition are replaced: let them go before the
             # new Jacobians are taken (the fits' matrices are tens of MB each).
             fisher = solver = None
+            if problem.refresh(vector):  # the noise model measured here: a new loss
+                loss = problem.loss(vector)
+                history.append(loss)
             fisher, grad = problem.normal_equations(vector, label)
             fisher_point, stale_tried = np.array(vector, copy=True), False
             solver = FisherSolve(fisher)
