@@ -24,17 +24,21 @@ share along a column. ``tau = 0`` leaves every vector as it is; ``tau -> inf`` r
 each column's weighted mean (free offsets).
 
 **How wide.** ``tau`` is measured per exposure from a model's residuals in the halo (far
-from the star, where the model's own errors are smallest), before the fit, at its
-starting point: each column's weighted mean residual ``m_c`` (error ``e_c``), and the
+from the star, where the model's own errors are smallest), wherever the fit's solver
+takes new Jacobians (:meth:`amigo.fitting.newton._Problem.refresh`; the first time at the
+start, the last near the optimum): each column's weighted mean residual ``m_c`` (error
+``e_c``), and the
 differences of neighbouring columns ``d_c = m_(c+1) - m_c``, which scatter by ``2 tau^2 +
 e_c^2 + e_(c+1)^2``: ``tau^2 = mean(d_c^2 - e_c^2 - e_(c+1)^2) / 2``
 (:func:`stripe_sigma`). The differences, not the means: the stripes are independent from
-column to column, the starting model's errors in the halo vary smoothly across columns.
+column to column, a model's errors in the halo vary more smoothly across columns.
 Measured on the real COM 1093 files (three filters, AB Dor and HD 37093), against the
 column means at the fit's optimum: at the start the column means gave 1.4-2.4 times as
-much, the differences 0.8-1.5 times (docs/fidelity.md). Kept only when significant (3 standard
-errors under pure noise); otherwise 0, as for images without stripes (simulations,
-``amigo process``'s slopes).
+much, the differences 0.8-1.5 times (docs/fidelity.md). Kept only when significant (3
+standard errors under pure noise); otherwise 0, as for images without stripes
+(simulations, ``amigo process``'s slopes). A model far from the data (a nominal
+instrument on real images) has misfit that varies across columns too, and part of it is
+taken for stripes (docs/fidelity.md).
 """
 
 from __future__ import annotations
