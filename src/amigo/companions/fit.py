@@ -24,6 +24,9 @@ from amigo.companions.observables import Dataset, Observables
 
 #: Lowest log10 flux ratio allowed in the fits (a companion 25 magnitudes fainter).
 LOG10_CONTRAST_FLOOR = -10.0
+#: log10 flux ratio below which a candidate's fit (one with a chi2 tolerance) has ended:
+#: 15 magnitudes, nothing the chi2 still sees (:func:`fit_companions_many`).
+CANDIDATE_LOG10_CONTRAST_END = -6.0
 #: A fit has converged when a step lowers chi2 by less than this fraction of it.
 CHI2_RTOL = 1e-10
 
@@ -413,7 +416,10 @@ def fit_companions_many(
     # would crawl towards zero in log10, the chi2 no longer changing (docs/detect.md).
     floors = None
     if chi2_tolerance > 0.0:
-        floors = np.concatenate([np.full(2 * k, -np.inf), np.full(y0s[0].size - 2 * k, -6.0)])
+        n_contrasts = y0s[0].size - 2 * k
+        floors = np.concatenate(
+            [np.full(2 * k, -np.inf), np.full(n_contrasts, CANDIDATE_LOG10_CONTRAST_END)]
+        )
     fits = _marquardt_all(evaluate, y0s, max_steps, CHI2_RTOL, chi2_tolerance, floors)
     out = []
     for best, residual, jacobian, converged in fits:

@@ -659,9 +659,7 @@ class _Problem:
         # The 1/f stripes' whitening (amigo.likelihood.stripes): residuals and Jacobian
         # rows alike, so that every sum below is the stripes' marginal likelihood's.
         self.image_shape = tuple(np.shape(fit.pixels.inverse_sigma)[1:])
-        self.stripe_gains = column_gains(
-            self.weight.reshape(fit.n_exposures, *self.image_shape), fit.stripe_sigma
-        )
+        self.stripe_gains = self._stripe_gains()
         self.locals = [
             self.layout.local(e, int(fit.source_index[e])) for e in range(fit.n_exposures)
         ]
@@ -711,10 +709,19 @@ class _Problem:
     def _residuals(self, models: np.ndarray) -> np.ndarray:
         """(E, npix) whitened residuals ``(data - model) / sigma`` of every exposure (0
         where masked), whitened again for the exposure's 1/f stripes."""
-        r = (self.data - models) * self.weight
+        return self._whiten_stripes((self.data - models) * self.weight)
+
+    def _stripe_gains(self) -> np.ndarray:
+        """(E, nx) column gains of the fit's stripes (:func:`column_gains`)."""
+        weight = self.weight.reshape(self.fit.n_exposures, *self.image_shape)
+        return column_gains(weight, self.fit.stripe_sigma)
+
+    def _whiten_stripes(self, rows: np.ndarray) -> np.ndarray:
+        """(E, npix) whitened rows, one per exposure, whitened again for the exposure's
+        stripes, in place (:func:`decorrelate_rows`); returned for chaining."""
         for e in range(self.fit.n_exposures):
-            decorrelate_rows(r[e : e + 1], self.weight[e], self.stripe_gains[e])
-        return r
+            decorrelate_rows(rows[e : e + 1], self.weight[e], self.stripe_gains[e])
+        return rows
 
     def refresh(self, vector: np.ndarray) -> bool:
         """Measure the members' 1/f stripes at ``vector`` (:func:`stripe_sigma` on the
@@ -740,9 +747,7 @@ class _Problem:
                 self.fit.stripe_sigma[e] = tau
                 changed = True
         if changed:
-            self.stripe_gains = column_gains(
-                self.weight.reshape(self.fit.n_exposures, *self.image_shape), self.fit.stripe_sigma
-            )
+            self.stripe_gains = self._stripe_gains()
             self._last_residuals = None  # whitened for the old stripes
         return changed
 
@@ -779,10 +784,7 @@ class _Problem:
         of the current precision (module notes, "Precision")."""
         fit, lay = self.fit, self.layout
         # J^T C^-1 r: the (stripe-)whitened residuals whitened once more, then / sigma.
-        pull = self._residuals_at(vector).copy()
-        for e in range(fit.n_exposures):
-            decorrelate_rows(pull[e : e + 1], self.weight[e], self.stripe_gains[e])
-        pull *= self.weight
+        pull = self._whiten_stripes(self._residuals_at(vector).copy()) * self.weight
         instrument, setup, dtype, wavefront, thetas, anchor = self._inputs(vector, float64=False)
         g_thetas, g_wave = _gradient(
             thetas,
