@@ -96,6 +96,23 @@ def test_every_static_value_is_in_the_key(store):
     )
 
 
+def test_only_the_variables_a_trace_reads_are_in_the_key(store, monkeypatch):
+    from amigo.fitting.newton import JVP_BATCH_ENV
+
+    assert JVP_BATCH_ENV in programs.TRACED_VARIABLES
+    x = jnp.ones(3)
+    weighted(_weights(), x, 0.5)
+    monkeypatch.setenv("AMIGO_DEBUG", "1")  # a traceback asked for: the same programs
+    monkeypatch.setenv("AMIGO_SHARED", "/elsewhere")
+    TRACES.clear()
+    programs.release()
+    weighted(_weights(), x, 0.5)
+    assert TRACES == [] and len(list(store.glob("*.bin"))) == 1
+    monkeypatch.setenv(JVP_BATCH_ENV, "64")  # read while tracing: another program
+    weighted(_weights(), x, 0.5)
+    assert len(list(store.glob("*.bin"))) == 2
+
+
 def test_plain_containers_come_back_in_their_structure(store):
     out = with_dict(jnp.ones(2), {"factor": 3.0})
     assert set(out) == {"a", "b"}

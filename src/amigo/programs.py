@@ -269,6 +269,13 @@ def _versions() -> str:
     return ",".join(f"{name}={one(name)}" for name in TRACED_LIBRARIES)
 
 
+#: Environment variables that a traced program reads (the Jacobians' batch of columns,
+#: :func:`amigo.fitting.newton.jvp_batch`): part of every key. No other variable changes a
+#: program, and setting one (``AMIGO_DEBUG`` for a traceback, a test's ``AMIGO_SHARED``)
+#: must not trace and compile every program again (that once cost a warm GPU fit 14 s).
+TRACED_VARIABLES: tuple[str, ...] = ("AMIGO_JVP_BATCH",)
+
+
 def _environment() -> list[str]:
     """What besides the arguments decides the traced program."""
     return [
@@ -280,7 +287,7 @@ def _environment() -> list[str]:
         f"matmul:{_config('jax_default_matmul_precision')}",
         f"prng:{_config('jax_default_prng_impl')}",
         f"promotion:{_config('jax_numpy_dtype_promotion')}:{_config('jax_numpy_rank_promotion')}",
-        *sorted(f"{k}={v}" for k, v in os.environ.items() if k.startswith("AMIGO_")),
+        *(f"{name}={os.environ.get(name, '').strip()}" for name in TRACED_VARIABLES),
     ]
 
 

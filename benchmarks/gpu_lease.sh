@@ -1,0 +1,90 @@
+#!/usr/bin/env bash
+# One lease of a lent GPU machine, planned to end inside its 10-minute call: where a warm
+# `amigo fit` spends its time on a GPU, and how many Jacobian columns a step should push.
+#
+# Run from the repository root on the device machine (docs/performance.md, "On a GPU"):
+#   bash benchmarks/gpu_lease.sh DATA_DIR
+# DATA_DIR holds the real COM 1093 level-2 files of AB Dor (obs 12) and HD 37093 (obs 15);
+# the machine has no network, so amigo runs from ./src with the packages its image lacks
+# installed from wheels in ./.whl (astropy, pyerfa, astropy-iers-data, svo-filters, and
+# py-spy for the sampled profile). Everything it measures lands in $OUT:
+#   lease.log       every step's output, each stderr line stamped with seconds since start
+#   batch.txt       benchmarks/jacobian_batch.py's table (batches 8, 256, 64 in that order; F480M)
+#   fit_warm.spy    py-spy's samples (--idle: waiting counted) of a warm fit, fresh process
+#   detect_warm.spy the same for a warm `amigo detect` of that fit's products
+# Each step has its own time limit, so that a slow one leaves the next their share, and
+# none runs past $DEADLINE seconds (575: the call's limit is 600).
+set -u
+DATA=${1:?usage: gpu_lease.sh DATA_DIR}
+OUT=${OUT:-$(mktemp -d)}
+PY=${PY:-python3}
+LOG=$OUT/lease.log
+START=$(date +%s)
+DEADLINE=${DEADLINE:-575} # seconds after START by which every step has ended
+
+stamp() {
+    # Prefix each line with the seconds since the lease's script began.
+    while IFS= read -r line; do
+        printf '%6d %s\n' "$(($(date +%s) - START))" "$line"
+    done
+}
+
+step() {
+    # step LIMIT_S NAME COMMAND...: run it with a limit, stamped, into the log.
+    local limit=$1 name=$2
+    shift 2
+    # No step runs past the lease's deadline: a late one is cut, never the reply.
+    local left=$((DEADLINE - ($(date +%s) - START) - 15))
+    [ "$left" -lt "$limit" ] && limit=$left
+    if [ "$limit" -lt 10 ]; then
+        echo "=== $name: skipped, ${left} s left" | stamp | tee -a "$LOG"
+        return
+    fi
+    echo "=== $name (limit ${limit} s)" | stamp | tee -a "$LOG"
+    local t0=$SECONDS
+    # SIGINT first: py-spy writes its samples on it; anything left is killed 10 s later.
+    timeout -s INT -k 10 "$limit" "$@" 2>&1 | stamp >>"$LOG"
+    echo "=== $name: exit ${PIPESTATUS[0]} after $((SECONDS - t0)) s" | stamp | tee -a "$LOG"
+}
+
+if [ -d .whl ] && [ -z "${SKIP_INSTALL:-}" ]; then
+    $PY -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
+        --target /tmp/site .whl/*.whl || exit 1
+    export PYTHONPATH=$PWD/src:/tmp/site
+    SPY=/tmp/site/bin/py-spy
+else
+    SPY=${SPY:-py-spy}
+fi
+export PYTHONUNBUFFERED=1
+# GNU time's peak resident memory where the image has it; the plain command where not.
+TIMEV=()
+[ -x /usr/bin/time ] && TIMEV=(/usr/bin/time -v)
+nvidia-smi --query-gpu=name,memory.total,driver_version,clocks.sm,clocks.mem \
+    --format=csv >>"$LOG" 2>&1
+$PY -c "import jax; print('JAX', jax.__version__, jax.devices())" 2>&1 | stamp | tee -a "$LOG"
+
+SCI=$DATA/jw01093012001_03102_00001_nis_cal.fits
+CAL=$DATA/jw01093015001_03102_00001_nis_cal.fits
+WORK=$(mktemp -d)
+
+# 1. Batch sizes, each cold then warm in one process (the table the docs quote).
+step "${BATCH_LIMIT:-300}" "jacobian batches" $PY benchmarks/jacobian_batch.py --platform any \
+    --sci "$SCI" --cal "$CAL" --batches "${BATCHES:-8,256,64}" --out "$WORK/batches"
+grep -A8 '| batch |' "$LOG" | sed 's/^ *[0-9]* //' >"$OUT/batch.txt"
+
+# 2. A warm fit in a fresh process (what a user's next target costs), sampled by py-spy.
+step "${FIT_LIMIT:-80}" "warm fit, default batch, sampled" "$SPY" record --idle -r 50 -f raw \
+    -o "$OUT/fit_warm.spy" -- $PY -m amigo fit --sci "$SCI" --cal "$CAL" \
+    --out "$WORK/fit" --force
+
+# 3. The same at the largest batch, unsampled, with its peak memory.
+step "${BIG_LIMIT:-70}" "warm fit, batch ${BIG_BATCH:-256}" env AMIGO_JVP_BATCH="${BIG_BATCH:-256}" \
+    "${TIMEV[@]}" $PY -m amigo fit --sci "$SCI" --cal "$CAL" --out "$WORK/fit_big" --force
+
+# 4. Detection on the first fit's products: cold, then warm sampled by py-spy.
+step "${DETECT_LIMIT:-120}" "cold detect" "${TIMEV[@]}" $PY -m amigo detect \
+    "$WORK"/fit/*_calvis.fits --out "$WORK/detect_cold" --force
+step "${WARM_DETECT_LIMIT:-100}" "warm detect, sampled" "$SPY" record --idle -r 50 -f raw \
+    -o "$OUT/detect_warm.spy" -- $PY -m amigo detect "$WORK"/fit/*_calvis.fits \
+    --out "$WORK/detect_warm" --force
+echo "lease script done after $(($(date +%s) - START)) s" | tee -a "$LOG"
