@@ -79,7 +79,7 @@ from amigo.fitting.newton import (
 )
 from amigo.fitting.params import FitParams
 from amigo.likelihood.pixels import ImageData, PixelData
-from amigo.likelihood.stripes import column_gains, decorrelate
+from amigo.likelihood.stripes import column_whiteners, decorrelate
 from amigo.model.image import (
     ExposureParams,
     FilterSetup,
@@ -246,10 +246,12 @@ class FilterFit:
         # Offset (x, y, arcsec) at which every exposure's PSFs are computed before the
         # exposure's own offset from it is applied; set by :meth:`initial_params`.
         self.anchor = jnp.zeros(2, jnp.float32)
-        # (E,) the 1/f column stripes' standard deviation (DN/s) marginalised in each
-        # exposure's likelihood (amigo.likelihood.stripes): measured by the Newton
-        # finish wherever it takes new Jacobians (amigo.fitting.newton), 0 until then.
+        # (E,) the 1/f column stripes' standard deviation (DN/s) and correlation length
+        # along a column (rows) marginalised in each exposure's likelihood
+        # (amigo.likelihood.stripes): measured by the Newton finish wherever it takes new
+        # Jacobians (amigo.fitting.newton); none until then.
         self.stripe_sigma = np.zeros(len(self.exposures))
+        self.stripe_length = np.full(len(self.exposures), np.inf)
 
     def with_exposures(self, exposures: list[FitExposure]) -> FilterFit:
         """The same fit on other data of the same exposures (e.g. slopes corrected by the
@@ -261,13 +263,22 @@ class FilterFit:
         other = FilterFit(self.instrument, self.setup, exposures)
         other.anchor = self.anchor
         other.stripe_sigma = self.stripe_sigma.copy()
+        other.stripe_length = self.stripe_length.copy()
         return other
 
     @property
-    def stripe_gains(self) -> np.ndarray:
-        """(E, 80) float64 column gains of the stripes' whitening
-        (:func:`amigo.likelihood.stripes.column_gains`; 0: no stripes)."""
-        return column_gains(np.asarray(self.pixels.inverse_sigma), self.stripe_sigma)
+    def stripe_whiteners(self) -> np.ndarray:
+        """(E, 80, 80, 80) float64 whiteners of every exposure's columns for its stripes
+        (:func:`amigo.likelihood.stripes.column_whiteners`; the identity: no stripes)."""
+        return column_whiteners(
+            np.asarray(self.pixels.inverse_sigma), self.stripe_sigma, self.stripe_length
+        )
+
+    def exposure_whiteners(self) -> list[np.ndarray | None]:
+        """Each exposure's (80, 80, 80) stripe whitener (:attr:`stripe_whiteners`),
+        ``None`` where no stripes were measured (nothing to apply)."""
+        stack = self.stripe_whiteners
+        return [w if tau > 0 else None for w, tau in zip(stack, self.stripe_sigma, strict=True)]
 
     # ------------------------------------------------------------------ model
     @property
@@ -357,8 +368,8 @@ class FilterFit:
         pixels = self.pixels if pixels is None else pixels
         r = (pixels.data - self.models(params, instrument, setup)) * pixels.inverse_sigma
         if np.any(self.stripe_sigma > 0):  # the stripes' covariance (likelihood.stripes)
-            # The fit's own gains (NumPy, from its pixels): ``pixels`` may be traced.
-            r = decorrelate(r, pixels.inverse_sigma, jnp.asarray(self.stripe_gains, r.dtype))
+            # The fit's own whiteners (NumPy, from its pixels): ``pixels`` may be traced.
+            r = decorrelate(r, jnp.asarray(self.stripe_whiteners, r.dtype))
         return jnp.sum(r * r, axis=(-2, -1))
 
     def loss(
@@ -484,10 +495,10 @@ class FilterFit:
         n = params.sources.amp.shape[1] + params.sources.phase.shape[1]
         fisher = np.zeros((len(self.targets), n, n))
         root_w = np.asarray(self.pixels.inverse_sigma, dtype=np.float64)
-        gains = self.stripe_gains
+        whiteners = self.exposure_whiteners()
         for e in range(self.n_exposures):
             jac = np.asarray(self.latent_jacobian(params, e)).reshape(n, -1)
-            wj = whitened([jac], root_w[e].ravel(), gains[e])
+            wj = whitened([jac], root_w[e].ravel(), whiteners[e])
             fisher[self.source_index[e]] += wj @ wj.T
         return fisher
 
@@ -874,7 +885,7 @@ def latent_information(
     # (one float64 copy per Jacobian, ~60 MB for a real exposure, instead of a copy and
     # a weighted product of it): J^T W J = (J / sigma)^T (J / sigma).
     root_w = np.asarray(fit.pixels.inverse_sigma, dtype=np.float64).reshape(fit.n_exposures, -1)
-    gains = fit.stripe_gains  # and whitened again for the 1/f stripes (likelihood.stripes)
+    whiteners = fit.exposure_whiteners()  # and again for the 1/f stripes (likelihood.stripes)
     # The fit's own float32 instrument and setup: the programs the solver compiled.
     instrument, setup, params32 = fit.instrument, fit.setup, cast_floats(params, jnp.float32)
     point = eqx.tree_at(
@@ -897,7 +908,7 @@ def latent_information(
             step(f"{label}: Hessian of {fit.exposures[e].name} ({n} latent visibilities)")
             heap.release()
             jac = np.asarray(fit.latent_jacobian(params32, e, instrument, setup))
-            wj = whitened([jac.reshape(n, -1)], root_w[e], gains[e])
+            wj = whitened([jac.reshape(n, -1)], root_w[e], whiteners[e])
             del jac
             hessian[fit.source_index[e]] += wj @ wj.T
             del wj
@@ -912,9 +923,9 @@ def latent_information(
             zernikes, defocus = wave[:n_zernike], wave[n_zernike : n_zernike + 1]
             jitter = local[JITTER_INDEX : JITTER_INDEX + 1]
             nuis = np.concatenate([zernikes, local[2:4], defocus, jitter])
-            nuis = whitened([np.asarray(nuis).reshape(len(names), -1)], root_w[e], gains[e])
+            nuis = whitened([np.asarray(nuis).reshape(len(names), -1)], root_w[e], whiteners[e])
             wj0 = whitened(
-                [np.asarray(local[N_LOCAL_SCALARS:]).reshape(n, -1)], root_w[e], gains[e]
+                [np.asarray(local[N_LOCAL_SCALARS:]).reshape(n, -1)], root_w[e], whiteners[e]
             )
             del local, wave
             cross += wj0 @ nuis.T

@@ -76,7 +76,7 @@ from jaxtyping import Array, Float
 from amigo import heap, programs
 from amigo.fitting.params import FitParams
 from amigo.likelihood.pixels import PixelData
-from amigo.likelihood.stripes import column_gains, decorrelate_rows, stripe_sigma
+from amigo.likelihood.stripes import decorrelate_rows, stripe_covariance
 from amigo.model.image import (
     FilterSetup,
     Instrument,
@@ -660,7 +660,7 @@ class _Problem:
         # The 1/f stripes' whitening (amigo.likelihood.stripes): residuals and Jacobian
         # rows alike, so that every sum below is the stripes' marginal likelihood's.
         self.image_shape = tuple(np.shape(fit.pixels.inverse_sigma)[1:])
-        self.stripe_gains = self._stripe_gains()
+        self.stripe_whiteners = fit.exposure_whiteners()
         self.locals = [
             self.layout.local(e, int(fit.source_index[e])) for e in range(fit.n_exposures)
         ]
@@ -712,16 +712,12 @@ class _Problem:
         where masked), whitened again for the exposure's 1/f stripes."""
         return self._whiten_stripes((self.data - models) * self.weight)
 
-    def _stripe_gains(self) -> np.ndarray:
-        """(E, nx) column gains of the fit's stripes (:func:`column_gains`)."""
-        weight = self.weight.reshape(self.fit.n_exposures, *self.image_shape)
-        return column_gains(weight, self.fit.stripe_sigma)
-
     def _whiten_stripes(self, rows: np.ndarray) -> np.ndarray:
         """(E, npix) whitened rows, one per exposure, whitened again for the exposure's
         stripes, in place (:func:`decorrelate_rows`); returned for chaining."""
-        for e in range(self.fit.n_exposures):
-            decorrelate_rows(rows[e : e + 1], self.weight[e], self.stripe_gains[e])
+        for e, whitener in enumerate(self.stripe_whiteners):
+            if whitener is not None:
+                decorrelate_rows(rows[e : e + 1], whitener)
         return rows
 
     def refresh(self, vector: np.ndarray) -> bool:
@@ -743,12 +739,13 @@ class _Problem:
                 np.argmax(np.where(inverse_sigma > 0, model, -np.inf)), model.shape
             )
             star = (float(peak[0]), float(peak[1]))  # (y, x) pixels
-            tau = stripe_sigma(self.data[e].reshape(self.image_shape) - model, inverse_sigma, star)
-            if tau != self.fit.stripe_sigma[e]:
-                self.fit.stripe_sigma[e] = tau
+            residual = self.data[e].reshape(self.image_shape) - model
+            tau, length = stripe_covariance(residual, inverse_sigma, star)
+            if (tau, length) != (self.fit.stripe_sigma[e], self.fit.stripe_length[e]):
+                self.fit.stripe_sigma[e], self.fit.stripe_length[e] = tau, length
                 changed = True
         if changed:
-            self.stripe_gains = self._stripe_gains()
+            self.stripe_whiteners = self.fit.exposure_whiteners()
             self._last_residuals = None  # whitened for the old stripes
         return changed
 
@@ -830,7 +827,7 @@ class _Problem:
                 jo = optics_jacobian(wavefront, thetas[e], instrument, setup, anchor)
                 parts.append(np.asarray(jo).reshape(len(lay.optics), -1))
                 index = np.concatenate([index, lay.optics])
-            wj = whitened(parts, self.weight[e], self.stripe_gains[e])
+            wj = whitened(parts, self.weight[e], self.stripe_whiteners[e])
             del parts
             fisher[np.ix_(index, index)] += wj @ wj.T
             grad[index] += wj @ r[e]
@@ -843,11 +840,11 @@ class _Problem:
 
 
 def whitened(
-    blocks: list[np.ndarray], inverse_sigma: np.ndarray, stripe_gains: np.ndarray | None = None
+    blocks: list[np.ndarray], inverse_sigma: np.ndarray, stripe_whitener: np.ndarray | None = None
 ) -> np.ndarray:
     """(rows, pixels) float64 ``J / sigma`` of a Jacobian given as row blocks, each
-    (n_i, pixels) of any float type, stacked in order; with ``stripe_gains`` (nx,) of
-    the image, whitened again for its 1/f column stripes
+    (n_i, pixels) of any float type, stacked in order; with ``stripe_whitener`` (nx, ny,
+    ny) of the image, whitened again for its 1/f column stripes
     (:func:`amigo.likelihood.stripes.decorrelate_rows`).
 
     Written straight into one new array: the same numbers as converting to float64,
@@ -859,8 +856,8 @@ def whitened(
     for block in blocks:
         np.multiply(block, inverse_sigma, out=out[row : row + len(block)])
         row += len(block)
-    if stripe_gains is not None:
-        decorrelate_rows(out, inverse_sigma, stripe_gains)
+    if stripe_whitener is not None:
+        decorrelate_rows(out, stripe_whitener)
     return out
 
 

@@ -7,38 +7,43 @@ level-2 image keeps them (``amigo process`` removes them from raw ramps, docs/pr
 on the real COM 1093 files the halo's column sums scatter 2.2-4.1 times as much as
 independent errors allow, the rows' as they should (docs/fidelity.md, "1/f stripes").
 
-**Model.** Each column ``c`` of an exposure has an offset ``b_c ~ N(0, tau^2)`` (DN/s),
-independent between columns and exposures, added to every pixel of the column. The
-pixels' covariance is then, column by column, ``C = D + tau^2 1 1^T`` with ``D =
+**Model.** Each column ``c`` of an exposure carries a stripe ``b_c(y)`` (DN/s) added to
+its pixels, independent between columns and exposures, and correlated along the column
+by an exponential kernel: ``cov(b_c(y), b_c(y')) = tau^2 exp(-|y - y'| / ell)``. The
+stripes are not one offset per whole column: in the halo residuals of real fits the
+upper and lower halves of a column correlate weakly, and the correlation of two rows
+falls over ~10-70 rows (docs/fidelity.md). ``ell -> inf`` is one offset per column. The
+pixels' covariance is then, column by column, ``C = D + tau^2 K`` with ``D =
 diag(err^2)``: marginalised exactly, with no parameter to fit.
 
 **Whitening.** The likelihood works with whitened vectors (``v = (data - model) / err``
-and the Jacobian's columns divided by ``err``). With ``a = 1 / err`` over the column's
-used pixels (0 where masked) and ``s = a^T a``, the symmetric square root of ``D^(1/2)
-C^-1 D^(1/2)`` is ``I - gamma a a^T / s`` with ``gamma = 1 - 1 / sqrt(1 + tau^2 s)``
-(Sherman-Morrison). :func:`decorrelate` applies it: ``v - a (k a^T v)``, ``k = gamma /
-s`` per column. Applied alike to residuals and Jacobians it gives ``|r'|^2 = r^T C^-1 r``,
-``J'^T J' = J^T C^-1 J`` and ``J'^T r' = J^T C^-1 r``: the fit's Gauss-Newton algebra is
-unchanged, and the latent Hessians (the DISCOs' covariances) count what the stripes
-share along a column. ``tau = 0`` leaves every vector as it is; ``tau -> inf`` removes
-each column's weighted mean (free offsets).
+and the Jacobian's columns divided by ``err``). With ``A = diag(1 / err)`` over the
+column's pixels (0 where masked) and ``M = D^(-1/2) C D^(-1/2) = I + tau^2 A K A``, the
+column's whitener is the symmetric ``W = M^(-1/2)`` (:func:`column_whiteners`; a masked
+pixel's row and column of ``M`` are the identity's, so it stays 0 and touches nothing).
+Symmetric, so that applied twice it is ``M^-1``: the fit's gradient ``J^T C^-1 r``
+whitens the whitened residuals once more (:meth:`amigo.fitting.newton._Problem.gradient`);
+a Cholesky factor's inverse would need its transpose there. :func:`decorrelate` applies ``W`` to every column of whitened images.
+Applied alike to residuals and Jacobians it gives ``|r'|^2 = r^T C^-1 r``, ``J'^T J' =
+J^T C^-1 J`` and ``J'^T r' = J^T C^-1 r``: the fit's Gauss-Newton algebra is unchanged,
+and the latent Hessians (the DISCOs' covariances) count what the stripes share along a
+column. ``tau = 0`` leaves every vector as it is.
 
-**How wide.** ``tau`` is measured per exposure from a model's residuals in the halo (far
-from the star, where the model's own errors are smallest), wherever the fit's solver
-takes new Jacobians (:meth:`amigo.fitting.newton._Problem.refresh`; the first time at the
-start, the last near the optimum): each column's weighted mean residual ``m_c`` (error
-``e_c``), and the
-differences of neighbouring columns ``d_c = m_(c+1) - m_c``, which scatter by ``2 tau^2 +
-e_c^2 + e_(c+1)^2``: ``tau^2 = mean(d_c^2 - e_c^2 - e_(c+1)^2) / 2``
-(:func:`stripe_sigma`). The differences, not the means: the stripes are independent from
-column to column, a model's errors in the halo vary more smoothly across columns.
-Measured on the real COM 1093 files (three filters, AB Dor and HD 37093), against the
-column means at the fit's optimum: at the start the column means gave 1.4-2.4 times as
-much, the differences 0.8-1.5 times (docs/fidelity.md). Kept only when significant (3
-standard errors under pure noise); otherwise 0, as for images without stripes
-(simulations, ``amigo process``'s slopes). A model far from the data (a nominal
-instrument on real images) has misfit that varies across columns too, and part of it is
-taken for stripes (docs/fidelity.md).
+**How wide, how long.** ``tau`` and ``ell`` are measured per exposure from a model's
+residuals in the halo (far from the star, where the model's own errors are smallest),
+wherever the fit's solver takes new Jacobians (:meth:`amigo.fitting.newton._Problem.refresh`;
+the first time at the start, the last near the optimum): the differences of neighbouring
+columns ``d(y) = r_(c+1)(y) - r_c(y)`` remove what a model's errors share across
+columns (they vary smoothly there) and keep ``2 tau^2 exp(-lag / ell)`` as the
+covariance of ``d(y)`` and ``d(y + lag)``. Their mean products at lags 1 to
+:data:`MAX_LAG` rows, each with its standard error under pure noise, are fitted by
+weighted least squares over a grid of ``ell`` (``tau^2`` in closed form at each)
+(:func:`stripe_covariance`). Lag 0 is left out: it would need the pixels' variance, and
+the pipeline's ERR is not that to the percent (on HD 36805 it exceeds the scatter).
+The stripes are kept only when ``tau^2`` is significant (3 standard errors under pure
+noise); otherwise 0, as for images without stripes (simulations, ``amigo process``'s
+slopes). A model far from the data (a nominal instrument on real images) has misfit
+that varies across columns too, and part of it is taken for stripes (docs/fidelity.md).
 """
 
 from __future__ import annotations
@@ -50,76 +55,112 @@ import numpy.typing as npt
 
 #: Halo: pixels farther than this from the star (pixels) measure the stripes.
 HALO_RADIUS_PIX = 25.0
-#: Fewest halo pixels for a column to count in the estimate.
-MIN_HALO_PIXELS = 10
-#: Significance (standard errors of the estimate under pure noise) for stripes to be kept.
+#: Longest lag (rows) of the covariances that measure the stripes.
+MAX_LAG = 40
+#: Fewest pairs of halo differences for a lag to count.
+MIN_PAIRS = 50
+#: Correlation lengths (rows) tried; the last is one offset per column to 1e-3 over 80 rows.
+LENGTHS_PIX = np.geomspace(1.0, 1e5, 161)
+#: Significance (standard errors of ``tau^2`` under pure noise) for stripes to be kept.
 DETECTION_SIGMAS = 3.0
 
 
-def column_gains(inverse_sigma: npt.ArrayLike, tau_dn_s: npt.ArrayLike) -> np.ndarray:
-    """(..., nx) ``k = gamma / s`` of every column (module notes), float64.
+def stripe_kernel(rows: int, length_pix: float) -> np.ndarray:
+    """(rows, rows) ``exp(-|y - y'| / ell)``: the stripes' correlation along a column
+    (ones for ``ell = inf``: one offset per column)."""
+    lag = np.abs(np.subtract.outer(np.arange(rows), np.arange(rows))).astype(np.float64)
+    if not np.isfinite(length_pix):
+        return np.ones_like(lag)
+    return np.exp(-lag / float(length_pix))
 
-    ``inverse_sigma``: (..., ny, nx) ``mask / err`` (DN/s)^-1, 0 where masked;
-    ``tau_dn_s``: (...) the stripes' standard deviation (DN/s) of each image.
+
+def column_whiteners(
+    inverse_sigma: npt.ArrayLike, tau_dn_s: npt.ArrayLike, length_pix: npt.ArrayLike
+) -> np.ndarray:
+    """(E, nx, ny, ny) float64 symmetric whitener ``W = M^(-1/2)`` of every column of
+    every image (module notes); the identity where ``tau = 0``.
+
+    ``inverse_sigma``: (E, ny, nx) ``mask / err`` (DN/s)^-1, 0 where masked;
+    ``tau_dn_s``, ``length_pix``: (E,) the stripes' standard deviation (DN/s) and
+    correlation length (rows) of each image.
     """
     a = np.asarray(inverse_sigma, np.float64)
-    tau = np.asarray(tau_dn_s, np.float64)[..., None]
-    s = np.sum(a * a, axis=-2)
-    gamma = 1.0 - 1.0 / np.sqrt(1.0 + tau**2 * s)
-    return np.where(s > 0, gamma / np.where(s > 0, s, 1.0), 0.0)
+    n_images, ny, nx = a.shape
+    taus = np.broadcast_to(np.asarray(tau_dn_s, np.float64), (n_images,))
+    lengths = np.broadcast_to(np.asarray(length_pix, np.float64), (n_images,))
+    out = np.broadcast_to(np.eye(ny), (n_images, nx, ny, ny)).copy()
+    for e in range(n_images):
+        if taus[e] <= 0:
+            continue
+        columns = a[e].T  # (nx, ny)
+        m = taus[e] ** 2 * stripe_kernel(ny, lengths[e]) * columns[:, :, None] * columns[:, None, :]
+        m += np.eye(ny)
+        values, vectors = np.linalg.eigh(m)  # values >= 1: M is I plus a covariance
+        out[e] = (vectors / np.sqrt(values)[:, None, :]) @ np.swapaxes(vectors, -1, -2)
+    return out
 
 
-def decorrelate(whitened: Any, inverse_sigma: Any, gains: Any) -> Any:
-    """``v - a (k a^T v)`` column by column (module notes): whitened vectors (..., ny, nx)
-    whitened again for their images' stripes. NumPy or JAX arrays alike;
-    ``inverse_sigma`` (..., ny, nx) and ``gains`` (..., nx) (:func:`column_gains`) of the
-    images, broadcast against ``whitened`` (one image's for a stack of Jacobian columns)."""
-    shared = (inverse_sigma * whitened).sum(axis=-2, keepdims=True)
-    return whitened - inverse_sigma * (gains[..., None, :] * shared)
+def decorrelate(whitened: Any, whiteners: Any) -> Any:
+    """``W_c v_c`` for every column ``c`` (module notes): whitened vectors (..., ny, nx)
+    whitened again for their images' stripes, with ``whiteners`` (..., nx, ny, ny)
+    (:func:`column_whiteners`), broadcast against ``whitened`` (one image's for a stack
+    of Jacobian columns). NumPy in, NumPy out; JAX (traced or not) in, JAX out."""
+    if isinstance(whitened, np.ndarray) and isinstance(whiteners, np.ndarray):
+        return np.einsum("...cyz,...zc->...yc", whiteners, whitened)
+    import jax.numpy as jnp
+
+    return jnp.einsum("...cyz,...zc->...yc", whiteners, whitened)
 
 
-def stripe_sigma(
+def stripe_covariance(
     residual_dn_s: npt.ArrayLike, inverse_sigma: npt.ArrayLike, star_yx: tuple[float, float]
-) -> float:
-    """The stripes' standard deviation ``tau`` (DN/s) of one (ny, nx) image from its
-    residual ``data - model`` (DN/s) in the halo around ``star_yx`` (pixels, (y, x)); 0
-    when the columns scatter as their errors say (module notes)."""
+) -> tuple[float, float]:
+    """The stripes' standard deviation ``tau`` (DN/s) and correlation length ``ell``
+    (rows) of one (ny, nx) image from its residual ``data - model`` (DN/s) in the halo
+    around ``star_yx`` (pixels, (y, x)); ``(0, inf)`` when the columns scatter as their
+    errors say (module notes)."""
     r = np.asarray(residual_dn_s, np.float64)
     a = np.asarray(inverse_sigma, np.float64)
     y, x = np.indices(r.shape)
     halo = (a > 0) & (np.hypot(y - star_yx[0], x - star_yx[1]) > HALO_RADIUS_PIX)
-    w = np.where(halo, a * a, 0.0)
-    total = w.sum(axis=0)
-    keep = (halo.sum(axis=0) >= MIN_HALO_PIXELS) & (total > 0)
-    means = np.where(keep, (w * r).sum(axis=0) / np.where(keep, total, 1.0), np.nan)
-    variances = np.where(keep, 1.0 / np.where(keep, total, 1.0), np.nan)  # e_c^2
-    pairs = keep[1:] & keep[:-1]  # neighbouring columns that both count
-    if not pairs.any():
-        return 0.0
-    d = (means[1:] - means[:-1])[pairs]
-    noise = (variances[1:] + variances[:-1])[pairs]
-    excess = float(np.mean(d**2 - noise)) / 2.0
-    # Under pure noise each d_c^2 - noise_c has variance 2 noise_c^2, and neighbouring
-    # differences share a column (correlation 1/2 between them, 1/4 between squares):
-    # 1.5 times the variance of independent terms, to first order.
-    standard_error = float(np.sqrt(3.0 * np.sum(noise**2))) / int(pairs.sum()) / 2.0
-    if excess <= DETECTION_SIGMAS * standard_error:
-        return 0.0
-    return float(np.sqrt(excess))
+    variance = np.where(halo, 1.0 / np.where(halo, a, 1.0) ** 2, 0.0)
+    pair = halo[:, 1:] & halo[:, :-1]  # neighbouring columns that both count
+    d = np.where(pair, r[:, 1:] - r[:, :-1], 0.0)
+    v = np.where(pair, variance[:, 1:] + variance[:, :-1], 0.0)  # d's noise variance
+    lags, means, errors = [], [], []
+    for lag in range(1, min(MAX_LAG, r.shape[0] - 1) + 1):
+        both = pair[lag:] & pair[:-lag]
+        n = int(both.sum())
+        if n < MIN_PAIRS:
+            continue
+        lags.append(lag)
+        # Half the mean product of differences `lag` rows apart: tau^2 exp(-lag / ell).
+        means.append(float(np.sum(d[lag:] * d[:-lag])) / n / 2.0)
+        # Under pure noise the products are independent along a column; neighbouring
+        # column pairs share a column (products correlated by 1/4, as d's by -1/2):
+        # 1.5 times the variance of independent terms.
+        errors.append(float(np.sqrt(1.5 * np.sum(v[lag:] * v[:-lag]))) / n / 2.0)
+    if not lags:
+        return 0.0, np.inf
+    lag_array, c, w = np.array(lags, float), np.array(means), 1.0 / np.array(errors) ** 2
+    kernels = np.exp(-lag_array[None, :] / LENGTHS_PIX[:, None])  # (lengths, lags)
+    norms = kernels**2 @ w
+    tau2 = np.maximum((kernels * w) @ c / norms, 0.0)
+    misfit = ((c[None, :] - tau2[:, None] * kernels) ** 2) @ w
+    best = int(np.argmin(misfit))
+    if tau2[best] <= DETECTION_SIGMAS / np.sqrt(norms[best]):
+        return 0.0, np.inf
+    return float(np.sqrt(tau2[best])), float(LENGTHS_PIX[best])
 
 
-def decorrelate_rows(
-    rows: np.ndarray, inverse_sigma: np.ndarray, gains: np.ndarray, chunk: int = 64
-) -> None:
+def decorrelate_rows(rows: np.ndarray, whitener: np.ndarray, chunk: int = 64) -> None:
     """:func:`decorrelate` in place on (k, ny * nx) float64 rows of one image (whitened
     Jacobian columns), ``chunk`` rows at a time: a real fit's ~1000 rows of 6400 pixels
     are ~50 MB, and a temporary copy of all of them is what the fit's memory cannot
-    spare (docs/performance.md). ``inverse_sigma`` (ny * nx,) or (ny, nx), ``gains``
-    (nx,)."""
-    if not np.any(gains):
-        return
-    a = np.asarray(inverse_sigma, np.float64).reshape(-1, gains.size)
+    spare (docs/performance.md). ``whitener`` (nx, ny, ny) of the image
+    (:func:`column_whiteners`)."""
+    nx, ny, _ = whitener.shape
     for start in range(0, len(rows), chunk):
-        block = rows[start : start + chunk].reshape(-1, *a.shape)  # a view: rows are C-ordered
-        shared = np.einsum("kyx,yx->kx", block, a)
-        block -= a * (gains * shared)[:, None, :]
+        block = rows[start : start + chunk].reshape(-1, ny, nx)  # a view: rows are C-ordered
+        # (nx, ny, ny) @ (nx, ny, k): one small matrix product per column.
+        block[...] = np.matmul(whitener, block.transpose(2, 1, 0)).transpose(2, 1, 0)

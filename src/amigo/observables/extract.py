@@ -135,16 +135,16 @@ def exposure_stats(
     n_optics = p.optics.zernikes_nm.size + 1 + p.optics.geometry.size + 1
     per_target = np.bincount(fit.source_index, minlength=len(fit.targets))
     n_cal = max(int(fit.is_calibrator.sum()), 1)
-    gains = fit.stripe_gains
+    whiteners = fit.exposure_whiteners()
     inverse_sigma = np.asarray(fit.pixels.inverse_sigma, np.float64)
     stats = []
     for e, exposure in enumerate(fit.exposures):
         image = exposure.image
         z = image.zscores(models[e])  # pixels, or slopes for a calslope exposure
         z_whitened = z
-        if np.any(gains[e]) and image.whitened_slopes is None:  # a level-2 image's pixels
+        if whiteners[e] is not None and image.whitened_slopes is None:  # a level-2 image
             pixels = (np.asarray(fit.pixels.data[e], np.float64) - models[e]) * inverse_sigma[e]
-            z_whitened = decorrelate(pixels, inverse_sigma[e], gains[e])[inverse_sigma[e] > 0]
+            z_whitened = decorrelate(pixels, whiteners[e])[inverse_sigma[e] > 0]
         share = 4 + n_latent / per_target[fit.source_index[e]]
         if fit.is_calibrator[e]:
             share += n_optics / n_cal

@@ -864,6 +864,7 @@ def _run_filter(
                 **geometry["exposures"][e],
                 **_dark_residual_record(detector, s.name),
                 "column_stripes_dn_s": _json_number(float(product.fit.stripe_sigma[e]), 4),
+                "column_stripes_length_pix": _json_number(float(product.fit.stripe_length[e]), 1),
             }
             for e, s in enumerate(product.stats)
         ],
