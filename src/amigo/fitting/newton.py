@@ -146,13 +146,19 @@ class JointFit(Protocol):
     #: Offset (x, y, arcsec) at which the PSFs are computed.
     anchor: Any
 
-    #: (E,) the 1/f column stripes' standard deviation (DN/s) of each exposure
-    #: (:mod:`amigo.likelihood.stripes`): the solver measures it wherever it takes new
-    #: Jacobians and writes it here (:meth:`_Problem.refresh`).
+    #: (E,) the 1/f column stripes' standard deviation (DN/s) and correlation length
+    #: along a column (rows) of each exposure (:mod:`amigo.likelihood.stripes`): the
+    #: solver measures them wherever it takes new Jacobians and writes them here
+    #: (:meth:`_Problem.refresh`).
     stripe_sigma: np.ndarray
+    stripe_length: np.ndarray
 
     @property
     def n_exposures(self) -> int: ...
+
+    def exposure_whiteners(self) -> list[np.ndarray | None]:
+        """Each exposure's (nx, ny, ny) stripe whitener, ``None`` without stripes."""
+        ...
 
 
 @dataclass(frozen=True)
@@ -721,7 +727,7 @@ class _Problem:
         return rows
 
     def refresh(self, vector: np.ndarray) -> bool:
-        """Measure the members' 1/f stripes at ``vector`` (:func:`stripe_sigma` on the
+        """Measure the members' 1/f stripes at ``vector`` (:func:`stripe_covariance` on the
         plain residuals) and whiten for them from here on; ``True`` when the loss changed.
 
         The solver calls this where it takes new Jacobians, so each Fisher matrix is the
