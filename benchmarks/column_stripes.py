@@ -18,11 +18,20 @@ per exposure, on the whitened residuals ``z = (data - model) / ERR``:
   residual taken off, ``sum(z^2) / (n - 80)``: what free per-column offsets would leave,
   an upper bound on what a stripe model can gain at this fit (no refit);
 * ``stripes``: the rms of those column offsets beyond what the noise alone would give
-  (DN/s).
+  (DN/s);
+* ``k=16`` / ``k=40``: along a column, the mean product of neighbouring columns' halo
+  differences ``d(y) = r_(c+1)(y) - r_c(y)`` at a lag of 16 (40) rows over its value at
+  1 row: how fast the stripes decorrelate (1: one offset per column);
+* ``tau`` / ``ell``: the stripes' width (DN/s) and correlation length (rows) as the fit
+  measures them (:func:`amigo.likelihood.stripes.stripe_covariance`);
+* ``dlogL``: the residuals' marginal log-likelihood under that Gaussian process minus
+  its largest under one offset per column (widths 0.1-3 times ``tau``; positive: the
+  process describes the residuals better, though its own two numbers are measured,
+  not fitted for the likelihood).
 
 The default files: AB Dor (COM 1093 obs 12, F480M at 5 and 13 groups) against the five
 dithers of HD 37093 obs 17, a dithered-calibrator pair (AB Dor is in no training set;
-obs 17 is). Not a test: nothing is asserted. About a minute and a half on a 2-core CPU.
+obs 17 is). Not a test: nothing is asserted. About two minutes on a 2-core CPU.
 """
 
 from __future__ import annotations
@@ -70,6 +79,43 @@ def without_lines(
     return float(np.sqrt(np.sum(z[used] ** 2) / dof)), offsets[has], errors[has]
 
 
+def lag_products(
+    residual: np.ndarray, inverse_sigma: np.ndarray, star: tuple[int, int], lags: list[int]
+) -> list[float]:
+    """Half the mean product of neighbouring columns' halo differences ``lag`` rows apart,
+    for each lag (DN/s)^2: ``tau^2 exp(-lag / ell)`` for the stripes' process."""
+    y, x = np.indices(residual.shape)
+    halo = (inverse_sigma > 0) & (np.hypot(y - star[0], x - star[1]) > HALO_PIX)
+    pair = halo[:, 1:] & halo[:, :-1]
+    d = np.where(pair, residual[:, 1:] - residual[:, :-1], 0.0)
+    out = []
+    for lag in lags:
+        both = pair[lag:] & pair[:-lag]
+        out.append(float(np.sum(d[lag:] * d[:-lag])) / max(int(both.sum()), 1) / 2.0)
+    return out
+
+
+def log_likelihood(
+    residual: np.ndarray, inverse_sigma: np.ndarray, tau: float, length: float
+) -> float:
+    """Marginal log-likelihood (up to a constant) of ``residual`` (ny, nx) with each
+    column's covariance ``diag(err^2) + tau^2 exp(-|y - y'| / length)`` over its used
+    pixels (dense, column by column)."""
+    from amigo.likelihood.stripes import stripe_kernel
+
+    kernel = stripe_kernel(residual.shape[0], length)
+    total = 0.0
+    for c in range(residual.shape[1]):
+        used = inverse_sigma[:, c] > 0
+        if not used.any():
+            continue
+        cov = np.diag(1.0 / inverse_sigma[used, c] ** 2) + tau**2 * kernel[np.ix_(used, used)]
+        factor = np.linalg.cholesky(cov)
+        w = np.linalg.solve(factor, residual[used, c])
+        total += -0.5 * float(w @ w) - float(np.sum(np.log(np.diag(factor))))
+    return total
+
+
 def main() -> None:
     import amigo
 
@@ -83,8 +129,11 @@ def main() -> None:
         raise SystemExit(f"not found: {missing[0]} (set AMIGO_SHARED or give --sci/--cal)")
     out = args.out or Path(tempfile.mkdtemp(prefix="column_stripes_"))
     fitted = amigo.fit(sci=args.sci, cal=args.cal, out=out, force=True)
+    from amigo.likelihood.stripes import stripe_covariance
+
     print(f"\n{'exposure':<40} {'role':<10} {'z std':>6} {'col':>5} {'row':>5} "
-          f"{'- cols':>6} {'- rows':>6} {'stripes':>8}")  # fmt: skip
+          f"{'- cols':>6} {'- rows':>6} {'stripes':>8} {'k=16':>5} {'k=40':>5} "
+          f"{'tau':>6} {'ell':>6} {'dlogL':>7}")  # fmt: skip
     for name, product in fitted.products.items():
         fit = product.fit
         data = np.asarray(fit.pixels.data, np.float64)
@@ -101,8 +150,19 @@ def main() -> None:
             no_cols, offsets, errors = without_lines(residual, inverse_sigma[e], axis=0)
             no_rows, _, _ = without_lines(residual, inverse_sigma[e], axis=1)
             stripes = np.sqrt(max(np.mean(offsets**2 - errors**2), 0.0))
+            star = (int(peak[0]), int(peak[1]))
+            one, at16, at40 = lag_products(residual, inverse_sigma[e], star, [1, 16, 40])
+            tau, ell = stripe_covariance(residual, inverse_sigma[e], star)
+            gain = np.nan
+            if tau > 0:  # against the likeliest width of one offset per column
+                flat = max(
+                    log_likelihood(residual, inverse_sigma[e], width, np.inf)
+                    for width in tau * np.geomspace(0.1, 3.0, 13)
+                )
+                gain = log_likelihood(residual, inverse_sigma[e], tau, ell) - flat
             print(f"{exposure.name[:40]:<40} {exposure.role:<10} {np.std(z[used]):6.3f} "
-                  f"{col:5.2f} {row:5.2f} {no_cols:6.3f} {no_rows:6.3f} {stripes:8.3f}"
+                  f"{col:5.2f} {row:5.2f} {no_cols:6.3f} {no_rows:6.3f} {stripes:8.3f} "
+                  f"{at16 / one:5.2f} {at40 / one:5.2f} {tau:6.3f} {ell:6.1f} {gain:7.1f}"
                   f"  ({name})")  # fmt: skip
 
 
