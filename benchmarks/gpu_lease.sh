@@ -79,10 +79,10 @@ step "${FIT_LIMIT:-80}" "warm fit, default batch, sampled" "$SPY" record --idle 
 
 # 3. The same at the largest batch, unsampled, with its peak memory.
 step "${BIG_LIMIT:-70}" "warm fit, batch ${BIG_BATCH:-256}" env AMIGO_JVP_BATCH="${BIG_BATCH:-256}" \
-    "${TIMEV[@]}" $PY -m amigo fit --sci "$SCI" --cal "$CAL" --out "$WORK/fit_big" --force
+    ${TIMEV[@]+"${TIMEV[@]}"} $PY -m amigo fit --sci "$SCI" --cal "$CAL" --out "$WORK/fit_big" --force
 
 # 4. Detection on the first fit's products: cold, then warm sampled by py-spy.
-step "${DETECT_LIMIT:-120}" "cold detect" "${TIMEV[@]}" $PY -m amigo detect \
+step "${DETECT_LIMIT:-120}" "cold detect" ${TIMEV[@]+"${TIMEV[@]}"} $PY -m amigo detect \
     "$WORK"/fit/*_calvis.fits --out "$WORK/detect_cold" --force
 step "${WARM_DETECT_LIMIT:-100}" "warm detect, sampled" "$SPY" record --idle -r 50 -f raw \
     -o "$OUT/detect_warm.spy" -- $PY -m amigo detect "$WORK"/fit/*_calvis.fits \

@@ -108,26 +108,19 @@ def test_marginal_errors_of_blocks_are_those_of_the_whole_matrix():
     assert np.isnan(marginal_errors(None, np.arange(3))).all()
 
 
-@pytest.mark.slow
-def test_wavefront_prior_adds_exactly_its_gaussian_term():
-    """The prior of ``NewtonConfig.wavefront_prior_nm`` adds ``|w - w0|^2 / (2 s^2)`` to
-    the calibrators' loss (``w0``: the instrument's own wavefront), ``-(w - w0) / s^2`` to
-    their gradient (checked against a finite difference of the loss) and ``1 / s^2`` to
-    the diagonal of the wavefront's Fisher block, and nothing to a science-only stage."""
+def _small_fit(rng: np.random.Generator, w0: np.ndarray):
+    """A FilterFit of one noisy nominal image as a calibrator and a science exposure,
+    with wavefront ``w0`` (7, 10) nm. The small configuration the fitting tests share (3
+    wavelengths, 27 x 27 knots at 0.5 m, F480M): the same compiled programs, which the
+    suite's persistent compilation cache then serves to whichever test runs later."""
     import equinox as eqx
 
     from amigo.fitting.filter_fit import FilterFit, FitExposure
-    from amigo.fitting.newton import _Problem
     from amigo.likelihood.pixels import ImageData
     from amigo.model.basis import load_basis
     from amigo.model.image import FilterSetup, Instrument
     from amigo.model.visibility import UVGrid
 
-    rng = np.random.default_rng(3)
-    w0 = rng.normal(0, 10.0, (7, 10))
-    # The small configuration the fitting tests share (3 wavelengths, 27 x 27 knots at
-    # 0.5 m, F480M, two exposures): the same compiled programs, which the suite's
-    # persistent compilation cache then serves to whichever test runs later.
     instrument = Instrument.nominal(n_wavelengths=3)
     instrument = eqx.tree_at(
         lambda i: i.optics.zernikes_nm, instrument, jnp.asarray(w0, jnp.float32)
@@ -140,8 +133,60 @@ def test_wavefront_prior_adds_exactly_its_gaussian_term():
     data = ImageData(
         image + sigma * rng.normal(size=image.shape), sigma, np.ones(image.shape, bool)
     )
-    fit = FilterFit(instrument, setup, [FitExposure("c", "calibrator", "C", data),
-                                        FitExposure("s", "science", "S", data)])  # fmt: skip
+    return FilterFit(instrument, setup, [FitExposure("c", "calibrator", "C", data),
+                                         FitExposure("s", "science", "S", data)])  # fmt: skip
+
+
+@pytest.mark.slow
+def test_the_solver_sees_the_stripes_covariance():
+    """With 1/f stripes set (a Gaussian process along each column, amigo.likelihood.stripes),
+    the solver's loss is the fit's chi2 with them (not without), its gradient is minus a
+    central difference of that loss, and the normal equations' gradient is the same: the
+    whitened residuals whitened once more are C^-1 r only for a symmetric whitener."""
+    from amigo.fitting.newton import N_LOCAL_SCALARS, _Problem
+
+    rng = np.random.default_rng(5)
+    fit = _small_fit(rng, rng.normal(0, 10.0, (7, 10)))
+    params = fit.initial_params()
+    layout = Layout.of(params)
+    vector = layout.pack(params)
+    plain = np.asarray(fit.chi2(params), float)
+    fit.stripe_sigma[:] = [3.0, 5.0]  # DN/s, over pixel errors of 10-1000 DN/s
+    fit.stripe_length[:] = [10.0, np.inf]  # the process; one offset per column
+    chi2 = np.asarray(fit.chi2(params), float)
+    assert np.all(np.abs(chi2 - plain) > 1e-3 * plain)  # the stripes enter
+    vector[layout.wavefront] += rng.normal(0, 3.0, layout.wavefront.size)
+    for e in (0, 1):
+        problem = _Problem(fit, params, np.array([e]))
+        problem.float64 = True
+        assert problem.loss(layout.pack(params)) == pytest.approx(0.5 * chi2[e], rel=1e-4)
+        gradient = problem.gradient(vector)
+        # The calibrator along the wavefront, the science exposure along its latent
+        # visibilities (a science stage does not move the instrument).
+        direction = np.zeros(layout.size)
+        along = layout.wavefront if e == 0 else problem.locals[e][N_LOCAL_SCALARS:]
+        direction[along] = rng.normal(size=np.size(along))
+        h = 1e-3  # the latents' third derivatives show at 1e-2 (0.7 % of a larger slope)
+        slope = (problem.loss(vector + h * direction) - problem.loss(vector - h * direction)) / (
+            2 * h
+        )
+        assert -slope == pytest.approx(float(gradient @ direction), rel=2e-2)
+        _, normal = problem.normal_equations(vector, "test")
+        scale = np.abs(gradient).max()
+        np.testing.assert_allclose(normal, gradient, rtol=1e-4, atol=1e-6 * scale)
+
+
+@pytest.mark.slow
+def test_wavefront_prior_adds_exactly_its_gaussian_term():
+    """The prior of ``NewtonConfig.wavefront_prior_nm`` adds ``|w - w0|^2 / (2 s^2)`` to
+    the calibrators' loss (``w0``: the instrument's own wavefront), ``-(w - w0) / s^2`` to
+    their gradient (checked against a finite difference of the loss) and ``1 / s^2`` to
+    the diagonal of the wavefront's Fisher block, and nothing to a science-only stage."""
+    from amigo.fitting.newton import _Problem
+
+    rng = np.random.default_rng(3)
+    w0 = rng.normal(0, 10.0, (7, 10))
+    fit = _small_fit(rng, w0)
     params = fit.initial_params()
     layout = Layout.of(params)
     vector = layout.pack(params)

@@ -97,13 +97,14 @@ def test_every_static_value_is_in_the_key(store):
 
 
 def test_only_the_variables_a_trace_reads_are_in_the_key(store, monkeypatch):
-    from amigo.fitting.newton import JVP_BATCH_ENV
+    from amigo.fitting.newton import JVP_BATCH, JVP_BATCH_ENV
 
-    assert JVP_BATCH_ENV in programs.TRACED_VARIABLES
+    assert programs.TRACED_VARIABLES[JVP_BATCH_ENV] == str(JVP_BATCH)  # the default
     x = jnp.ones(3)
     weighted(_weights(), x, 0.5)
     monkeypatch.setenv("AMIGO_DEBUG", "1")  # a traceback asked for: the same programs
     monkeypatch.setenv("AMIGO_SHARED", "/elsewhere")
+    monkeypatch.setenv(JVP_BATCH_ENV, str(JVP_BATCH))  # the default, set: the same
     TRACES.clear()
     programs.release()
     weighted(_weights(), x, 0.5)

@@ -66,24 +66,27 @@ def test_decorrelate_whitens_the_columns_covariance_exactly(length):
 
 
 def test_stripe_covariance_finds_stripes_and_no_false_ones():
-    """White noise: no stripes in 40 of 40 images, also with ERR 10 % too large (the
+    """White noise: stripes found in at most 4 of 180 images (about 1 %: the largest of
+    the length grid's significances), whether ERR is right or 10 % off either way (the
     estimate needs no pixel variance); stripes of 0.5 sigma: their width within 15 % and
     their length within a factor 1.5 (10 rows) or long (one offset per column); a smooth
-    offset across the columns (a starting model's error) is not taken for stripes."""
+    offset across the columns (a starting model's error) is taken for stripes at under a
+    tenth of its amplitude."""
     rng = np.random.default_rng(1)
     error, mask = _image_noise(rng)
     inverse_sigma = np.where(mask, 1.0 / error, 0.0)
     star = (40.0, 42.0)
     found = [
         stripe_covariance(rng.standard_normal((80, 80)) * error * scale, inverse_sigma, star)
-        for scale in (1.0, 0.9)
-        for _ in range(20)
+        for scale in (0.9, 1.0, 1.1)
+        for _ in range(60)
     ]
-    assert found == [(0.0, np.inf)] * 40
+    false = [f for f in found if f != (0.0, np.inf)]
+    assert len(false) <= 4
     x = np.arange(80)
-    smooth = 0.8 * np.cos(2 * np.pi * x / 40.0)[None, :]  # 0.8 DN/s, 40-pixel period
+    smooth = 4.0 * np.cos(2 * np.pi * x / 40.0)[None, :]  # 4 DN/s, 40-pixel period
     tau, _ = stripe_covariance(rng.standard_normal((80, 80)) * error + smooth, inverse_sigma, star)
-    assert tau < 0.2
+    assert tau < 0.4
     for length, lengths in ((10.0, (10 / 1.5, 10 * 1.5)), (np.inf, (200.0, np.inf))):
         estimates = [
             stripe_covariance(

@@ -15,8 +15,8 @@ give the same program. It holds
 * the package's source (a hash of every ``.py`` file of amigo: an edit is a new program),
   the versions of the libraries traced into the programs (JAX, jaxlib, NumPy, equinox,
   numpyro, optax, optimistix), the backend, the precision and promotion options, and
-  every ``AMIGO_*`` variable of the environment (some are read while tracing, e.g.
-  ``AMIGO_JVP_BATCH``);
+  the environment variables read while tracing (:data:`TRACED_VARIABLES`:
+  ``AMIGO_JVP_BATCH``) at the value in effect;
 * the function's module, qualified name and file (a function outside amigo is keyed on
   its own source);
 * the arguments' structure, with every static value in full (the fields of a module marked
@@ -269,11 +269,14 @@ def _versions() -> str:
     return ",".join(f"{name}={one(name)}" for name in TRACED_LIBRARIES)
 
 
-#: Environment variables that a traced program reads (the Jacobians' batch of columns,
-#: :func:`amigo.fitting.newton.jvp_batch`): part of every key. No other variable changes a
-#: program, and setting one (``AMIGO_DEBUG`` for a traceback, a test's ``AMIGO_SHARED``)
-#: must not trace and compile every program again (that once cost a warm GPU fit 14 s).
-TRACED_VARIABLES: tuple[str, ...] = ("AMIGO_JVP_BATCH",)
+#: Environment variables that a traced program reads, each with the value a trace takes
+#: where it is unset (the Jacobians' batch of columns, :func:`amigo.fitting.newton.jvp_batch`,
+#: default :data:`~amigo.fitting.newton.JVP_BATCH`; tests/test_programs.py checks that they
+#: agree): part of every key as the value in effect, so that unset and set to the
+#: default are one program. No other variable changes a program, and setting one
+#: (``AMIGO_DEBUG`` for a traceback, a test's ``AMIGO_SHARED``) must not trace and
+#: compile every program again (that once cost a warm GPU fit 14 s).
+TRACED_VARIABLES: dict[str, str] = {"AMIGO_JVP_BATCH": "8"}
 
 
 def _environment() -> list[str]:
@@ -287,7 +290,10 @@ def _environment() -> list[str]:
         f"matmul:{_config('jax_default_matmul_precision')}",
         f"prng:{_config('jax_default_prng_impl')}",
         f"promotion:{_config('jax_numpy_dtype_promotion')}:{_config('jax_numpy_rank_promotion')}",
-        *(f"{name}={os.environ.get(name, '').strip()}" for name in TRACED_VARIABLES),
+        *(
+            f"{name}={os.environ.get(name, '').strip() or default}"
+            for name, default in TRACED_VARIABLES.items()
+        ),
     ]
 
 
