@@ -13,7 +13,12 @@ This runs ``amigo fit`` on the given files in this process once per batch size
 of the two Jacobians is timed to completion. It prints one row per batch size: the warm
 fit's wall time, its Jacobian calls, the seconds spent in them, milliseconds per column,
 and how far the products (the calvis files' DISCOs) are from the first batch size's, in
-units of their errors (the batch changes only the order of floating-point work).
+units of their errors (the batch changes only the order of floating-point work). That
+column is a like-for-like check only where the fits took the same path: a fit that
+stops at another point of the optimum's flat valley has its kernel turned with the
+fitted wavefront, and its DISCOs are other coordinates of the same information (14
+"sigma" on a GPU at a batch of 256, while the companion fitted to them did not move:
+docs/performance.md); compare companions (``amigo detect``) then.
 
     python benchmarks/jacobian_batch.py --sci SCI_cal.fits --cal CAL_cal.fits
         [--model MODEL] [--knots N --knot-spacing M] [--batches 8,32,64] [--platform cpu|any]
