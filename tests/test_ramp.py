@@ -121,7 +121,7 @@ def test_linear_ramp_is_exactly_linear():
     np.testing.assert_allclose(charge, expected, rtol=1e-10)
 
 
-@pytest.mark.parametrize("n_substeps", [2, 3, 8])
+@pytest.mark.parametrize("n_substeps", [1, 2, 3, 4, 8, 20])
 def test_read_weights_are_the_not_a_knot_spline_through_the_substeps(n_substeps):
     """The fixed matrix from the sub-steps to the reads equals interpax's C2 (not-a-knot)
     spline, which the model evaluated before, applied to random charge histories (3 knots:
@@ -140,6 +140,14 @@ def test_read_weights_are_the_not_a_knot_spline_through_the_substeps(n_substeps)
         )
         got = read_weights(n_substeps, ngroups) @ states
         np.testing.assert_allclose(got, np.asarray(expected), rtol=1e-5, atol=1e-3)
+    # The same spline as SciPy's (which it replaced, for its import time), to rounding.
+    from scipy.interpolate import CubicSpline
+
+    for ngroups in (1, 2, 5, 13):
+        reads = np.arange(1, ngroups + 1) / ngroups
+        knots = np.linspace(0.0, 1.0, n_substeps + 1)
+        scipy_weights = CubicSpline(knots, np.eye(n_substeps + 1), axis=0)(reads)
+        np.testing.assert_allclose(read_weights(n_substeps, ngroups), scipy_weights, atol=1e-12)
     # The last read is the end of the ramp: the last sub-step's charge exactly.
     np.testing.assert_allclose(
         read_weights(n_substeps, 5)[-1], np.eye(n_substeps + 1)[-1], atol=1e-12

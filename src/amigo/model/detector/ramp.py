@@ -188,16 +188,54 @@ def read_weights(n_substeps: int, ngroups: int) -> np.ndarray:
     (times ``(g + 1) / ngroups``), by a not-a-knot cubic spline through the sub-steps.
 
     A spline is linear in the values it interpolates, so it is this fixed matrix: computed
-    once in NumPy (scipy's spline of the identity), it keeps the spline's tridiagonal
-    solve out of every compiled model and gradient.
+    once in NumPy (the spline of the identity), it keeps the spline's solve out of every
+    compiled model and gradient. Written out here rather than taken from
+    ``scipy.interpolate.CubicSpline`` (which it equals to rounding, tests/test_ramp.py):
+    importing that module cost every fitting process 0.3 s on a CPU and 1.2 s on a GPU
+    machine (docs/performance.md).
     """
-    from scipy.interpolate import CubicSpline
-
-    times = np.linspace(0.0, 1.0, n_substeps + 1)
+    n = n_substeps
     read_times = np.arange(1, ngroups + 1) / ngroups
-    weights = CubicSpline(times, np.eye(n_substeps + 1), axis=0)(read_times)
+    identity = np.eye(n + 1)
+    if n < 3:  # 2 or 3 knots: not-a-knot is the line or the parabola through them
+        powers = np.linspace(0.0, 1.0, n + 1)[:, None] ** np.arange(n + 1)
+        coefficients = np.linalg.solve(powers, identity)  # (degree + 1, knots)
+        weights = (read_times[:, None] ** np.arange(n + 1)) @ coefficients
+    else:
+        weights = _not_a_knot_weights(n, read_times)
     weights.setflags(write=False)
     return weights
+
+
+def _not_a_knot_weights(n: int, read_times: np.ndarray) -> np.ndarray:
+    """(reads, n + 1) values at ``read_times`` in [0, 1] of the not-a-knot cubic spline
+    through ``n + 1 >= 4`` equally spaced knots, per unit value at each knot.
+
+    Unknowns: the second derivatives ``m_k`` at the knots. Interior knots: continuity of
+    the first derivative, ``m_(k-1) + 4 m_k + m_(k+1) = 6 (y_(k-1) - 2 y_k + y_(k+1)) /
+    h^2``; the ends: the third derivative continuous across the second and the
+    second-to-last knots (``m_0 - 2 m_1 + m_2 = 0`` and its mirror).
+    """
+    h = 1.0 / n
+    system = np.zeros((n + 1, n + 1))
+    right = np.zeros((n + 1, n + 1))  # right-hand sides, per unit knot value
+    for k in range(1, n):
+        system[k, k - 1 : k + 2] = [1.0, 4.0, 1.0]
+        right[k, k - 1 : k + 2] = np.array([1.0, -2.0, 1.0]) * 6.0 / h**2
+    system[0, :3] = [1.0, -2.0, 1.0]
+    system[n, n - 2 :] = [1.0, -2.0, 1.0]
+    m = np.linalg.solve(system, right)  # (knots, unit values): second derivatives
+    interval = np.clip(np.floor(read_times / h).astype(int), 0, n - 1)
+    left = interval * h
+    a, b = (left + h - read_times)[:, None], (read_times - left)[:, None]  # to each end
+    y = np.eye(n + 1)
+    lo, hi = interval, interval + 1
+    return (
+        m[lo] * a**3 / (6 * h)
+        + m[hi] * b**3 / (6 * h)
+        + (y[lo] / h - m[lo] * h / 6) * a
+        + (y[hi] / h - m[hi] * h / 6) * b
+    )
 
 
 def to_subpixels(image: Float[Array, "ny3 nx3"]) -> Float[Array, "ny nx 3 3"]:
