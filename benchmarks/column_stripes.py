@@ -79,22 +79,6 @@ def without_lines(
     return float(np.sqrt(np.sum(z[used] ** 2) / dof)), offsets[has], errors[has]
 
 
-def lag_products(
-    residual: np.ndarray, inverse_sigma: np.ndarray, star: tuple[int, int], lags: list[int]
-) -> list[float]:
-    """Half the mean product of neighbouring columns' halo differences ``lag`` rows apart,
-    for each lag (DN/s)^2: ``tau^2 exp(-lag / ell)`` for the stripes' process."""
-    y, x = np.indices(residual.shape)
-    halo = (inverse_sigma > 0) & (np.hypot(y - star[0], x - star[1]) > HALO_PIX)
-    pair = halo[:, 1:] & halo[:, :-1]
-    d = np.where(pair, residual[:, 1:] - residual[:, :-1], 0.0)
-    out = []
-    for lag in lags:
-        both = pair[lag:] & pair[:-lag]
-        out.append(float(np.sum(d[lag:] * d[:-lag])) / max(int(both.sum()), 1) / 2.0)
-    return out
-
-
 def log_likelihood(
     residual: np.ndarray, inverse_sigma: np.ndarray, tau: float, length: float
 ) -> float:
@@ -129,7 +113,7 @@ def main() -> None:
         raise SystemExit(f"not found: {missing[0]} (set AMIGO_SHARED or give --sci/--cal)")
     out = args.out or Path(tempfile.mkdtemp(prefix="column_stripes_"))
     fitted = amigo.fit(sci=args.sci, cal=args.cal, out=out, force=True)
-    from amigo.likelihood.stripes import stripe_covariance
+    from amigo.likelihood.stripes import halo_lag_products, stripe_covariance
 
     print(f"\n{'exposure':<40} {'role':<10} {'z std':>6} {'col':>5} {'row':>5} "
           f"{'- cols':>6} {'- rows':>6} {'stripes':>8} {'k=16':>5} {'k=40':>5} "
@@ -151,7 +135,8 @@ def main() -> None:
             no_rows, _, _ = without_lines(residual, inverse_sigma[e], axis=1)
             stripes = np.sqrt(max(np.mean(offsets**2 - errors**2), 0.0))
             star = (int(peak[0]), int(peak[1]))
-            one, at16, at40 = lag_products(residual, inverse_sigma[e], star, [1, 16, 40])
+            products, _, _ = halo_lag_products(residual, inverse_sigma[e], star, [1, 16, 40])
+            one, at16, at40 = products
             tau, ell = stripe_covariance(residual, inverse_sigma[e], star)
             gain = np.nan
             if tau > 0:  # against the likeliest width of one offset per column

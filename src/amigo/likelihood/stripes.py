@@ -22,31 +22,32 @@ column's pixels (0 where masked) and ``M = D^(-1/2) C D^(-1/2) = I + tau^2 A K A
 column's whitener is the symmetric ``W = M^(-1/2)`` (:func:`column_whiteners`; a masked
 pixel's row and column of ``M`` are the identity's, so it stays 0 and touches nothing).
 Symmetric, so that applied twice it is ``M^-1``: the fit's gradient ``J^T C^-1 r``
-whitens the whitened residuals once more (:meth:`amigo.fitting.newton._Problem.gradient`);
-a Cholesky factor's inverse would need its transpose there. :func:`decorrelate` applies ``W`` to every column of whitened images.
-Applied alike to residuals and Jacobians it gives ``|r'|^2 = r^T C^-1 r``, ``J'^T J' =
-J^T C^-1 J`` and ``J'^T r' = J^T C^-1 r``: the fit's Gauss-Newton algebra is unchanged,
-and the latent Hessians (the DISCOs' covariances) count what the stripes share along a
-column. ``tau = 0`` leaves every vector as it is.
+whitens the whitened residuals once more
+(:meth:`amigo.fitting.newton._Problem.gradient`); a Cholesky factor's inverse would need
+its transpose there. :func:`decorrelate` applies ``W`` to every column of whitened
+images. Applied alike to residuals and Jacobians it gives ``|r'|^2 = r^T C^-1 r``,
+``J'^T J' = J^T C^-1 J`` and ``J'^T r' = J^T C^-1 r``: the fit's Gauss-Newton algebra is
+unchanged, and the latent Hessians (the DISCOs' covariances) count what the stripes
+share along a column. ``tau = 0`` leaves every vector as it is.
 
 **How wide, how long.** ``tau`` and ``ell`` are measured per exposure from a model's
 residuals in the halo (far from the star, where the model's own errors are smallest),
-wherever the fit's solver takes new Jacobians (:meth:`amigo.fitting.newton._Problem.refresh`;
-the first time at the start, the last near the optimum): the differences of neighbouring
-columns ``d(y) = r_(c+1)(y) - r_c(y)`` remove what a model's errors share across
-columns (they vary smoothly there) and keep ``2 tau^2 exp(-lag / ell)`` as the
-covariance of ``d(y)`` and ``d(y + lag)``. Their mean products at lags 1 to
-:data:`MAX_LAG` rows, each with its standard error under pure noise, are fitted by
-weighted least squares over a grid of ``ell`` (``tau^2`` in closed form at each)
-(:func:`stripe_covariance`). Lag 0 is left out: it would need the pixels' variance, and
-the pipeline's ERR is not that to the percent (on HD 36805 it exceeds the scatter); the
-standard errors come from the products themselves, for the same reason. The stripes are
-kept only when ``tau^2`` is significant (:data:`DETECTION_SIGMAS` standard errors; the
-largest of the grid's ``ell``, so a little more often than one test at that level:
-tests/test_stripes.py counts white-noise images); otherwise 0, as for images without stripes (simulations, ``amigo process``'s
-slopes). A model far from the data (a nominal instrument on real images) has misfit
-that varies across columns too, and part of it is taken for stripes (docs/fidelity.md).
-"""
+wherever the fit's solver takes new Jacobians
+(:meth:`amigo.fitting.newton._Problem.refresh`; the first time at the start, the last
+near the optimum): the differences of neighbouring columns ``d(y) = r_(c+1)(y) -
+r_c(y)`` remove what a model's errors share across columns (they vary smoothly there)
+and keep ``2 tau^2 exp(-lag / ell)`` as the covariance of ``d(y)`` and ``d(y + lag)``.
+Their mean products (:func:`halo_lag_products`) at lags 1 to :data:`MAX_LAG` rows, each
+with its standard error under pure noise, are fitted by weighted least squares over a
+grid of ``ell`` (``tau^2`` in closed form at each) (:func:`stripe_covariance`). Lag 0 is
+left out: it would need the pixels' variance, and the pipeline's ERR is not that to the
+percent (on HD 36805 it exceeds the scatter); the standard errors come from the products
+themselves, for the same reason. The stripes are kept only when ``tau^2`` is significant
+(:data:`DETECTION_SIGMAS` standard errors; the largest of the grid's ``ell``, so a
+little more often than one test at that level: tests/test_stripes.py counts white-noise
+images); otherwise 0, as for images without stripes (simulations, ``amigo process``'s
+slopes). A model far from the data (a nominal instrument on real images) has misfit that
+varies across columns too, and part of it is taken for stripes (docs/fidelity.md)."""
 
 from __future__ import annotations
 
@@ -114,6 +115,39 @@ def decorrelate(whitened: Any, whiteners: Any) -> Any:
     return jnp.einsum("...cyz,...zc->...yc", whiteners, whitened)
 
 
+def halo_lag_products(
+    residual_dn_s: npt.ArrayLike,
+    inverse_sigma: npt.ArrayLike,
+    star_yx: tuple[float, float],
+    lags: list[int],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For each lag (rows): half the mean product of neighbouring columns' halo
+    differences ``d(y) = r_(c+1)(y) - r_c(y)`` that far apart, (DN/s)^2 (``tau^2 exp(-lag
+    / ell)`` for the stripes; module notes), its standard error under pure noise, and the
+    number of products (NaN where there are none). ``residual_dn_s`` (ny, nx) ``data -
+    model``; the halo lies beyond :data:`HALO_RADIUS_PIX` of ``star_yx`` (pixels, (y, x))."""
+    r = np.asarray(residual_dn_s, np.float64)
+    a = np.asarray(inverse_sigma, np.float64)
+    y, x = np.indices(r.shape)
+    halo = (a > 0) & (np.hypot(y - star_yx[0], x - star_yx[1]) > HALO_RADIUS_PIX)
+    pair = halo[:, 1:] & halo[:, :-1]  # neighbouring columns that both count
+    d = np.where(pair, r[:, 1:] - r[:, :-1], 0.0)
+    means, errors, counts = [], [], []
+    for lag in lags:
+        n = int((pair[lag:] & pair[:-lag]).sum())
+        products = d[lag:] * d[:-lag]
+        # Under pure noise the products are independent along a column; neighbouring
+        # column pairs share a column (products correlated by 1/4, as d's by -1/2):
+        # 1.5 times the variance of independent terms. That variance from the products
+        # themselves, not from ERR: an ERR too small would make false stripes
+        # significant (1 % of white-noise images at 25 % too small, against 6-8 % from
+        # ERR; measured in review).
+        means.append(float(np.sum(products)) / n / 2.0 if n else np.nan)
+        errors.append(float(np.sqrt(1.5 * np.sum(products**2))) / n / 2.0 if n else np.nan)
+        counts.append(n)
+    return np.array(means), np.array(errors), np.array(counts)
+
+
 def stripe_covariance(
     residual_dn_s: npt.ArrayLike, inverse_sigma: npt.ArrayLike, star_yx: tuple[float, float]
 ) -> tuple[float, float]:
@@ -121,32 +155,14 @@ def stripe_covariance(
     (rows) of one (ny, nx) image from its residual ``data - model`` (DN/s) in the halo
     around ``star_yx`` (pixels, (y, x)); ``(0, inf)`` when the columns scatter as their
     errors say (module notes)."""
-    r = np.asarray(residual_dn_s, np.float64)
-    a = np.asarray(inverse_sigma, np.float64)
-    y, x = np.indices(r.shape)
-    halo = (a > 0) & (np.hypot(y - star_yx[0], x - star_yx[1]) > HALO_RADIUS_PIX)
-    pair = halo[:, 1:] & halo[:, :-1]  # neighbouring columns that both count
-    d = np.where(pair, r[:, 1:] - r[:, :-1], 0.0)
-    lags, means, errors = [], [], []
-    for lag in range(1, min(MAX_LAG, r.shape[0] - 1) + 1):
-        both = pair[lag:] & pair[:-lag]
-        n = int(both.sum())
-        if n < MIN_PAIRS:
-            continue
-        lags.append(lag)
-        # Half the mean product of differences `lag` rows apart: tau^2 exp(-lag / ell).
-        means.append(float(np.sum(d[lag:] * d[:-lag])) / n / 2.0)
-        # Under pure noise the products are independent along a column; neighbouring
-        # column pairs share a column (products correlated by 1/4, as d's by -1/2):
-        # 1.5 times the variance of independent terms. That variance from the products
-        # themselves, not from ERR: an ERR too small would make false stripes
-        # significant (1 % of white-noise images at 25 % too small, against 6-8 % from
-        # ERR; measured in review).
-        products = d[lag:] * d[:-lag]
-        errors.append(float(np.sqrt(1.5 * np.sum(products**2))) / n / 2.0)
-    if not lags:
+    all_lags = np.arange(1, min(MAX_LAG, np.shape(residual_dn_s)[0] - 1) + 1)
+    means, errors, counts = halo_lag_products(
+        residual_dn_s, inverse_sigma, star_yx, all_lags.tolist()
+    )
+    keep = counts >= MIN_PAIRS
+    if not keep.any():
         return 0.0, np.inf
-    lag_array, c, w = np.array(lags, float), np.array(means), 1.0 / np.array(errors) ** 2
+    lag_array, c, w = all_lags[keep].astype(float), means[keep], 1.0 / errors[keep] ** 2
     kernels = np.exp(-lag_array[None, :] / LENGTHS_PIX[:, None])  # (lengths, lags)
     norms = kernels**2 @ w
     tau2 = np.maximum((kernels * w) @ c / norms, 0.0)
