@@ -425,3 +425,51 @@ def test_hole_window_wavefront_columns_are_the_whole_models_derivatives():
     got = np.tensordot(directions, columns.astype(np.float64), 1)
     for g, e in zip(got, expected, strict=True):
         assert np.max(np.abs(g - e)) < 2e-5 * np.max(np.abs(e))
+
+
+@pytest.mark.slow
+def test_signature_amplitudes_see_what_the_parameters_absorbed():
+    """``signature_amplitudes`` measures a detector-like term ``B`` (here a response
+    non-linear in the pixel's signal, 6 % at the peak) at ~1 in data that have it and at
+    ~0 in data that do not, although the fitted parameters (flux, visibilities,
+    wavefront) absorb much of it: projected at fixed parameters, the "absent" case reads
+    ~0.5. This is the check by which ``amigo fit`` leaves out the base model's detector
+    on level-2 images that do not show it (``RampDetector.check_detector``)."""
+    import dataclasses
+
+    from amigo.fitting.filter_fit import FitConfig
+    from amigo.fitting.newton import NewtonConfig, _Problem, signature_amplitudes
+
+    rng = np.random.default_rng(11)
+    fit = _small_fit(rng, rng.normal(0, 10.0, (7, 10)))
+    y = fit.exposures[0].image.data
+    # Of a noiseless image (a detector model's correction does not know the noise; one
+    # made from the data would correlate with it).
+    image = np.asarray(fit.models(fit.initial_params())[0], np.float64)
+    signature = 0.06 * image**2 / image.max()
+
+    def on(data):
+        return fit.with_exposures(
+            [
+                dataclasses.replace(e, image=dataclasses.replace(e.image, data=data))
+                for e in fit.exposures
+            ]
+        )
+
+    config = FitConfig(newton=NewtonConfig(max_iterations=12))
+    for truth, observed in ((0.0, y), (1.0, y + signature)):
+        # The model's detector adds B: the fit sees the data less B; without it, as read.
+        with_it, without = on(observed - signature), on(observed)
+        params = with_it.fit(config).params
+        amplitudes = signature_amplitudes(with_it, without, params, "test")
+        for a, sigma in amplitudes:
+            assert 0 < sigma < 0.15
+            assert abs(a - truth) < 3 * sigma + 0.05, (truth, amplitudes)
+        if truth == 0.0:
+            # What a projection at the fitted parameters would say: far from 0.
+            layout = Layout.of(params)
+            vector = layout.pack(params)
+            r1 = _Problem(with_it, params, np.array([0]))._residuals_at(vector)[0]
+            r0 = _Problem(without, params, np.array([0]))._residuals_at(vector)[0]
+            b = r0 - r1
+            assert 1.0 + float(b @ r1) / float(b @ b) > 0.3

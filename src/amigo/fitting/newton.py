@@ -845,6 +845,64 @@ class _Problem:
         return fisher, grad
 
 
+def signature_amplitudes(
+    fit: JointFit, without: JointFit, params: FitParams, label: str = "fit"
+) -> list[tuple[float, float]]:
+    """Per exposure, ``(a, sigma_a)``: how much of a signature in the data the data want.
+
+    ``fit`` and ``without`` are one fit on two versions of the same data: ``y - D1`` and
+    ``y - D0`` (e.g. corrected by a detector model with and without a term). Their
+    difference ``B = D1 - D0`` is the term's signature; the model family is
+    ``y = M(theta) + D0 + a B``. At ``params``, the optimum of ``fit`` (``a = 1``), one
+    Gauss-Newton step in ``(theta, a_e)`` for each exposure ``e`` gives ::
+
+        a_e = 1 + (<B, r> - d^T F^-1 g) / (<B, B> - d^T F^-1 d),
+        sigma_a = (<B, B> - d^T F^-1 d)^-1/2,
+
+    with ``r`` the exposure's residual, ``<.,.>`` the likelihood's inner product
+    (whitened for the noise and the 1/f stripes), ``d = J^T W B`` the pull of the
+    signature on the parameters (the difference of the two fits' gradients: their priors
+    cancel) and ``g`` the fit's gradient (zero at an exact optimum). The ``d^T F^-1 d`` term is what the parameters can absorb of the signature;
+    without it ``a`` would stay near 1 whatever the data (the parameters moved to meet
+    the signature).
+
+    ``F`` is taken anew here, at ``params`` and with the fit's present stripe whiteners
+    (one Jacobian per exposure; the calibrators' with the wavefront, as in the fit's
+    stages): ``d`` lies in the span of these Jacobians, and ``d^T F^-1 d`` is dominated by
+    F's weakest directions (the latent knots the data barely see), so a Fisher matrix
+    one step away or whitened for other stripes (1 % off) doubled it on a simulated
+    pair. Its inverse is taken on the parameters it sees, scaled to unit diagonal.
+    """
+    layout = Layout.of(params)
+    vector = layout.pack(params)
+    everything = _Problem(fit, params, np.arange(fit.n_exposures))
+    with everything.precision():
+        fisher, gradient = everything.normal_equations(vector, f"{label}: signature")
+    diagonal = np.diag(fisher)
+    used = np.flatnonzero(diagonal > 0)
+    scale = diagonal[used] ** -0.5
+    inverse = np.linalg.pinv(
+        fisher[np.ix_(used, used)] * np.outer(scale, scale), rcond=1e-12, hermitian=True
+    ) * np.outer(scale, scale)
+    # Where ``params`` is not quite the optimum, the step in theta that goes with the one
+    # in a: without it, a would carry the rest of the fit's own convergence.
+    steered = inverse @ gradient[used]
+    out = []
+    for e in range(fit.n_exposures):
+        members = np.array([e])
+        with_it, without_it = _Problem(fit, params, members), _Problem(without, params, members)
+        residual = with_it._residuals_at(vector)[e]
+        signature = without_it._residuals_at(vector)[e] - residual
+        pull = (without_it.gradient(vector) - with_it.gradient(vector))[used]
+        information = float(signature @ signature) - float(pull @ inverse @ pull)
+        if not information > 0:
+            out.append((float("nan"), float("inf")))
+            continue
+        shift = float(signature @ residual) - float(pull @ steered)
+        out.append((1.0 + shift / information, information**-0.5))
+    return out
+
+
 def whitened(
     blocks: list[np.ndarray], inverse_sigma: np.ndarray, stripe_whitener: np.ndarray | None = None
 ) -> np.ndarray:

@@ -52,6 +52,7 @@ from amigo.fitting.newton import (
     local_illuminance,
     local_vector,
     psfs_of,
+    signature_amplitudes,
 )
 from amigo.fitting.params import FitParams
 from amigo.io.calslope import CalSlope
@@ -66,6 +67,10 @@ from amigo.progress import step
 #: A level-2 image keeps the model's read offsets when their pattern's measured amplitude
 #: in it is above this (1 where the image is behind the dark reference they describe).
 PATTERN_THRESHOLD = 0.5
+#: A level-2 image keeps the base model's detector when the measured amplitude of what
+#: it adds to the linear image is above this (1: as the model predicts; 0: absent, as in
+#: a simulation without JWST's detector effects).
+DETECTOR_THRESHOLD = 0.5
 #: Stop when the whitened rms change of the correction between rounds is below this.
 DEFAULT_TOLERANCE = 0.05
 #: Rounds of (correction, refit) at most.
@@ -257,6 +262,10 @@ class RampDetector:
         refit_iterations: int = DEFAULT_REFIT_ITERATIONS,
     ) -> None:
         self.base = base
+        # Level-2 images that do not show the base model's detector (check_detector)
+        # are fitted with the linear image alone, as under --detector linear.
+        self.detector_amplitudes: dict[str, tuple[float, float]] = {}
+        self.without_detector: set[str] = set()
         # Level-2 images carry the dark reference's noise, which their ERR leaves out: the
         # part of it the base model does not know joins each pixel's variance.
         self.added_sigma_dn_s: dict[str, float] = {}
@@ -299,7 +308,7 @@ class RampDetector:
         for e, exposure in enumerate(fit.exposures):
             name = exposure.name
             pattern = self.patterns.get(name)
-            if pattern is None or name in self.pattern_amplitudes:
+            if pattern is None or name in self.pattern_amplitudes or name in self.without_detector:
                 continue
             image = exposure.image
             # The fit's residual holds the data less the model with its offsets: adding
@@ -316,9 +325,47 @@ class RampDetector:
                 dropped.append(name)
         return dropped
 
+    def check_detector(self, fit: FilterFit, params: FitParams, label: str = "fit") -> list[str]:
+        """Measure, in each level-2 image, the amplitude of what the base model's detector
+        adds to the linear image at the fit's optimum (1: there as the model says, 0:
+        absent): the amplitude of the correction ``B = D`` (charge migration, IPC and
+        intra-pixel response, read offsets) fitted together with the other parameters
+        (:func:`signature_amplitudes`, one Gauss-Newton step from the optimum; measured
+        at fixed parameters it would stay near 1, the parameters having moved to meet
+        ``B``). Images below :data:`DETECTOR_THRESHOLD` are fitted from now on with the
+        linear image alone, as ``--detector linear`` fits them (e.g. a simulation without
+        JWST's detector effects, on which a model calibrated on the real detector would
+        imprint them: pixel z-scores 1.8-2.3 instead of ~1.0 on an independent one).
+        Returns the names of those images; the amplitudes go to ``detector_amplitudes``.
+        """
+        todo = [
+            isinstance(self.inputs[e.name], Level2Input) and e.name not in self.detector_amplitudes
+            for e in fit.exposures
+        ]
+        if not any(todo):
+            return []
+        current = self.corrections(fit, params)
+        linear = fit.with_exposures(
+            self.corrected(list(fit.exposures), [np.zeros_like(d) for d in current])
+        )
+        amplitudes = signature_amplitudes(fit, linear, params, label)
+        dropped = []
+        for e, exposure in enumerate(fit.exposures):
+            if not todo[e]:
+                continue
+            self.detector_amplitudes[exposure.name] = amplitudes[e]
+            if not amplitudes[e][0] > DETECTOR_THRESHOLD:
+                # Neither the model's offsets nor their variance: the image as read.
+                self.inputs[exposure.name] = self.originals[exposure.name]
+                self.added_sigma_dn_s.pop(exposure.name, None)
+                self.without_detector.add(exposure.name)
+                dropped.append(exposure.name)
+        return dropped
+
     def corrections(self, fit: FilterFit, params: FitParams) -> list[np.ndarray]:
         """The correction ``D`` of every exposure at ``params``: (m, 80, 80) ``S - t_g M``
-        in DN per group for calslope inputs, (80, 80) ``est(R) - M`` in DN/s for level-2."""
+        in DN per group for calslope inputs, (80, 80) ``est(R) - M`` in DN/s for level-2
+        (zero for the images in ``without_detector``)."""
         setup = fit.setup.with_band_taper(params.optics.band_taper_per_um2)
         instrument = fit.instrument.with_geometry(params.optics.geometry)
         anchor = fit.anchor.astype(setup.wavelengths_m.dtype)
@@ -330,6 +377,9 @@ class RampDetector:
             # Electrons per integration for 1 DN/s: reads at t_g, 2 t_g, ... ngroups t_g.
             scale = jnp.asarray(gain * ramp.ngroups * ramp.group_time_s, setup.wavelengths_m.dtype)
             theta = local_vector(params, e, int(fit.source_index[e]))
+            if exposure.name in self.without_detector:
+                out.append(np.zeros(exposure.image.data.shape))
+                continue
             base = self.base.dark_residual_for(ramp.dark_reference)
             slopes, image = _slopes_and_image(
                 base, instrument, setup, psfs, anchor, theta, scale, ramp.ngroups,
@@ -416,6 +466,15 @@ def fit_through_detector(
     # correction follows the path of the fits: on the simulated demo the companion landed
     # 0.3 sigma away, both runs converged to a tolerance of 0.01.)
     result = fit.fit(config, label=label)
+    # The whole detector first: it compares the fit with the corrections of the inputs
+    # as they are, which the dark check may change.
+    linear = detector.check_detector(fit, result.params, label)
+    for name in linear:
+        amplitude, error = detector.detector_amplitudes[name]
+        step(
+            f"{label}: {name}: the base model's detector is not in the image (amplitude "
+            f"{amplitude:.2f} +- {error:.2f}): fitted with the linear image alone"
+        )
     for name in detector.check_dark_patterns(fit, result.params):
         amplitude, error = detector.pattern_amplitudes[name]
         step(
@@ -446,7 +505,8 @@ def fit_through_detector(
         newton = levenberg_marquardt(
             fit,
             result.params,
-            refit,
+            # Images now fitted with the linear image alone move far: a whole fit.
+            config.newton if round_ == 1 and linear else refit,
             f"{label} round {round_}",
             result.fisher,
             result.exact_exposures,

@@ -699,15 +699,23 @@ def _check_orientations(items) -> None:
             )
 
 
-def _dark_residual_record(detector, name: str) -> dict:
-    """What the fit did with the dark residual of a level-2 image (base models that hold
-    one): ``dark_pattern_amplitude`` (and ``_err``), the amplitude of the model's read
-    offsets measured in the image (1: as the model says; below 0.5 the image is fitted
-    without them), and ``read_offset_sigma_dn_s``, the median noise added for the
+def _detector_record(detector, name: str) -> dict:
+    """What the fit did with the base model's detector for one exposure:
+    for level-2 images, ``detector_amplitude`` (and ``_err``), the amplitude of what the
+    model's detector adds to the linear image measured in the image (1: as the model
+    says; below 0.5 the image is fitted with the linear image alone, as under
+    ``--detector linear``); for level-2 images with a dark residual in the model,
+    ``dark_pattern_amplitude`` (and ``_err``), the amplitude of the model's
+    read offsets measured in the image (1: as the model says; below 0.5 the image is
+    fitted without them), and ``read_offset_sigma_dn_s``, the median noise added for the
     offsets the model does not know; ``{}`` where nothing applies."""
     if detector is None:
         return {}
     record = {}
+    if name in detector.detector_amplitudes:
+        amplitude, error = detector.detector_amplitudes[name]
+        record["detector_amplitude"] = _json_number(amplitude, 4)
+        record["detector_amplitude_err"] = _json_number(error, 4)
     if name in detector.pattern_amplitudes:
         amplitude, error = detector.pattern_amplitudes[name]
         record["dark_pattern_amplitude"] = round(amplitude, 4)
@@ -862,7 +870,7 @@ def _run_filter(
                 "newton_decrement": _json_number(product.result.newton_decrement, 12),
                 **geometry["filter"],
                 **geometry["exposures"][e],
-                **_dark_residual_record(detector, s.name),
+                **_detector_record(detector, s.name),
                 "column_stripes_dn_s": _json_number(float(product.fit.stripe_sigma[e]), 4),
                 "column_stripes_length_pix": _json_number(float(product.fit.stripe_length[e]), 1),
             }
