@@ -446,7 +446,7 @@ def fit_and_detect(out: Path, filters: list[str]) -> None:
           "| rejected | 3-sigma limits at 100 / 200 / 400 mas (mag) |")  # fmt: skip
     print("|---|---|---|---|---|---|---|")
     for name, fit_s, found, rows in detections:
-        scales = " / ".join(f"{v:.2f}" for v in found.get("sigma_scale", {}).values())
+        scales = ", ".join(f"{f} {v:.2f}" for f, v in found.get("sigma_scale", {}).items())
         best = max(found["search"]["max_joint_sigma_per_iteration"])
         rejected = len(found.get("rejected_candidates", []))
         limits = "; ".join(

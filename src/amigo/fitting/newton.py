@@ -63,6 +63,7 @@ from __future__ import annotations
 import itertools
 import os
 import time
+from collections.abc import Iterator
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol, cast
@@ -813,10 +814,23 @@ class _Problem:
         """Fisher matrix ``F`` and ``g = -grad L`` at ``vector``: float64 sums of float32
         Jacobians and of the residuals of the current precision (module notes,
         "Precision")."""
-        fit, lay = self.fit, self.layout
-        n = lay.size
+        n = self.layout.size
         fisher, grad = np.zeros((n, n)), np.zeros(n)
         r = self._residuals_at(vector)
+        for e, index, wj in self.whitened_jacobians(vector, label):
+            fisher[np.ix_(index, index)] += wj @ wj.T
+            grad[index] += wj @ r[e]
+            del wj
+        self.add_priors(vector, fisher, grad)
+        return fisher, grad
+
+    def whitened_jacobians(
+        self, vector: np.ndarray, label: str
+    ) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+        """For each member exposure ``e``: ``(e, index, wj)``, its whitened Jacobian
+        (rows: the parameters ``index`` of the global vector, the calibrators' with the
+        instrument block; columns: pixels), one float32 Jacobian each."""
+        fit, lay = self.fit, self.layout
         instrument, setup, _, wavefront, thetas, anchor = self._inputs(vector, float64=False)
         psfs = self._psfs(instrument, setup, wavefront, anchor)
         for e in self.members:
@@ -835,14 +849,15 @@ class _Problem:
                 index = np.concatenate([index, lay.optics])
             wj = whitened(parts, self.weight[e], self.stripe_whiteners[e])
             del parts
-            fisher[np.ix_(index, index)] += wj @ wj.T
-            grad[index] += wj @ r[e]
-            del wj
+            yield int(e), index, wj
+
+    def add_priors(self, vector: np.ndarray, fisher: np.ndarray, grad: np.ndarray) -> None:
+        """Add the priors' terms to a Fisher matrix and a gradient ``-grad L``, in place."""
+        lay = self.layout
         fisher[lay.optics, lay.optics] += self.prior_precision
         grad[lay.optics] -= self.prior_precision * self._prior_offset(vector)
-        fisher[np.diag_indices(n)] += self.jitter_precision
+        fisher[np.diag_indices(lay.size)] += self.jitter_precision
         grad -= self.jitter_precision * (vector - self.jitter_centre)
-        return fisher, grad
 
 
 def signature_amplitudes(
@@ -866,39 +881,44 @@ def signature_amplitudes(
     without it ``a`` would stay near 1 whatever the data (the parameters moved to meet
     the signature).
 
-    ``F`` is taken anew here, at ``params`` and with the fit's present stripe whiteners
-    (one Jacobian per exposure; the calibrators' with the wavefront, as in the fit's
-    stages): ``d`` lies in the span of these Jacobians, and ``d^T F^-1 d`` is dominated by
-    F's weakest directions (the latent knots the data barely see), so a Fisher matrix
-    one step away or whitened for other stripes (1 % off) doubled it on a simulated
-    pair. Its inverse is taken on the parameters it sees, scaled to unit diagonal.
+    ``F``, ``g`` and ``d`` come from one set of whitened Jacobians taken here, at
+    ``params`` and with the fit's present stripe whiteners (the calibrators' with the
+    wavefront, as in the fit's stages): ``d^T F^-1 d`` is dominated by F's weakest
+    directions (the latent knots the data barely see), so a Fisher matrix one step away
+    or whitened for other stripes (1 % off) doubled it on a simulated pair. ``F`` is
+    scaled to unit diagonal on the parameters it sees and solved with a ridge of 1e-9.
     """
     layout = Layout.of(params)
     vector = layout.pack(params)
-    everything = _Problem(fit, params, np.arange(fit.n_exposures))
-    with everything.precision():
-        fisher, gradient = everything.normal_equations(vector, f"{label}: signature")
+    members = np.arange(fit.n_exposures)
+    with_it = _Problem(fit, params, members)
+    residuals = with_it._residuals_at(vector)
+    signatures = _Problem(without, params, members)._residuals_at(vector) - residuals
+    n = layout.size
+    fisher, gradient, pulls = np.zeros((n, n)), np.zeros(n), np.zeros((n, fit.n_exposures))
+    for e, index, wj in with_it.whitened_jacobians(vector, f"{label}: signature"):
+        fisher[np.ix_(index, index)] += wj @ wj.T
+        gradient[index] += wj @ residuals[e]
+        pulls[index, e] = wj @ signatures[e]
+        del wj
+    with_it.add_priors(vector, fisher, gradient)
     diagonal = np.diag(fisher)
     used = np.flatnonzero(diagonal > 0)
     scale = diagonal[used] ** -0.5
-    inverse = np.linalg.pinv(
-        fisher[np.ix_(used, used)] * np.outer(scale, scale), rcond=1e-12, hermitian=True
-    ) * np.outer(scale, scale)
-    # Where ``params`` is not quite the optimum, the step in theta that goes with the one
-    # in a: without it, a would carry the rest of the fit's own convergence.
-    steered = inverse @ gradient[used]
+    scaled = fisher[np.ix_(used, used)] * np.outer(scale, scale)
+    scaled[np.diag_indices(len(used))] += 1e-9
+    right = np.column_stack([pulls[used], gradient[used]]) * scale[:, None]
+    solved = np.linalg.solve(scaled, right) * scale[:, None]
     out = []
     for e in range(fit.n_exposures):
-        members = np.array([e])
-        with_it, without_it = _Problem(fit, params, members), _Problem(without, params, members)
-        residual = with_it._residuals_at(vector)[e]
-        signature = without_it._residuals_at(vector)[e] - residual
-        pull = (without_it.gradient(vector) - with_it.gradient(vector))[used]
-        information = float(signature @ signature) - float(pull @ inverse @ pull)
+        pull = pulls[used, e]
+        information = float(signatures[e] @ signatures[e]) - float(pull @ solved[:, e])
         if not information > 0:
             out.append((float("nan"), float("inf")))
             continue
-        shift = float(signature @ residual) - float(pull @ steered)
+        # Where ``params`` is not quite the optimum, the step in theta that goes with the
+        # one in a: without it, a would carry the rest of the fit's own convergence.
+        shift = float(signatures[e] @ residuals[e]) - float(pull @ solved[:, -1])
         out.append((1.0 + shift / information, information**-0.5))
     return out
 
