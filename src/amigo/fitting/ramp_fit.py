@@ -355,10 +355,11 @@ class RampDetector:
         ]
         if not any(todo):
             return []
+        # The images measured without any correction; the others as they are (their
+        # signature is then zero and they only lend the Fisher matrix their Jacobians).
         current = self.corrections(fit, params)
-        linear = fit.with_exposures(
-            self.corrected(list(fit.exposures), [np.zeros_like(d) for d in current])
-        )
+        without = [np.zeros_like(d) if todo[e] else d for e, d in enumerate(current)]
+        linear = fit.with_exposures(self.corrected(list(fit.exposures), without))
         amplitudes = signature_amplitudes(fit, linear, params, label)
         dropped = []
         for e, exposure in enumerate(fit.exposures):
