@@ -876,10 +876,10 @@ def signature_amplitudes(
 
     with ``r`` the exposure's residual, ``<.,.>`` the likelihood's inner product
     (whitened for the noise and the 1/f stripes), ``d = J^T W B`` the pull of the
-    signature on the parameters (the difference of the two fits' gradients: their priors
-    cancel) and ``g`` the fit's gradient (zero at an exact optimum). The ``d^T F^-1 d`` term is what the parameters can absorb of the signature;
-    without it ``a`` would stay near 1 whatever the data (the parameters moved to meet
-    the signature).
+    signature on the parameters and ``g`` the fit's gradient (zero at an exact optimum).
+    The ``d^T F^-1 d`` term is what the parameters can absorb of the signature; without
+    it ``a`` would stay near 1 whatever the data (the parameters moved to meet the
+    signature).
 
     ``F``, ``g`` and ``d`` come from one set of whitened Jacobians taken here, at
     ``params`` and with the fit's present stripe whiteners (the calibrators' with the

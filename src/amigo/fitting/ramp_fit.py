@@ -355,11 +355,15 @@ class RampDetector:
         ]
         if not any(todo):
             return []
-        # The images measured without any correction; the others as they are (their
-        # signature is then zero and they only lend the Fisher matrix their Jacobians).
-        current = self.corrections(fit, params)
-        without = [np.zeros_like(d) if todo[e] else d for e, d in enumerate(current)]
-        linear = fit.with_exposures(self.corrected(list(fit.exposures), without))
+        # The images measured as read, without the correction the fit's data carry; the
+        # others exactly as the fit has them (their signature is then zero and they only
+        # lend the Fisher matrix their Jacobians).
+        linear = fit.with_exposures(
+            [
+                dataclasses.replace(e, image=self.inputs[e.name].image(None)) if todo[i] else e
+                for i, e in enumerate(fit.exposures)
+            ]
+        )
         amplitudes = signature_amplitudes(fit, linear, params, label)
         dropped = []
         for e, exposure in enumerate(fit.exposures):
