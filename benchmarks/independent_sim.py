@@ -2,7 +2,8 @@
 
     python benchmarks/independent_sim.py --out DIR [--filters F480M,F430M,F380M]
         [--template-dir DIR] [--effects] [--seed 0] [--teff 4500] [--jitter-mas 12]
-        [--fit]
+        [--cal-flux 1.0] [--fit]
+        [--ramps [--bfe 1e-6] [--detector-maps MODEL.npz]]
 
 Why (issue 21): amigo's own simulator shares code and conventions with its model, so a fit
 of it to the noise proves little. This script writes level-2 ``_cal.fits`` images of two
@@ -44,6 +45,23 @@ Physics, term by term
   read noise of the NIRISS detector). The data are drawn from a Gaussian of that
   variance; ERR is its square root, as the pipeline reports it from the true rate.
 
+Raw ramps (``--ramps``): ``_uncal`` files instead, the charge collected up the ramp
+with a physical brighter-fatter effect (:func:`simulate_ramps`): the boundary between two
+pixels moves away from the side holding more charge by ``--bfe`` pixels per electron of
+the field-weighted charge difference (:func:`bfe_coefficients`: a point charge's
+boundary-normal field at the boundary's midpoint, from the pixels within
+``BFE_RADIUS_PIX``), and the photo-electrons falling in the swept strip (the sub-samples'
+rate density at the boundary) change pixel; integrated in ``SUBSTEPS_PER_GROUP`` Poisson
+steps per group. Then dark current, the pixel's quadratic non-linearity, IPC, gain, bias,
+reset, read noise, 1/f offsets per column and read (``--effects``) and the ADC's integral
+non-linearity. The detector's pixel calibration (flat, intra-pixel response, dark,
+non-linearity, IPC kernel) is ideal unless ``--detector-maps`` names a base model, whose
+arrays are then read with NumPy as a laboratory's reference files would be: a base model
+can only be asked to fit the detector it was calibrated on; what is independent is the
+brighter-fatter physics, the optics, the geometry, the spectrum and the read-out.
+``--fit`` then runs ``amigo process``, ``amigo fit --detector full`` and ``--detector
+linear`` (and ``amigo detect --no-hmc`` on each) and prints their tables.
+
 Files: the template's headers (a real COM 1093 ``_cal`` file of the same filter) with
 TARGPROP/TARGNAME replaced, SCI (DN/s), ERR, DQ (the template's reference-row and
 DO_NOT_USE flags only), VAR_POISSON and VAR_RNOISE; the star's flux is the template's
@@ -57,7 +75,7 @@ measured amplitude of the model's detector) and per run (DISCO error scale, the 
 candidate, the 3-sigma Absil limits at 100 / 200 / 400 mas). The truth: two single stars.
 
 The simulation takes 5-15 s per filter on a 2-core CPU (poppy's transforms); ``--fit``
-4-5 minutes per model.
+4-5 minutes per model (with ``--ramps``, 8-9 minutes per detector model).
 """
 
 from __future__ import annotations
@@ -121,10 +139,24 @@ GAIN_E_PER_DN = 1.61
 READ_NOISE_E = 14.0
 STRIPE_TAU_DN_S = 0.15
 STRIPE_ELL_ROWS = 20.0
+STRIPE_READ_DN = 1.0  # raw ramps: a 1/f offset per column and read (--effects)
 ZERNIKE_NM_RMS = 20.0
 APERTURE = "NIS_AMI1"
 
 MAS_TO_RAD = np.pi / 180.0 / 3600.0 / 1000.0
+
+# Raw ramps (--ramps)
+SUBSTEPS_PER_GROUP = 8  # Poisson steps of charge collection per group time
+BFE_STRENGTH_PIX_PER_E = 1.0e-6  # boundary shift per electron of field-weighted charge
+BFE_RADIUS_PIX = 3  # pixels on either side of a boundary whose charge moves it
+BFE_DEPTH_PIX = 0.5  # depth of the boundary's field point below the charge (pixels)
+NONLINEARITY_PER_E = -5.0e-7  # q -> q + nl q^2 for the ideal detector
+BIAS_DN = 12000.0
+BIAS_SPREAD_DN = 400.0
+RESET_DN = 30.0  # common to a frame's pixels, per integration
+RESET_PIXEL_DN = 15.0  # per pixel and integration (kTC)
+ADC_AMPLITUDE_DN = 2.0
+ADC_PERIOD_DN = 1024.0
 
 
 # ----------------------------------------------------------------------------------------
@@ -251,6 +283,13 @@ def pixel_image(psf: np.ndarray, star_sci: tuple[float, float], size: int = 80) 
 
     ``star_sci``: the star's science-frame position (1-based pixels, SIAF convention).
     """
+    return pixel_subsamples(psf, star_sci, size).sum(axis=(2, 3))
+
+
+def pixel_subsamples(psf: np.ndarray, star_sci: tuple[float, float], size: int = 80) -> np.ndarray:
+    """(size, size, SUBSAMPLE, SUBSAMPLE) photons in each sub-sample of each pixel, indexed
+    ``[y, x, sy, sx]`` (sub-sample offsets ``(k + 0.5) / SUBSAMPLE - 0.5`` pixels), for unit
+    incident flux; their sum over the last two axes is :func:`pixel_image`."""
     aperture = pysiaf.Siaf("NIRISS")[APERTURE]
     star_v2, star_v3 = aperture.sci_to_tel(*star_sci)
     offsets = (np.arange(SUBSAMPLE) + 0.5) / SUBSAMPLE - 0.5
@@ -273,7 +312,7 @@ def pixel_image(psf: np.ndarray, star_sci: tuple[float, float], size: int = 80) 
     col = (v2 - star_v2) * 1e3 / FINE_MAS + centre
     row = (v3 - star_v3) * 1e3 / FINE_MAS + centre
     values = ndimage.map_coordinates(psf, [row, col], order=3, mode="constant", cval=0.0)
-    return (values * area_sr).reshape(size, size, SUBSAMPLE, SUBSAMPLE).sum(axis=(2, 3))
+    return (values * area_sr).reshape(size, size, SUBSAMPLE, SUBSAMPLE)
 
 
 # ----------------------------------------------------------------------------------------
@@ -308,6 +347,242 @@ def slope_variances(
     read_e = 12.0 * READ_NOISE_E**2 / ((ng**3 - ng) * tg**2)
     scale = 1.0 / (nints * GAIN_E_PER_DN**2)
     return poisson_e * scale, np.full_like(rate_e, read_e * scale)
+
+
+# ----------------------------------------------------------------------------------------
+# Raw ramps (--ramps): charge collection with a physical brighter-fatter effect
+# ----------------------------------------------------------------------------------------
+
+
+def load_detector_maps(path: Path | None, shape: tuple[int, int] = (80, 80)) -> dict:
+    """The detector's pixel calibration: flat, intra-pixel response, dark, non-linearity
+    and IPC kernel.
+
+    ``path``: a base-model ``.npz`` read with NumPy alone (its arrays are the calibration
+    of the detector that model describes, as a laboratory's reference files would be);
+    ``None``: an ideal detector (unit flat and response, no dark, this script's 3 x 3 IPC,
+    ``NONLINEARITY_PER_E`` everywhere). Shapes: flat, dark (e- per group), nonlinearity
+    (1/e-) (ny, nx); ipc (k, k), summing to one; intra (5,): the coefficients of
+    ``1 + c . (x, y, x^2, x y, y^2)`` over a pixel's offsets ``x, y`` in [-1/2, 1/2].
+    """
+    if path is None:
+        edge, corner = 0.006, 0.0006
+        kernel = np.array([[corner, edge, corner], [edge, 0.0, edge], [corner, edge, corner]])
+        kernel[1, 1] = 1.0 - kernel.sum()
+        return {
+            "flat": np.ones(shape),
+            "intra": np.zeros(5),
+            "dark_e_per_group": np.zeros(shape),
+            "nonlinearity": np.full(shape, NONLINEARITY_PER_E),
+            "ipc": kernel,
+        }
+    with np.load(path, allow_pickle=False) as data:
+        return {
+            "flat": np.asarray(data[".ramp.flat"], float),
+            "intra": np.asarray(data[".ramp.intra_pixel.coefficients"], float),
+            "dark_e_per_group": np.asarray(data[".read.dark_e_per_group"], float),
+            "nonlinearity": np.asarray(data[".read.nonlinearity"], float),
+            "ipc": np.asarray(data[".read.ipc_kernel"], float),
+        }
+
+
+def intra_pixel_weights(coefficients: np.ndarray) -> np.ndarray:
+    """(SUBSAMPLE, SUBSAMPLE) sensitivity of each sub-sample ``[sy, sx]``, mean one: the
+    quadratic response evaluated at the sub-sample centres."""
+    offsets = (np.arange(SUBSAMPLE) + 0.5) / SUBSAMPLE - 0.5
+    y, x = np.meshgrid(offsets, offsets, indexing="ij")
+    response = 1.0 + np.tensordot(np.stack([x, y, x**2, x * y, y**2], -1), coefficients, 1)
+    return response / response.mean()
+
+
+def bfe_coefficients() -> np.ndarray:
+    """(2 R + 1, R) weights ``c[n + R, m]`` of the charge in the pixel ``m`` pixels beyond a
+    boundary (``m = 0``: the pixel that shares it) and ``n`` pixels along it.
+
+    The weight is the boundary-normal field at the boundary's midpoint, at the depth
+    ``BFE_DEPTH_PIX`` below the collecting surface, of a point charge at that pixel's
+    centre: ``(m + 1/2) / ((m + 1/2)^2 + n^2 + h^2)^(3/2)``, normalised to one for the
+    pixel next to the boundary (``m = n = 0``).
+    """
+    r = BFE_RADIUS_PIX
+    n = np.arange(-r, r + 1)[:, None]
+    m = np.arange(r)[None, :] + 0.5
+    c = m / (m**2 + n**2 + BFE_DEPTH_PIX**2) ** 1.5
+    return c / c[r, 0]
+
+
+def _field_sum(charge: np.ndarray, coefficients: np.ndarray) -> np.ndarray:
+    """(..., ny, nx - 1): ``sum_{n, m} c[n, m] (Q[y + n, x + 1 + m] - Q[y + n, x - m])`` for
+    the boundary between pixels ``x`` and ``x + 1`` of each row ``y`` (zero charge beyond
+    the subarray)."""
+    r = coefficients.shape[1]
+    ny, nx = charge.shape[-2:]
+    pad = [(0, 0)] * (charge.ndim - 2) + [(r, r), (r, r)]
+    q = np.pad(charge, pad)
+    out = np.zeros((*charge.shape[:-2], ny, nx - 1))
+    for i, n in enumerate(range(-r, r + 1)):
+        rows = q[..., r + n : r + n + ny, :]
+        for m in range(r):
+            plus = rows[..., r + 1 + m : r + nx + m]
+            minus = rows[..., r - m : r - m + nx - 1]
+            out += coefficients[i, m] * (plus - minus)
+    return out
+
+
+def migration_rates(
+    charge: np.ndarray, edge_x: np.ndarray, edge_y: np.ndarray, strength: float
+) -> np.ndarray:
+    """(..., ny, nx) e-/s gained by each pixel from boundaries moved by the charge.
+
+    The boundary between two pixels moves away from the side holding more charge (its
+    field repels the arriving photo-electrons) by ``strength`` (pixels per electron) times
+    the field sum of :func:`_field_sum`; the photo-electrons arriving in the strip it
+    swept change pixel: ``displacement x edge rate density``. ``edge_x`` (ny, nx - 1): the
+    photon rate per pixel of width (e-/s) at each boundary between columns; ``edge_y``
+    (ny - 1, nx) between rows. Charge is conserved: what one pixel gains its neighbour
+    loses.
+    """
+    c = bfe_coefficients()
+    shift_x = strength * _field_sum(charge, c)  # +: the boundary moves into x + 1
+    shift_y = strength * np.swapaxes(_field_sum(np.swapaxes(charge, -1, -2), c), -1, -2)
+    flow_x = shift_x * edge_x  # e-/s from pixel x + 1 into pixel x
+    flow_y = shift_y * edge_y
+    gain = np.zeros(charge.shape)
+    gain[..., :, :-1] += flow_x
+    gain[..., :, 1:] -= flow_x
+    gain[..., :-1, :] += flow_y
+    gain[..., 1:, :] -= flow_y
+    return gain
+
+
+def edge_densities(subsamples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Photon rates per pixel width at the boundaries between columns (ny, nx - 1) and rows
+    (ny - 1, nx): the mean of the sub-sample strips on either side of each boundary,
+    times ``SUBSAMPLE`` (a strip is 1 / SUBSAMPLE of a pixel wide)."""
+    last_col = subsamples[:, :-1, :, -1].sum(axis=-1)
+    first_col = subsamples[:, 1:, :, 0].sum(axis=-1)
+    last_row = subsamples[:-1, :, -1, :].sum(axis=-1)
+    first_row = subsamples[1:, :, 0, :].sum(axis=-1)
+    return 0.5 * SUBSAMPLE * (last_col + first_col), 0.5 * SUBSAMPLE * (last_row + first_row)
+
+
+def migrated_charge(
+    subsamples_e_s: np.ndarray, integration_s: float, strength: float, steps: int = 96
+) -> np.ndarray:
+    """(ny, nx) electrons that :func:`migration_rates` moves into (+) or out of (-) each
+    pixel over an integration of ``integration_s``, without noise: the charge collected
+    with the effect minus without it (forward Euler in ``steps`` steps).
+    ``subsamples_e_s``: (ny, nx, S, S) rates after the detector's sensitivities."""
+    rate = subsamples_e_s.sum(axis=(2, 3))
+    edge_x, edge_y = edge_densities(subsamples_e_s)
+    dt = integration_s / steps
+    charge = np.zeros(rate.shape)
+    for _ in range(steps):
+        charge = charge + (rate + migration_rates(charge, edge_x, edge_y, strength)) * dt
+    return charge - rate * integration_s
+
+
+def simulate_ramps(
+    subsamples_e_s: np.ndarray,
+    maps: dict,
+    ngroups: int,
+    nints: int,
+    tgroup_s: float,
+    rng: np.random.Generator,
+    *,
+    bfe_strength: float,
+    stripes_dn: float,
+    reference_rows: int = 4,
+) -> tuple[np.ndarray, dict]:
+    """(nints, ngroups, ny, nx) raw counts (uint16, bias included) of an exposure, and a
+    record of its physics.
+
+    ``subsamples_e_s``: (ny, nx, S, S) photo-electron rate (e-/s) of each pixel's
+    sub-samples before the detector's sensitivities. Each integration starts empty; its
+    time is cut into ``SUBSTEPS_PER_GROUP`` steps per group, and in each the pixels
+    collect Poisson counts of their rate (flat x intra-pixel response) plus the
+    migration of :func:`migration_rates` at the charge collected so far. Each read
+    (NFRAMES = 1) sees the charge plus the dark current, through the pixel's own
+    quadratic non-linearity (the charge-to-voltage conversion of the pixel's own node), then
+    the IPC kernel (the coupling of the nodes' voltages), the gain, a per-pixel bias, a reset
+    offset per integration, white read noise (``READ_NOISE_E / sqrt(2)`` per read) and,
+    with ``stripes_dn`` > 0, a 1/f offset per column and read; the ADC adds its integral
+    non-linearity (``ADC_AMPLITUDE_DN`` sin(2 pi x / 1024)) and rounds. The first
+    ``reference_rows`` rows are reference pixels: no light, no dark.
+    """
+    weights = intra_pixel_weights(maps["intra"])
+    sub = subsamples_e_s * weights[None, None] * maps["flat"][:, :, None, None]
+    sub[:reference_rows] = 0.0
+    rate = sub.sum(axis=(2, 3))
+    edge_x, edge_y = edge_densities(sub)
+    ny, nx = rate.shape
+    dt = tgroup_s / SUBSTEPS_PER_GROUP
+    # The maps' dark is a mean per group that may be negative in places (a calibration's
+    # noise): drawn as a Gaussian of that mean and of its magnitude as variance.
+    dark_mean = np.array(maps["dark_e_per_group"], dtype=float)
+    dark_mean[:reference_rows] = 0.0
+    bias = BIAS_DN + BIAS_SPREAD_DN * rng.normal(size=(ny, nx))
+    charge = np.zeros((nints, ny, nx))
+    dark = np.zeros((nints, ny, nx))
+    out = np.empty((nints, ngroups, ny, nx), dtype=np.uint16)
+    reset = RESET_DN * rng.normal(size=(nints, 1, 1)) + RESET_PIXEL_DN * rng.normal(
+        size=(nints, ny, nx)
+    )
+    for group in range(ngroups):
+        for _ in range(SUBSTEPS_PER_GROUP):
+            migration = migration_rates(charge, edge_x, edge_y, bfe_strength)
+            expected = np.clip(rate + migration, 0.0, None) * dt
+            charge += rng.poisson(expected)
+        dark += dark_mean + np.sqrt(np.abs(dark_mean)) * rng.normal(size=dark.shape)
+        q = charge + dark
+        q = q + maps["nonlinearity"] * q**2
+        k = maps["ipc"]
+        q = ndimage.convolve(q, k[None], mode="constant", cval=0.0)
+        dn = q / GAIN_E_PER_DN + bias + reset
+        dn = dn + READ_NOISE_E / np.sqrt(2.0) / GAIN_E_PER_DN * rng.normal(size=dn.shape)
+        if stripes_dn > 0:
+            dn = dn + stripes_dn * rng.normal(size=(nints, 1, nx))
+        dn = dn + ADC_AMPLITUDE_DN * np.sin(2.0 * np.pi * dn / ADC_PERIOD_DN)
+        out[:, group] = np.clip(np.rint(dn), 0, 65535).astype(np.uint16)
+    moved = migrated_charge(sub, ngroups * tgroup_s, bfe_strength)
+    peak = float(charge.mean(axis=0).max())
+    record = {
+        "peak_charge_e": peak,
+        "migrated_e_max": float(np.abs(moved).max()),
+        "migrated_fraction_of_peak": float(np.abs(moved).max() / peak),
+    }
+    return out, record
+
+
+def write_uncal(path: Path, template: Path, targprop: str, ramps: np.ndarray) -> None:
+    """An ``_uncal`` file (SCI uint16 (nints, ngroups, ny, nx), GROUPDQ, PIXELDQ) with the
+    template's headers, written atomically; PIXELDQ carries the template's reference-pixel
+    and DO_NOT_USE flags."""
+    with fits.open(template) as hdul:
+        primary = hdul[0].header.copy()
+        sci_header = hdul["SCI"].header.copy()
+        dq = np.asarray(hdul["DQ"].data).astype(np.uint32) & np.uint32(2**31 | 1)
+    for key in list(primary):
+        if key.startswith("S_") or key.startswith("R_"):  # no pipeline step has run
+            del primary[key]
+    primary["TARGPROP"] = targprop
+    primary["TARGNAME"] = targprop
+    primary["HISTORY"] = "Simulated raw ramps by amigo's benchmarks/independent_sim.py."
+    for key in ("BUNIT", "BSCALE", "BZERO"):
+        sci_header.pop(key, None)
+    sci = fits.ImageHDU(ramps, header=sci_header, name="SCI")
+    sci.header["BUNIT"] = "DN"
+    out = fits.HDUList(
+        [
+            fits.PrimaryHDU(header=primary),
+            sci,
+            fits.ImageHDU(np.zeros(ramps.shape, np.uint8), name="GROUPDQ"),
+            fits.ImageHDU(dq, name="PIXELDQ"),
+        ]
+    )
+    partial = path.with_suffix(".partial")
+    out.writeto(partial, overwrite=True)
+    partial.replace(path)
 
 
 # ----------------------------------------------------------------------------------------
@@ -359,6 +634,15 @@ def simulate(args: argparse.Namespace) -> dict:
         "zernikes_noll4_11_nm": (zernikes_m * 1e9).round(3).tolist(),
         "files": {},
     }
+    maps = None
+    if args.ramps:
+        maps = load_detector_maps(args.detector_maps)
+        truth["ramps"] = {
+            "bfe_strength_pix_per_e": args.bfe,
+            "detector_maps": str(args.detector_maps) if args.detector_maps else "ideal",
+            "read_noise_e_per_read": READ_NOISE_E / np.sqrt(2.0),
+            "stripes_dn_per_read": STRIPE_READ_DN if args.effects else 0.0,
+        }
     args.out.mkdir(parents=True, exist_ok=True)
     stars = {"INDEP-SCI": (46.0 + 0.23, 41.0 - 0.31), "INDEP-CAL": (46.0 - 0.17, 41.0 + 0.12)}
     for filter_name in args.filters.split(","):
@@ -370,8 +654,33 @@ def simulate(args: argparse.Namespace) -> dict:
             total_dn_s = float(np.nansum(np.clip(hdul["SCI"].data, 0.0, None)))
         psf = polychromatic_psf(filter_name, args.teff, amplitude, opd, args.jitter_mas)
         for targprop, star_sci in stars.items():
+            flux_dn_s = total_dn_s * (args.cal_flux if targprop == "INDEP-CAL" else 1.0)
+            if args.ramps:
+                sub = pixel_subsamples(psf, star_sci)
+                sub_e_s = sub * (flux_dn_s * GAIN_E_PER_DN / sub.sum())
+                ramps, record = simulate_ramps(
+                    sub_e_s,
+                    maps,
+                    ngroups,
+                    nints,
+                    tgroup,
+                    rng,
+                    bfe_strength=args.bfe,
+                    stripes_dn=STRIPE_READ_DN if args.effects else 0.0,
+                )
+                name = f"indep_{targprop.split('-')[1].lower()}_{filter_name}_uncal.fits"
+                write_uncal(args.out / name, template, targprop, ramps)
+                truth["files"][name] = {
+                    "filter": filter_name,
+                    "star_sci_xy": list(star_sci),
+                    "total_e_s": flux_dn_s * GAIN_E_PER_DN,
+                    "ngroups": ngroups,
+                    "nints": nints,
+                    **record,
+                }
+                continue
             unit = pixel_image(psf, star_sci)
-            rate = unit * (total_dn_s / unit.sum())
+            rate = unit * (flux_dn_s / unit.sum())
             if args.effects:
                 rate = ipc(rate)
             var_poisson, var_rnoise = slope_variances(rate, ngroups, tgroup, nints)
@@ -383,7 +692,7 @@ def simulate(args: argparse.Namespace) -> dict:
             truth["files"][name] = {
                 "filter": filter_name,
                 "star_sci_xy": list(star_sci),
-                "total_dn_s": total_dn_s,
+                "total_dn_s": flux_dn_s,
                 "ngroups": ngroups,
                 "nints": nints,
             }
@@ -441,8 +750,13 @@ def fit_and_detect(out: Path, filters: list[str]) -> None:
         with open(detect_dir / "contrast_limits.csv") as stream:
             rows = list(csv.DictReader(stream))
         detections.append((name, fit_s, found, rows))
+    _detection_table(detections, filters, "model")
+
+
+def _detection_table(detections: list[tuple], filters: list[str], what: str) -> None:
+    """One row per ``amigo detect`` run: (name, fit seconds, companions.json, limit rows)."""
     print()
-    print("| model | fit (s) | DISCO error scale | grid maximum (local sigma) | companions "
+    print(f"| {what} | fit (s) | DISCO error scale | grid maximum (local sigma) | companions "
           "| rejected | 3-sigma limits at 100 / 200 / 400 mas (mag) |")  # fmt: skip
     print("|---|---|---|---|---|---|---|")
     for name, fit_s, found, rows in detections:
@@ -457,6 +771,43 @@ def fit_and_detect(out: Path, filters: list[str]) -> None:
             f"| {name} | {fit_s:.0f} | {scales} | {best:.1f} | "
             f"{len(found.get('companions', []))} | {rejected} | {limits} |"
         )
+
+
+def process_and_fit(out: Path, filters: list[str], model: Path | None) -> None:
+    """``amigo process`` the raw ramps, then ``amigo fit`` with the full and the linear
+    detector (``--model model`` where given); prints a table per exposure."""
+    processed = out / "calslope"
+    uncal = sorted(str(p) for p in out.glob("indep_*_uncal.fits"))
+    start = time.perf_counter()
+    _amigo("process", *uncal, "--out", str(processed), "--force")
+    print(f"amigo process: {time.perf_counter() - start:.0f} s for {len(uncal)} files")
+    sci = [str(processed / f"indep_sci_{f}_calslope.fits") for f in filters]
+    cal = [str(processed / f"indep_cal_{f}_calslope.fits") for f in filters]
+    extra = ["--model", str(model)] if model else []
+    print("| detector | file | z std | chi2 / dof | rotation (deg) | jitter (mas) | fit (s) |")
+    print("|---|---|---|---|---|---|---|")
+    detections = []
+    for detector in ("full", "linear"):
+        fit_dir = out / f"fit_ramps_{detector}"
+        start = time.perf_counter()
+        _amigo("fit", "--sci", *sci, "--cal", *cal, "--out", str(fit_dir), "--force",
+               "--detector", detector, *extra)  # fmt: skip
+        fit_s = time.perf_counter() - start
+        summary = json.loads((fit_dir / "fit_summary.json").read_text())
+        for e in summary["exposures"]:
+            chi2 = e["chi2"] / e["dof"]
+            print(
+                f"| {detector} | {e['file']} | {e['zscore_std']:.3f} | {chi2:.3f} | "
+                f"{e['rotation_deg']:+.4f} | {e['jitter_mas']:.1f} | {fit_s:.0f} |"
+            )
+        detect_dir = out / f"detect_ramps_{detector}"
+        calvis = sorted(str(p) for p in fit_dir.glob("INDEP-SCI_*_calvis.fits"))
+        _amigo("detect", *calvis, "--out", str(detect_dir), "--force", "--no-hmc")
+        found = json.loads((detect_dir / "companions.json").read_text())
+        with open(detect_dir / "contrast_limits.csv") as stream:
+            rows = list(csv.DictReader(stream))
+        detections.append((detector, fit_s, found, rows))
+    _detection_table(detections, filters, "detector")
 
 
 def _amigo_nominal_instrument(path: Path) -> None:
@@ -478,9 +829,24 @@ def main() -> None:
     parser.add_argument("--teff", type=float, default=4500.0)
     parser.add_argument("--jitter-mas", type=float, default=12.0)
     parser.add_argument("--fit", action="store_true", help="then amigo fit and detect them")
+    parser.add_argument(
+        "--ramps", action="store_true", help="raw ramps (_uncal) with a brighter-fatter effect"
+    )
+    parser.add_argument("--bfe", type=float, default=BFE_STRENGTH_PIX_PER_E)
+    parser.add_argument(
+        "--cal-flux", type=float, default=1.0, help="the calibrator's flux over the template's"
+    )
+    parser.add_argument(
+        "--detector-maps",
+        type=Path,
+        default=None,
+        help="a base-model .npz whose pixel calibration the simulated detector has",
+    )
     args = parser.parse_args()
     simulate(args)
-    if args.fit:
+    if args.fit and args.ramps:
+        process_and_fit(args.out, args.filters.split(","), args.detector_maps)
+    elif args.fit:
         fit_and_detect(args.out, args.filters.split(","))
 
 
