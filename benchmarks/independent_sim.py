@@ -320,12 +320,18 @@ def pixel_subsamples(psf: np.ndarray, star_sci: tuple[float, float], size: int =
 # ----------------------------------------------------------------------------------------
 
 
-def ipc(image: np.ndarray) -> np.ndarray:
-    """A 3 x 3 inter-pixel capacitance kernel (conserves charge)."""
+def ipc_kernel() -> np.ndarray:
+    """(3, 3) inter-pixel capacitance: 0.6 % to each edge neighbour, 0.06 % to each corner;
+    sums to one (conserves charge)."""
     edge, corner = 0.006, 0.0006
     kernel = np.array([[corner, edge, corner], [edge, 0.0, edge], [corner, edge, corner]])
     kernel[1, 1] = 1.0 - kernel.sum()
-    return ndimage.convolve(image, kernel, mode="constant", cval=0.0)
+    return kernel
+
+
+def ipc(image: np.ndarray) -> np.ndarray:
+    """``image`` through :func:`ipc_kernel` (zero beyond the subarray)."""
+    return ndimage.convolve(image, ipc_kernel(), mode="constant", cval=0.0)
 
 
 def stripes(shape: tuple[int, int], rng: np.random.Generator) -> np.ndarray:
@@ -366,15 +372,12 @@ def load_detector_maps(path: Path | None, shape: tuple[int, int] = (80, 80)) -> 
     ``1 + c . (x, y, x^2, x y, y^2)`` over a pixel's offsets ``x, y`` in [-1/2, 1/2].
     """
     if path is None:
-        edge, corner = 0.006, 0.0006
-        kernel = np.array([[corner, edge, corner], [edge, 0.0, edge], [corner, edge, corner]])
-        kernel[1, 1] = 1.0 - kernel.sum()
         return {
             "flat": np.ones(shape),
             "intra": np.zeros(5),
             "dark_e_per_group": np.zeros(shape),
             "nonlinearity": np.full(shape, NONLINEARITY_PER_E),
-            "ipc": kernel,
+            "ipc": ipc_kernel(),
         }
     with np.load(path, allow_pickle=False) as data:
         return {
@@ -744,13 +747,18 @@ def fit_and_detect(out: Path, filters: list[str]) -> None:
                 f"| {name} | {e['file']} | {e['zscore_std']:.3f} | {e['rotation_deg']:+.4f} | "
                 f"{e['anisotropy']:.5f} | {e['skew_deg']:+.4f} | {e['jitter_mas']:.1f} | {detector} |"
             )
-        calvis = sorted(str(p) for p in fit_dir.glob("INDEP-SCI_*_calvis.fits"))
-        _amigo("detect", *calvis, "--out", str(detect_dir), "--force", "--no-hmc")
-        found = json.loads((detect_dir / "companions.json").read_text())
-        with open(detect_dir / "contrast_limits.csv") as stream:
-            rows = list(csv.DictReader(stream))
-        detections.append((name, fit_s, found, rows))
+        detections.append((name, fit_s, *_detect(fit_dir, detect_dir)))
     _detection_table(detections, filters, "model")
+
+
+def _detect(fit_dir: Path, detect_dir: Path) -> tuple[dict, list[dict]]:
+    """``amigo detect --no-hmc`` on a fit's science products: companions.json and the
+    contrast-limit rows."""
+    calvis = sorted(str(p) for p in fit_dir.glob("INDEP-SCI_*_calvis.fits"))
+    _amigo("detect", *calvis, "--out", str(detect_dir), "--force", "--no-hmc")
+    found = json.loads((detect_dir / "companions.json").read_text())
+    with open(detect_dir / "contrast_limits.csv") as stream:
+        return found, list(csv.DictReader(stream))
 
 
 def _detection_table(detections: list[tuple], filters: list[str], what: str) -> None:
@@ -800,13 +808,7 @@ def process_and_fit(out: Path, filters: list[str], model: Path | None) -> None:
                 f"| {detector} | {e['file']} | {e['zscore_std']:.3f} | {chi2:.3f} | "
                 f"{e['rotation_deg']:+.4f} | {e['jitter_mas']:.1f} | {fit_s:.0f} |"
             )
-        detect_dir = out / f"detect_ramps_{detector}"
-        calvis = sorted(str(p) for p in fit_dir.glob("INDEP-SCI_*_calvis.fits"))
-        _amigo("detect", *calvis, "--out", str(detect_dir), "--force", "--no-hmc")
-        found = json.loads((detect_dir / "companions.json").read_text())
-        with open(detect_dir / "contrast_limits.csv") as stream:
-            rows = list(csv.DictReader(stream))
-        detections.append((detector, fit_s, found, rows))
+        detections.append((detector, fit_s, *_detect(fit_dir, out / f"detect_ramps_{detector}")))
     _detection_table(detections, filters, "detector")
 
 
