@@ -77,6 +77,13 @@ DETECTOR_THRESHOLD = 0.5
 #: 2 CPU cores) would change nothing. Real COM 1093 images fit at 0.9-1.3; an independent
 #: simulation without detector effects, with the detector imposed, at 1.9-2.3.
 DETECTOR_CHECK_ZSCORE = 1.5
+#: The network's charge migration is rescaled in a filter's calslope exposures when the
+#: amplitude measured in them (:meth:`RampDetector.calibrate_migration`) differs from 1
+#: by more than this fraction and by more than ``MIGRATION_MIN_SIGMA`` of its error ...
+MIGRATION_MIN_CHANGE = 0.1
+MIGRATION_MIN_SIGMA = 3.0
+#: ... and is kept within this range (a negative migration is not a detector's).
+MIGRATION_RANGE = (0.0, 3.0)
 #: Stop when the whitened rms change of the correction between rounds is below this.
 DEFAULT_TOLERANCE = 0.05
 #: Rounds of (correction, refit) at most.
@@ -272,6 +279,11 @@ class RampDetector:
         # are fitted with the linear image alone, as under --detector linear.
         self.detector_amplitudes: dict[str, tuple[float, float]] = {}
         self.without_detector: set[str] = set()
+        # Calslope exposures: the amplitude of the network's charge migration measured in
+        # their filter (calibrate_migration), whether it was applied, and the scaled
+        # models the corrections then use.
+        self.migration_amplitudes: dict[str, tuple[float, float, bool]] = {}
+        self._scaled: dict[float, BaseModel] = {}
         # Level-2 images carry the dark reference's noise, which their ERR leaves out: the
         # part of it the base model does not know joins each pixel's variance.
         self.added_sigma_dn_s: dict[str, float] = {}
@@ -378,10 +390,73 @@ class RampDetector:
                 dropped.append(exposure.name)
         return dropped
 
-    def corrections(self, fit: FilterFit, params: FitParams) -> list[np.ndarray]:
+    def base_for(self, name: str) -> BaseModel:
+        """The base model exposure ``name``'s correction uses: this detector's, with its
+        charge migration rescaled where :meth:`calibrate_migration` applied a scale."""
+        amplitude, _, applied = self.migration_amplitudes.get(name, (1.0, 0.0, False))
+        if not applied:
+            return self.base
+        if amplitude not in self._scaled:
+            self._scaled[amplitude] = self.base.with_migration_scale(amplitude)
+        return self._scaled[amplitude]
+
+    def calibrate_migration(
+        self, fit: FilterFit, params: FitParams, label: str = "fit"
+    ) -> tuple[float, float, bool] | None:
+        """Measure, in a filter's calslope exposures at the fit's optimum ``params``, the
+        amplitude ``a`` of the network's charge migration (1: as the network predicts,
+        0: none), and apply it where the data want another one.
+
+        The signature is ``B = D1 - D0``, the correction with the network less the
+        correction without it (flat, IPC, non-linearity and dark in both), both at
+        ``params``; :func:`signature_amplitudes` fits its amplitude in each exposure
+        together with every other parameter (what the visibilities, the jitter and the
+        wavefront absorb of a fixed blur is not counted as migration), and the filter's
+        amplitude is their inverse-variance mean: the migration is the detector's, the
+        same in the science and calibrator exposures. Where it differs from 1 by more
+        than :data:`MIGRATION_MIN_CHANGE` and :data:`MIGRATION_MIN_SIGMA` errors, the
+        corrections from now on use the network scaled by it (clipped to
+        :data:`MIGRATION_RANGE`; :meth:`base_for`). Why: a network calibrated on one
+        detector (amigo's simulator, or JWST's through the pipeline) stands for a physical
+        migration whose strength another detector, or another filter, need not share
+        (docs/detector.md, "How strong the networks' charge migration is"). Returns
+        ``(a, error, applied)``, or ``None`` where nothing was measured (no network, no
+        calslope exposure, or measured before).
+        """
+        names = [
+            e.name
+            for e in fit.exposures
+            if isinstance(self.inputs[e.name], RampInput)
+            and e.name not in self.migration_amplitudes
+        ]
+        if self.base.linear or not names or len(names) < fit.n_exposures:
+            return None
+        with_network = self.corrections(fit, params)
+        without = self.corrections(fit, params, self.base.with_linear_detector())
+        fit_with = fit.with_exposures(self.corrected(fit.exposures, with_network))
+        fit_without = fit.with_exposures(self.corrected(fit.exposures, without))
+        amplitudes = signature_amplitudes(fit_with, fit_without, params, f"{label}: migration")
+        values = np.array([a for a, _ in amplitudes])
+        weights = np.array([e**-2 if np.isfinite(e) and e > 0 else 0.0 for _, e in amplitudes])
+        if not weights.sum() > 0 or not np.all(np.isfinite(values[weights > 0])):
+            return None
+        amplitude = float(weights @ np.where(weights > 0, values, 0.0) / weights.sum())
+        error = float(weights.sum() ** -0.5)
+        change = abs(amplitude - 1.0)
+        applied = change > MIGRATION_MIN_CHANGE and change > MIGRATION_MIN_SIGMA * error
+        if applied:
+            amplitude = float(np.clip(amplitude, *MIGRATION_RANGE))
+        for name in names:
+            self.migration_amplitudes[name] = (amplitude, error, applied)
+        return amplitude, error, applied
+
+    def corrections(
+        self, fit: FilterFit, params: FitParams, base: BaseModel | None = None
+    ) -> list[np.ndarray]:
         """The correction ``D`` of every exposure at ``params``: (m, 80, 80) ``S - t_g M``
         in DN per group for calslope inputs, (80, 80) ``est(R) - M`` in DN/s for level-2
-        (zero for the images in ``without_detector``)."""
+        (zero for the images in ``without_detector``); ``base`` instead of each exposure's
+        own model (:meth:`base_for`) where given."""
         setup = fit.setup.with_band_taper(params.optics.band_taper_per_um2)
         instrument = fit.instrument.with_geometry(params.optics.geometry)
         anchor = fit.anchor.astype(setup.wavelengths_m.dtype)
@@ -396,9 +471,9 @@ class RampDetector:
             if exposure.name in self.without_detector:
                 out.append(np.zeros(exposure.image.data.shape))
                 continue
-            base = self.base.dark_residual_for(ramp.dark_reference)
+            model = self.base_for(exposure.name) if base is None else base
             slopes, image = _slopes_and_image(
-                base, instrument, setup, psfs, anchor, theta, scale, ramp.ngroups,
+                model.dark_residual_for(ramp.dark_reference), instrument, setup, psfs, anchor, theta, scale, ramp.ngroups,
                 ramp.first_group,
             )  # fmt: skip
             out.append(
@@ -497,6 +572,13 @@ def fit_through_detector(
             f"{label}: {name}: the dark residual's pattern is not in the image (amplitude "
             f"{amplitude:.2f} +- {error:.2f}): fitted without it"
         )
+    migration = detector.calibrate_migration(fit, result.params, label)
+    rescaled = migration is not None and migration[2]
+    if migration is not None:
+        step(
+            f"{label}: charge migration {migration[0]:.2f} +- {migration[1]:.2f} of the "
+            f"network's{': applied' if rescaled else ''}"
+        )
     changes: list[float] = []
     refit = dataclasses.replace(
         config.newton,
@@ -521,8 +603,9 @@ def fit_through_detector(
         newton = levenberg_marquardt(
             fit,
             result.params,
-            # Images now fitted with the linear image alone move far: a whole fit.
-            config.newton if round_ == 1 and linear else refit,
+            # Images now fitted with the linear image alone, or with a rescaled
+            # migration, move far: a whole fit.
+            config.newton if round_ == 1 and (linear or rescaled) else refit,
             f"{label} round {round_}",
             result.fisher,
             result.exact_exposures,

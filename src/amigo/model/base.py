@@ -411,6 +411,19 @@ class BaseModel(eqx.Module):
         """The same instrument with the network switched off (``--detector linear``)."""
         return eqx.tree_at(lambda m: m.ramp.network, self, None, is_leaf=lambda x: x is None)
 
+    def with_migration_scale(self, scale: float) -> BaseModel:
+        """The same instrument with the network's charge migration scaled by ``scale``
+        (0: none, 1: as trained): its last layer's weights times ``scale``. The network
+        has no biases, so every sub-pixel displacement the network predicts is ``scale``
+        times the trained one before the bound (``max_shift_pix tanh(s / max_shift_pix)``),
+        and the charge moved follows it in proportion while displacements stay well
+        inside the bound (a few hundredths of a pixel in AMI data)."""
+        network = self.ramp.network
+        if network is None:
+            raise ValueError("the linear detector has no charge migration to scale")
+        last = network.layers[-1].weight
+        return eqx.tree_at(lambda m: m.ramp.network.layers[-1].weight, self, last * scale)
+
     def for_level2(self) -> BaseModel:
         """The detector as it stands behind a level-2 image: the STScI pipeline has
         subtracted the dark, divided by its flat and corrected the classical

@@ -708,7 +708,10 @@ def _detector_record(detector, name: str) -> dict:
     ``dark_pattern_amplitude`` (and ``_err``), the amplitude of the model's
     read offsets measured in the image (1: as the model says; below 0.5 the image is
     fitted without them), and ``read_offset_sigma_dn_s``, the median noise added for the
-    offsets the model does not know; ``{}`` where nothing applies."""
+    offsets the model does not know; for calslope exposures under the full detector,
+    ``migration_amplitude`` (and ``_err``), the amplitude of the network's charge
+    migration measured in the exposure's filter, and ``migration_applied``, whether the
+    fit rescaled the network by it; ``{}`` where nothing applies."""
     if detector is None:
         return {}
     record = {}
@@ -716,6 +719,11 @@ def _detector_record(detector, name: str) -> dict:
         amplitude, error = detector.detector_amplitudes[name]
         record["detector_amplitude"] = _json_number(amplitude, 4)
         record["detector_amplitude_err"] = _json_number(error, 4)
+    if name in detector.migration_amplitudes:
+        amplitude, error, applied = detector.migration_amplitudes[name]
+        record["migration_amplitude"] = _json_number(amplitude, 4)
+        record["migration_amplitude_err"] = _json_number(error, 4)
+        record["migration_applied"] = bool(applied)
     if name in detector.pattern_amplitudes:
         amplitude, error = detector.pattern_amplitudes[name]
         record["dark_pattern_amplitude"] = round(amplitude, 4)
