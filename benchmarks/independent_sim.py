@@ -792,8 +792,9 @@ def process_and_fit(out: Path, filters: list[str], model: Path | None) -> None:
     sci = [str(processed / f"indep_sci_{f}_calslope.fits") for f in filters]
     cal = [str(processed / f"indep_cal_{f}_calslope.fits") for f in filters]
     extra = ["--model", str(model)] if model else []
-    print("| detector | file | z std | chi2 / dof | rotation (deg) | jitter (mas) | fit (s) |")
-    print("|---|---|---|---|---|---|---|")
+    print("| detector | file | z std | chi2 / dof | rotation (deg) | jitter (mas) "
+          "| migration amplitude | fit (s) |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|---|")
     detections = []
     for detector in ("full", "linear"):
         fit_dir = out / f"fit_ramps_{detector}"
@@ -804,9 +805,13 @@ def process_and_fit(out: Path, filters: list[str], model: Path | None) -> None:
         summary = json.loads((fit_dir / "fit_summary.json").read_text())
         for e in summary["exposures"]:
             chi2 = e["chi2"] / e["dof"]
+            migration = "-"
+            if e.get("migration_amplitude") is not None:
+                migration = f"{e['migration_amplitude']:.2f} +- {e['migration_amplitude_err']:.2f}"
+                migration += " (applied)" if e.get("migration_applied") else ""
             print(
                 f"| {detector} | {e['file']} | {e['zscore_std']:.3f} | {chi2:.3f} | "
-                f"{e['rotation_deg']:+.4f} | {e['jitter_mas']:.1f} | {fit_s:.0f} |"
+                f"{e['rotation_deg']:+.4f} | {e['jitter_mas']:.1f} | {migration} | {fit_s:.0f} |"
             )
         detections.append((detector, fit_s, *_detect(fit_dir, out / f"detect_ramps_{detector}")))
     _detection_table(detections, filters, "detector")
