@@ -39,8 +39,8 @@ def independent_sim():
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
-    module.N_WAVELENGTHS = 5
-    module.FINE_NPIX = 401
+    # A coarser band and a smaller field than the simulation's: the core is what migrates.
+    vars(module).update(N_WAVELENGTHS=5, FINE_NPIX=401)
     return module
 
 

@@ -658,7 +658,7 @@ def simulate(args: argparse.Namespace) -> dict:
         psf = polychromatic_psf(filter_name, args.teff, amplitude, opd, args.jitter_mas)
         for targprop, star_sci in stars.items():
             flux_dn_s = total_dn_s * (args.cal_flux if targprop == "INDEP-CAL" else 1.0)
-            if args.ramps:
+            if maps is not None:  # --ramps
                 sub = pixel_subsamples(psf, star_sci)
                 sub_e_s = sub * (flux_dn_s * GAIN_E_PER_DN / sub.sum())
                 ramps, record = simulate_ramps(
