@@ -472,8 +472,9 @@ class RampDetector:
                 out.append(np.zeros(exposure.image.data.shape))
                 continue
             model = self.base_for(exposure.name) if base is None else base
+            model = model.dark_residual_for(ramp.dark_reference)
             slopes, image = _slopes_and_image(
-                model.dark_residual_for(ramp.dark_reference), instrument, setup, psfs, anchor, theta, scale, ramp.ngroups,
+                model, instrument, setup, psfs, anchor, theta, scale, ramp.ngroups,
                 ramp.first_group,
             )  # fmt: skip
             out.append(
