@@ -401,11 +401,17 @@ class RampDetector:
         return self._scaled[amplitude]
 
     def calibrate_migration(
-        self, fit: FilterFit, params: FitParams, label: str = "fit"
+        self,
+        fit: FilterFit,
+        params: FitParams,
+        with_network: list[np.ndarray],
+        label: str = "fit",
     ) -> tuple[float, float, bool] | None:
         """Measure, in a filter's calslope exposures at the fit's optimum ``params``, the
         amplitude ``a`` of the network's charge migration (1: as the network predicts,
-        0: none), and apply it where the data want another one.
+        0: none), and apply it where the data want another one. ``with_network``: the
+        corrections at ``params`` as :meth:`corrections` gives them (the caller's next
+        round starts from them).
 
         The signature is ``B = D1 - D0``, the correction with the network less the
         correction without it (flat, IPC, non-linearity and dark in both), both at
@@ -431,7 +437,6 @@ class RampDetector:
         ]
         if self.base.linear or not names or len(names) < fit.n_exposures:
             return None
-        with_network = self.corrections(fit, params)
         without = self.corrections(fit, params, self.base.with_linear_detector())
         fit_with = fit.with_exposures(self.corrected(fit.exposures, with_network))
         fit_without = fit.with_exposures(self.corrected(fit.exposures, without))
@@ -573,8 +578,12 @@ def fit_through_detector(
             f"{label}: {name}: the dark residual's pattern is not in the image (amplitude "
             f"{amplitude:.2f} +- {error:.2f}): fitted without it"
         )
-    migration = detector.calibrate_migration(fit, result.params, label)
+    # The first round's correction, at the optimum: the migration's measurement needs
+    # it too, and only a rescaled network makes it stale.
+    at_optimum = detector.corrections(fit, result.params)
+    migration = detector.calibrate_migration(fit, result.params, at_optimum, label)
     rescaled = migration is not None and migration[2]
+    first: list[np.ndarray] | None = None if rescaled else at_optimum
     if migration is not None:
         step(
             f"{label}: charge migration {migration[0]:.2f} +- {migration[1]:.2f} of the "
@@ -586,7 +595,8 @@ def fit_through_detector(
         max_iterations=min(config.newton.max_iterations, detector.refit_iterations),
     )
     for round_ in range(1, detector.max_rounds + 1):
-        new = detector.corrections(fit, result.params)
+        new = detector.corrections(fit, result.params) if first is None else first
+        first = None
         changes.append(detector.change(fit.exposures, corrections, new))
         corrections = new
         # Same anchor: a fit that recomputed the PSFs elsewhere would not be the model
