@@ -174,6 +174,10 @@ def test_amigo_train_on_real_level2_calibrators(tmp_path, capsys):
     history = record["history"]
     assert len(history["cal_loss"]) == 2 and history["cal_loss"][-1] < history["cal_loss"][0]
     print("level-2 training losses", json.dumps(history["cal_loss"]))
+    # The file's 1/f stripes, measured after the warm-up and marginalised in the loss.
+    assert [s["name"] for s in record["stripes"]] == names
+    assert record["stripes"][0]["tau_dn_s"] >= 0 and record["settings"]["stripes"]
+    print("stripes", record["stripes"], record["statistics"])
     # The dark residual: solved after the steps, behind the file's dark reference, for
     # its 9 group reads (docs/detector.md); --steps 0 solves it afresh, nothing else.
     dark = record["dark_residual"]

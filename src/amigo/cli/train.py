@@ -153,6 +153,14 @@ _FILES = click.Path(dir_okay=False, path_type=Path)
     "that the pipeline's dark subtraction left, solved after the steps (0: none) "
     "[default: 1.6, measured on COM 1093].",
 )
+@click.option(
+    "--stripes/--no-stripes",
+    "stripes",
+    default=True,
+    show_default=True,
+    help="Level-2 training: marginalise each image's 1/f column stripes (measured after "
+    "the warm-up), as amigo fit does.",
+)
 @click.option("--float64", "float64", is_flag=True, help="Train in float64 (default float32).")
 @click.option(
     "--provenance",
@@ -181,6 +189,7 @@ def command(
     defocus_method: str | None,
     sensitivity_prior: float,
     dark_prior: float | None,
+    stripes: bool,
     float64: bool,
     provenance_file: Path | None,
 ) -> None:
@@ -222,6 +231,7 @@ def command(
             defocus_method=defocus_method,
             sensitivity_prior=sensitivity_prior,
             dark_prior=dark_prior,
+            stripes=stripes,
             float64=float64,
             provenance=provenance,
         )

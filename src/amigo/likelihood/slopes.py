@@ -42,6 +42,7 @@ from amigo.errors import InputError
 from amigo.io.calslope import CalSlope, read_calslope
 from amigo.io.jwst import DQ_SATURATED, Exposure, is_level2, read_exposure
 from amigo.likelihood.pixels import ImageData, SlopeNoise, auto_structure
+from amigo.likelihood.stripes import decorrelate
 from amigo.model.base import BaseModel, PupilCache
 from amigo.model.detector.pipeline_slope import pipeline_group_slope
 
@@ -68,6 +69,10 @@ class SlopeData(eqx.Module):
     dark_reference
         Static: the dark reference file the pipeline subtracted (level-2 images; see
         :mod:`amigo.model.detector.dark_residual`), empty otherwise.
+    stripes
+        Level-2 images: (nx, ny, ny) symmetric whitener of each column for the image's
+        1/f stripes (:func:`amigo.likelihood.stripes.column_whiteners`), applied after
+        the per-pixel whitening (:func:`whiten`); ``None``: no stripes (the default).
     """
 
     slopes_dn: Float[Array, "m ny nx"]
@@ -82,6 +87,7 @@ class SlopeData(eqx.Module):
     nframes: int = eqx.field(static=True, default=1)
     group_time_s: float = eqx.field(static=True, default=0.0)
     dark_reference: str = eqx.field(static=True, default="")
+    stripes: Float[Array, "nx ny ny"] | None = None
 
     @classmethod
     def from_calslope(
@@ -232,6 +238,20 @@ class SlopeData(eqx.Module):
     def shape(self) -> tuple[int, int]:
         return tuple(self.slopes_dn.shape[1:])  # type: ignore[return-value]
 
+    def with_stripes(self, whitener: np.ndarray | None) -> SlopeData:
+        """The same exposure whitened also for its 1/f stripes: ``whitener`` (nx, ny, ny)
+        from :func:`amigo.likelihood.stripes.column_whiteners` (``None``: none). Level-2
+        images only (one value per pixel; a calslope file's stripes are removed by
+        ``amigo process``)."""
+        if whitener is None:
+            return dataclasses.replace(self, stripes=None)
+        if not self.level2:
+            raise ValueError("stripes are marginalised in level-2 images only")
+        ny, nx = self.shape
+        if np.shape(whitener) != (nx, ny, ny):
+            raise ValueError(f"whitener of shape {np.shape(whitener)}, not {(nx, ny, ny)}")
+        return dataclasses.replace(self, stripes=jnp.asarray(whitener, self.slopes_dn.dtype))
+
     def layout(self) -> SlopeData:
         """The same arrays without the description the likelihood does not read (name,
         role, value count, dark reference): what a compiled program is keyed on, so that
@@ -315,9 +335,15 @@ def model_slopes(
 
 def whiten(values_dn: Float[Array, "m ny nx"], data: SlopeData) -> Array:
     """(ny * nx, m) ``W v`` per pixel (zero rows for unused pixels): slopes, or a change
-    of the model slopes, in units of the noise."""
+    of the model slopes, in units of the noise; for a level-2 image with stripes
+    (:meth:`SlopeData.with_stripes`) whitened again along each column, so that
+    ``|whiten(r)|^2 = r^T C^-1 r`` with the stripes' covariance in ``C``."""
     m = data.slopes_dn.shape[0]
-    return jnp.einsum("nij,nj->ni", data.whitening, values_dn.reshape(m, -1).T)
+    z = jnp.einsum("nij,nj->ni", data.whitening, values_dn.reshape(m, -1).T)
+    if data.stripes is None:
+        return z
+    ny, nx = data.shape
+    return decorrelate(z.reshape(ny, nx), data.stripes).reshape(ny * nx, 1)
 
 
 def whitened_residuals(model_dn: Float[Array, "m ny nx"], data: SlopeData) -> Array:
@@ -342,18 +368,29 @@ class FitStatistics:
     chi2: float
     dof: int
     zscore_std: float
+    zscore_std_whitened: float | None = None
 
     def to_json(self) -> dict:
-        return dict(self.__dict__)
+        return {k: v for k, v in self.__dict__.items() if v is not None}
 
 
 def fit_statistics(
     model_dn: Array, data: SlopeData, n_free: int = 0, role: str | None = None
 ) -> FitStatistics:
-    """Chi-square, degrees of freedom and z-score standard deviation (over used values)."""
-    z = np.asarray(whitened_residuals(model_dn, data), dtype=np.float64)
+    """Chi-square (the likelihood's: whitened for the stripes where the image has them),
+    degrees of freedom and z-score standard deviation (over used values; plain, ``(data
+    - model) / err``, as ``amigo fit``'s ``zscore_std``, and with stripes whitened for
+    them too, ``zscore_std_whitened``)."""
     used = np.asarray(data.used).reshape(-1) > 0
+    z = np.asarray(whitened_residuals(model_dn, data), dtype=np.float64)
     values = z[used].ravel()
+    whitened = None
+    if data.stripes is not None:
+        whitened = float(np.std(values))
+        plain = np.asarray(whitened_residuals(model_dn, data.with_stripes(None)), np.float64)
+        z_std = float(np.std(plain[used].ravel()))
+    else:
+        z_std = float(np.std(values))
     return FitStatistics(
         name=data.name,
         filter=data.filter,
@@ -362,7 +399,8 @@ def fit_statistics(
         npix=int(used.sum()),
         chi2=float(np.sum(values**2)),
         dof=int(values.size - n_free),
-        zscore_std=float(np.std(values)),
+        zscore_std=z_std,
+        zscore_std_whitened=whitened,
     )
 
 

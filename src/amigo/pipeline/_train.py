@@ -59,6 +59,7 @@ def train(
     defocus_method: str | None = None,
     sensitivity_prior: float = 0.01,
     dark_prior: float | None = None,
+    stripes: bool = True,
     float64: bool = False,
     provenance: dict[str, Any] | None = None,
 ) -> TrainResult:
@@ -124,6 +125,7 @@ def train(
             diagonal=diagonal,
             init=None if init_path is None else str(init_path),
             sensitivity_prior=sensitivity_prior,
+            stripes=stripes,
             **({} if dark_prior is None else {"dark_prior_dn": dark_prior}),
         )
         model, metadata = train_model(

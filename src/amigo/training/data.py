@@ -47,6 +47,9 @@ class TrainSettings:
     ``dark_prior_dn``: level-2 training: width (DN) of the prior on the per-group read
     offsets the pipeline's dark subtraction left (:func:`solve_dark_residual`); 0: none
     solved.
+
+    ``stripes``: level-2 training: marginalise each image's 1/f column stripes, measured
+    once after the warm-up (:meth:`~amigo.training.trainer.Trainer.measure_stripes`).
     """
 
     steps: int = 200
@@ -65,6 +68,7 @@ class TrainSettings:
     diagonal: bool = False
     sensitivity_prior: float = 0.01
     dark_prior_dn: float = DEFAULT_PRIOR_DN
+    stripes: bool = True
 
     def stages(self) -> list[int]:
         if self.init is not None:

@@ -41,6 +41,14 @@ The paper's "Base Model Training and Calibration", as code:
   solved in closed form from the calibrators' residuals at their fitted states, under a
   Gaussian prior of :attr:`~amigo.training.data.TrainSettings.dark_prior_dn` per read, and stored in the model
   with the dark reference file they belong to (:func:`~amigo.training.exposure.solve_dark_residual`).
+* **1/f stripes (level 2).** A level-2 image keeps the read-out's 1/f noise as stripes
+  along its columns, correlated over tens of rows (:mod:`amigo.likelihood.stripes`). As
+  in ``amigo fit``, they are marginalised: after the warm-up, each calibration and
+  validation image's stripes (``tau``, ``ell``) are measured in the halo of its residual
+  under the starting model, and its likelihood is whitened for them from then on
+  (:meth:`Trainer.measure_stripes`; once, so that losses of different epochs compare).
+  Without it the optics, the residual sensitivity and the network bend towards each
+  image's stripes. :attr:`~amigo.training.data.TrainSettings.stripes` turns it off.
 * **Loss curve.** ``amigo.train`` draws the calibration and validation losses against
   the step into ``MODEL_loss.png`` (:func:`loss_curve_path`).
 
@@ -60,7 +68,7 @@ import platform
 import sys
 import time
 from collections.abc import Sequence
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -76,10 +84,12 @@ from amigo._version import __version__, source_commit
 from amigo.errors import InputError
 from amigo.likelihood.slopes import (
     FitStatistics,
+    SlopeData,
     fit_statistics,
     initial_flat,
     initial_point_source,
 )
+from amigo.likelihood.stripes import column_whiteners, stripe_covariance
 from amigo.model.base import (
     BaseModel,
     BaseModelConfig,
@@ -175,6 +185,9 @@ class Trainer:
         self.state = self._initial_state(base)
         self.fisher: dict[str, Any] | None = None
         self.stopped_early = False
+        #: Each level-2 image's stripes, ``{"cal": [[tau_dn_s, ell_rows], ...], "val":
+        #: [...]}`` in the data's order (:meth:`measure_stripes`); empty: none measured.
+        self.stripes: dict[str, list[list[float]]] = {}
 
     # -------------------------------------------------------------- state
     def _precision(self) -> dict[str, Any]:
@@ -247,6 +260,67 @@ class Trainer:
         report_step("train: warm-up of positions and fluxes done")
         self.state = eqx.tree_at(
             lambda s: (s.cal_params, s.flat_params, s.val_params), state, tuple(groups)
+        )
+
+    # -------------------------------------------------------------- 1/f stripes
+    def measure_stripes(self) -> None:
+        """Measure each level-2 calibration and validation image's 1/f stripes in the
+        halo of its residual at the current state (:func:`stripe_covariance`, the star at
+        the model's peak, as ``amigo fit`` does) and whiten its likelihood for them from
+        here on (:meth:`SlopeData.with_stripes`). Does nothing for calslope data (``amigo
+        process`` removes their stripes) or with ``settings.stripes`` off."""
+        if not (self.settings.stripes and self.data.level2):
+            return
+        state, base, cache = self.state, self.state.base, self.cache
+        measured: dict[str, list[list[float]]] = {}
+        for key, params, datasets in (
+            ("cal", state.cal_params, self.data.cal),
+            ("val", state.val_params, self.data.val),
+        ):
+            measured[key] = []
+            for p, d in zip(params, datasets, strict=True):
+                plain = d.with_stripes(None)
+                model = np.asarray(compiled_model(base, p, plain, cache)[0], np.float64)
+                inverse_sigma = _inverse_sigma_dn_s(plain)
+                star = np.unravel_index(
+                    np.argmax(np.where(inverse_sigma > 0, model, -np.inf)), model.shape
+                )
+                t = d.group_time_s
+                residual = (np.asarray(plain.slopes_dn[0], np.float64) - model) / t
+                tau, length = stripe_covariance(
+                    residual, inverse_sigma, (float(star[0]), float(star[1]))
+                )
+                measured[key].append([tau, length])
+        self.stripes = measured
+        self._apply_stripes()
+        kept = [tau for pairs in measured.values() for tau, _ in pairs if tau > 0]
+        report_step(
+            f"train: 1/f stripes in {len(kept)} of "
+            f"{len(self.data.cal) + len(self.data.val)} images"
+            + (f" ({min(kept):.2f}-{max(kept):.2f} DN/s)" if kept else "")
+        )
+        # The exposures' own Fisher diagonals of the warm-up were taken without them.
+        self._exposure_fisher = {}
+
+    def _apply_stripes(self) -> None:
+        """Whiten the data for :attr:`stripes` (a checkpoint's, or just measured)."""
+
+        def whitened(datasets: list[SlopeData], pairs: list[list[float]]) -> list[SlopeData]:
+            out = []
+            for d, (tau, length) in zip(datasets, pairs, strict=True):
+                if tau <= 0:
+                    out.append(d.with_stripes(None))
+                    continue
+                inverse_sigma = _inverse_sigma_dn_s(d)[None]
+                out.append(d.with_stripes(column_whiteners(inverse_sigma, [tau], [length])[0]))
+            return out
+
+        if not self.stripes:
+            return
+        self.data = replace(
+            self.data,
+            cal=whitened(self.data.cal, self.stripes["cal"]),
+            val=whitened(self.data.val, self.stripes["val"]),
         )
 
     # -------------------------------------------------------------- Fisher diagonals
@@ -543,6 +617,7 @@ class Trainer:
         one flat-field step and one validation step; returns the epoch's losses."""
         if self.fisher is None:
             self.warm_up()
+            self.measure_stripes()
             self.compute_fisher()
         losses = []
         for batch in self._batches():
@@ -635,6 +710,7 @@ class Trainer:
             "network_on": self.state.base.ramp.network is not None,
             "history": asdict(self.history),
             "rng": self.rng.bit_generator.state,
+            "stripes": self.stripes,
         }
         write_leaves(path, (self.state, self.fisher), record)
 
@@ -662,6 +738,8 @@ class Trainer:
         self.seconds = float(record["seconds"])
         self.history = History(**record["history"])
         self.rng.bit_generator.state = record["rng"]
+        self.stripes = record.get("stripes", {})
+        self._apply_stripes()
 
 
 def _tuples_to_lists(value: Any) -> Any:
@@ -737,6 +815,7 @@ def train(
         # Fine-tuning of the closed-form parts only (the dark residual): the model stays
         # as it is; the exposures' positions and fluxes are fitted under it.
         trainer.warm_up(iterations=FIT_ITERATIONS)
+        trainer.measure_stripes()
     else:
         trainer.run(checkpoint, progress, time_limit_s)
     model = trainer.result()
@@ -758,6 +837,7 @@ def train(
         "data": data.describe(),
         "settings": asdict(settings),
         "history": asdict(trainer.history),
+        "stripes": _stripes_record(trainer),
         "statistics": [s.to_json() for s in stats],
         "dtype": dtype,
         "amigo_version": __version__,
@@ -777,6 +857,27 @@ def train(
         metadata["superbias"] = model.superbias.summary()
     save_base_model(model, out, metadata)
     return model, metadata
+
+
+def _inverse_sigma_dn_s(data: SlopeData) -> np.ndarray:
+    """(ny, nx) ``1 / ERR`` (DN/s)^-1 of a level-2 image, 0 where unused."""
+    white = np.asarray(data.whitening, np.float64)[:, 0, 0].reshape(data.shape)
+    return white * data.group_time_s
+
+
+def _stripes_record(trainer: Trainer) -> list[dict[str, Any]]:
+    """Each image's measured stripes for the model's metadata (empty: none measured)."""
+    out = []
+    for key, datasets in (("cal", trainer.data.cal), ("val", trainer.data.val)):
+        for d, (tau, length) in zip(datasets, trainer.stripes.get(key, []), strict=False):
+            out.append(
+                {
+                    "name": d.name,
+                    "tau_dn_s": round(float(tau), 4),
+                    "length_rows": round(float(length), 2) if np.isfinite(length) else None,
+                }
+            )
+    return out
 
 
 def checkpoint_path(out: Path) -> Path:
