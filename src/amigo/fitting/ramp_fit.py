@@ -82,8 +82,12 @@ DETECTOR_CHECK_ZSCORE = 1.5
 #: by more than this fraction and by more than ``MIGRATION_MIN_SIGMA`` of its error ...
 MIGRATION_MIN_CHANGE = 0.1
 MIGRATION_MIN_SIGMA = 3.0
-#: ... and is kept within this range (a negative migration is not a detector's).
-MIGRATION_RANGE = (0.0, 3.0)
+#: ... and is kept within this range (a negative migration is not a detector's). The
+#: shipped simulator-trained network moves charge as a boundary-shift effect of
+#: 1.4-2.1e-6 pix/e- would; JWST's detector, as the real calibrators taught the level-2
+#: network, 3.2-5.5e-6 (docs/detector.md): amplitudes of 2-4 are what real ramps may
+#: need (3.5 in F480M for 5e-6), and the upper end leaves them room.
+MIGRATION_RANGE = (0.0, 6.0)
 #: Stop when the whitened rms change of the correction between rounds is below this.
 DEFAULT_TOLERANCE = 0.05
 #: Rounds of (correction, refit) at most.
