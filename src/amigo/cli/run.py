@@ -1,4 +1,5 @@
-"""``amigo run --sci UNCAL... --cal UNCAL... --out DIR``: process, fit and detect in one go.
+"""``amigo run --sci UNCAL... --cal UNCAL... --out DIR``: process, fit and detect in one go
+(level-2 images or calslope files instead of raw ramps: fit and detect, in one process).
 
 Everything is written directly under ``DIR``, with the names of the individual commands
 (docs/interfaces): ``<stem>_calslope.fits`` (``amigo process``), the calvis, OIFITS,
@@ -22,12 +23,13 @@ from amigo.cli.fit import exposures_option, model_options, superbias_option
 @click.command("run")
 @exposures_option(
     "sci",
-    "Raw science ramps (_uncal.fits; several after one flag, or the flag repeated).",
+    "Science exposures: raw ramps (_uncal.fits), or level-2 images / calslope files, "
+    "which skip processing (several after one flag, or the flag repeated).",
     required=False,
 )
 @exposures_option(
     "cal",
-    "Raw calibrator ramps (_uncal.fits; several after one flag, or repeated).",
+    "Calibrator exposures, as --sci (several after one flag, or repeated).",
     required=False,
 )
 @click.option(
@@ -84,6 +86,9 @@ def command(
     scheduler: str | None = None,
 ) -> int:
     """Raw ramps to companions: amigo process, amigo fit and amigo detect in one go.
+
+    Level-2 images (_cal, _calints, _rateints) or calslope files skip the processing:
+    amigo fit and amigo detect in one process.
 
     All outputs go directly under OUT, named as by the individual commands. Exit status
     as amigo fit's (3: some filters without products, 4: none). With --manifest, each

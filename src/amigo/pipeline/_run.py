@@ -1,7 +1,10 @@
 """The work of ``amigo run`` (:func:`amigo.pipeline.run`): raw ramps -> companions.
 
 process -> fit -> detect, each step keeping what an earlier run left complete for the
-same inputs (``force`` redoes all three).
+same inputs (``force`` redoes all three). Files that are already slopes (the archive's
+level-2 ``_cal``/``_calints``/``_rateints`` images, or calslope files) skip the first
+step: a user's MAST files of either level go through one command and one process (the
+start-up, imports and compiled programs paid once, not once per command).
 """
 
 from __future__ import annotations
@@ -54,10 +57,12 @@ def run(
 ) -> RunResult:
     """Raw ramps to companions, as ``amigo run``: :func:`process`, :func:`fit` and
     :func:`detect` into ``out``, each keeping what an earlier run left complete for the
-    same inputs (``force`` redoes all three). ``superbias``: raw dark ramps, processed
+    same inputs (``force`` redoes all three); level-2 images and calslope files go
+    straight to :func:`fit`. ``superbias``: raw dark ramps, processed
     with the rest, whose reset levels let the first group's photons into the fit.
     ``keep_products``: as :func:`fit`'s."""
     from amigo.io.calslope import calslope_name
+    from amigo.io.jwst import data_kind
     from amigo.progress import step
 
     sci_paths, cal_paths = tuple(map(Path, sci)), tuple(map(Path, cal))
@@ -65,13 +70,18 @@ def run(
     out = Path(out)
     check_roles(sci_paths, cal_paths, superbias_paths, first_group)
     inputs = tuple(dict.fromkeys((*sci_paths, *cal_paths, *superbias_paths)))
-    step(f"run: processing {len(inputs)} raw exposures")
-    processed = process(inputs, out, force=force)
+    # Raw ramps are processed; level-2 images and calslope files are slopes already
+    # (amigo fit refuses a mix of the two levels, naming the file).
+    raw = tuple(p for p in inputs if data_kind(p) == "uncal")
+    processed = ProcessResult()
+    if raw:
+        step(f"run: processing {len(raw)} raw exposures")
+        processed = process(raw, out, force=force)
     if processed.failed:  # each named on its own line already
         raise InputError(
-            None, f"{len(processed.failed)} of {len(inputs)} raw file(s) could not be processed"
+            None, f"{len(processed.failed)} of {len(raw)} raw file(s) could not be processed"
         )
-    slopes = {path: out / calslope_name(path) for path in inputs}
+    slopes = {path: out / calslope_name(path) if path in raw else path for path in inputs}
     step("run: fitting")
     fitted = fit(
         [slopes[p] for p in sci_paths],
