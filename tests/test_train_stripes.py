@@ -110,6 +110,13 @@ def test_the_trainer_measures_and_whitens_the_stripes(striped):
     assert training.cal[0].stripes is None  # the caller's data are not modified
     stats = trainer.statistics(trainer.state.base)
     assert stats[0].zscore_std > 1.3 and 0.85 < stats[0].zscore_std_whitened < 1.15
+    assert trainer.history.stripes_step == [0]
+    # From scratch: measured again where the network comes on after the network-off
+    # stage (the optics then fit), once.
+    staged = Trainer(training, TrainSettings(steps=3, n_batches=1, stage_steps=(1, 2)), config)
+    staged.run(progress=False)
+    assert staged.history.stripes_step == [0, 1]
+    assert staged.stripes["cal"][0][0] == pytest.approx(TAU_DN_S, rel=0.2)
     # Off: nothing measured, nothing whitened.
     off = Trainer(training, TrainSettings(steps=1, n_batches=1, stripes=False), config, cache)
     off.measure_stripes()

@@ -49,7 +49,8 @@ class TrainSettings:
     solved.
 
     ``stripes``: level-2 training: marginalise each image's 1/f column stripes, measured
-    once after the warm-up (:meth:`~amigo.training.trainer.Trainer.measure_stripes`).
+    after the warm-up and again when the network comes on after the network-off stage
+    (:meth:`~amigo.training.trainer.Trainer.measure_stripes`).
     """
 
     steps: int = 200
@@ -182,6 +183,8 @@ class History:
     cal_loss: list[float] = field(default_factory=list)
     flat_loss: list[float] = field(default_factory=list)
     val_loss: list[float] = field(default_factory=list)
+    #: The steps at which the 1/f stripes were measured (level-2 training).
+    stripes_step: list[int] = field(default_factory=list)
 
 
 CHECKPOINT_FORMAT = "amigo-train-checkpoint"

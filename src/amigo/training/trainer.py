@@ -46,7 +46,10 @@ The paper's "Base Model Training and Calibration", as code:
   in ``amigo fit``, they are marginalised: after the warm-up, each calibration and
   validation image's stripes (``tau``, ``ell``) are measured in the halo of its residual
   under the starting model, and its likelihood is whitened for them from then on
-  (:meth:`Trainer.measure_stripes`; once, so that losses of different epochs compare).
+  (:meth:`Trainer.measure_stripes`); measured again when the network comes on after the
+  network-off stage (a model far from the data has column-varying misfit that would be
+  taken for stripes), and not after: the best network is chosen among states whose
+  losses then compare.
   Without it the optics, the residual sensitivity and the network bend towards each
   image's stripes. :attr:`~amigo.training.data.TrainSettings.stripes` turns it off.
 * **Loss curve.** ``amigo.train`` draws the calibration and validation losses against
@@ -292,6 +295,7 @@ class Trainer:
                 )
                 measured[key].append([tau, length])
         self.stripes = measured
+        self.history.stripes_step.append(self.step)
         self._apply_stripes()
         kept = [tau for pairs in measured.values() for tau, _ in pairs if tau > 0]
         report_step(
@@ -626,6 +630,12 @@ class Trainer:
             stage = self.settings.stage_of(self.step)
             if self.step == 0 or stage != self.settings.stage_of(self.step - 1):
                 self.start_stage(stage)
+                if stage == 1 and self.step > 0:
+                    # After the network-off stage the optics fit: measured again there,
+                    # the stripes no longer hold the starting model's misfit. Every
+                    # network-on state (the best is chosen among them) has these.
+                    self.measure_stripes()
+                    self.compute_fisher()
             losses.append(self.train_step(batch, use_network=stage > 0))
             self.history.step.append(self.step)
             self.history.stage.append(stage)
