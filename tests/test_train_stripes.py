@@ -96,7 +96,7 @@ def test_the_whitened_loss_is_the_columns_dense_likelihood(striped):
         data.with_stripes(whitener[:, :10])
 
 
-def test_the_trainer_measures_and_whitens_the_stripes(striped):
+def test_the_trainer_measures_and_whitens_the_stripes(striped, tmp_path):
     config, _, cache, _, data, _, _, _ = striped
     training = TrainingData(cal=[data], flats=[], val=[data])
     trainer = Trainer(training, TrainSettings(steps=1, n_batches=1), config, cache)
@@ -113,10 +113,17 @@ def test_the_trainer_measures_and_whitens_the_stripes(striped):
     assert trainer.history.stripes_step == [0]
     # From scratch: measured again where the network comes on after the network-off
     # stage (the optics then fit), once.
-    staged = Trainer(training, TrainSettings(steps=3, n_batches=1, stage_steps=(1, 2)), config)
-    staged.run(progress=False)
+    settings = TrainSettings(steps=3, n_batches=1, stage_steps=(1, 2))
+    staged = Trainer(training, settings, config, cache)
+    checkpoint = tmp_path / "ckpt.npz"
+    staged.run(checkpoint, progress=False)
     assert staged.history.stripes_step == [0, 1]
     assert staged.stripes["cal"][0][0] == pytest.approx(TAU_DN_S, rel=0.2)
+    # The checkpoint keeps them: a resumed training whitens as the one it continues.
+    resumed = Trainer(training, settings, config, cache)
+    resumed.load_checkpoint(checkpoint)
+    assert resumed.stripes == staged.stripes
+    np.testing.assert_array_equal(resumed.data.cal[0].stripes, staged.data.cal[0].stripes)
     # Off: nothing measured, nothing whitened.
     off = Trainer(training, TrainSettings(steps=1, n_batches=1, stripes=False), config, cache)
     off.measure_stripes()

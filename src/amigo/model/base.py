@@ -713,11 +713,15 @@ def fill_leaves(
     data: NpzFile,
     broadcast: tuple[str, ...] = (),
     from_skeleton: tuple[str, ...] = (),
+    allow_infinite: bool = False,
 ) -> Any:
     """``skeleton`` with every array leaf replaced by the array stored under its path in
     ``data`` (an open npz); :class:`InputError` if paths or shapes differ. A 0-d array
     stored under a path in ``broadcast`` fills the leaf's whole shape, and the paths in
-    ``from_skeleton`` keep the skeleton's value whether stored or not (older formats)."""
+    ``from_skeleton`` keep the skeleton's value whether stored or not (older formats).
+    NaN is refused always, infinities unless ``allow_infinite`` (a training checkpoint:
+    the best loss before any network-on epoch, the Fisher information of pixels no
+    calibrator sees)."""
     expected = leaf_paths(skeleton)
     stored = (set(data.files) - {METADATA_KEY}) | set(from_skeleton)
     if stored != set(expected):
@@ -737,8 +741,10 @@ def fill_leaves(
         if np.issubdtype(np.dtype(leaf.dtype), np.floating):
             if not np.issubdtype(array.dtype, np.floating):
                 raise InputError(path, f"{name} has dtype {array.dtype}, expected floats")
-            if not np.all(np.isfinite(array)):
-                raise InputError(path, f"{name} holds NaN or infinite values")
+            bad = np.isnan(array) if allow_infinite else ~np.isfinite(array)
+            if np.any(bad):
+                what = "NaN" if allow_infinite else "NaN or infinite"
+                raise InputError(path, f"{name} holds {what} values")
         values[name] = array
     arrays, static = eqx.partition(skeleton, _is_array_or_shape)
     flat, treedef = jax.tree_util.tree_flatten_with_path(arrays)

@@ -743,7 +743,9 @@ class Trainer:
                     skeleton,
                     skeleton.base.with_network(self._fresh_network(skeleton.base, 1)),
                 )
-            self.state, self.fisher = fill_leaves(path, (skeleton, self._fisher_skeleton()), data)
+            self.state, self.fisher = fill_leaves(
+                path, (skeleton, self._fisher_skeleton()), data, allow_infinite=True
+            )
         self.step = int(record["step"])
         self.seconds = float(record["seconds"])
         self.history = History(**record["history"])
