@@ -77,7 +77,7 @@ from jaxtyping import Array, Float
 from amigo import heap, programs
 from amigo.fitting.params import FitParams
 from amigo.likelihood.pixels import PixelData
-from amigo.likelihood.stripes import decorrelate_rows, stripe_covariance
+from amigo.likelihood.stripes import decorrelate_rows, stripes_around_peak
 from amigo.model.image import (
     FilterSetup,
     Instrument,
@@ -728,7 +728,7 @@ class _Problem:
         return rows
 
     def refresh(self, vector: np.ndarray) -> bool:
-        """Measure the members' 1/f stripes at ``vector`` (:func:`stripe_covariance` on the
+        """Measure the members' 1/f stripes at ``vector`` (:func:`stripes_around_peak` on the
         plain residuals) and whiten for them from here on; ``True`` when the loss changed.
 
         The solver calls this where it takes new Jacobians, so each Fisher matrix is the
@@ -742,12 +742,8 @@ class _Problem:
         for e in self.members:
             inverse_sigma = self.weight[e].reshape(self.image_shape)
             model = models[e].reshape(self.image_shape)
-            peak = np.unravel_index(
-                np.argmax(np.where(inverse_sigma > 0, model, -np.inf)), model.shape
-            )
-            star = (float(peak[0]), float(peak[1]))  # (y, x) pixels
             residual = self.data[e].reshape(self.image_shape) - model
-            tau, length = stripe_covariance(residual, inverse_sigma, star)
+            tau, length = stripes_around_peak(residual, inverse_sigma, model)
             if (tau, length) != (self.fit.stripe_sigma[e], self.fit.stripe_length[e]):
                 self.fit.stripe_sigma[e], self.fit.stripe_length[e] = tau, length
                 changed = True

@@ -173,6 +173,18 @@ def stripe_covariance(
     return float(np.sqrt(tau2[best])), float(LENGTHS_PIX[best])
 
 
+def stripes_around_peak(
+    residual_dn_s: npt.ArrayLike, inverse_sigma: npt.ArrayLike, model_dn_s: npt.ArrayLike
+) -> tuple[float, float]:
+    """:func:`stripe_covariance` of one (ny, nx) image with the star at the model's
+    brightest used pixel (``inverse_sigma > 0``): how ``amigo fit`` and ``amigo train``
+    place the halo. ``model_dn_s`` in any unit proportional to the image's."""
+    a = np.asarray(inverse_sigma, np.float64)
+    model = np.asarray(model_dn_s, np.float64)
+    peak = np.unravel_index(np.argmax(np.where(a > 0, model, -np.inf)), model.shape)
+    return stripe_covariance(residual_dn_s, a, (float(peak[0]), float(peak[1])))
+
+
 def decorrelate_rows(rows: np.ndarray, whitener: np.ndarray, chunk: int = 64) -> None:
     """:func:`decorrelate` in place on (k, ny * nx) float64 rows of one image (whitened
     Jacobian columns), ``chunk`` rows at a time: a real fit's ~1000 rows of 6400 pixels

@@ -92,7 +92,7 @@ from amigo.likelihood.slopes import (
     initial_flat,
     initial_point_source,
 )
-from amigo.likelihood.stripes import column_whiteners, stripe_covariance
+from amigo.likelihood.stripes import column_whiteners, stripes_around_peak
 from amigo.model.base import (
     BaseModel,
     BaseModelConfig,
@@ -268,7 +268,7 @@ class Trainer:
     # -------------------------------------------------------------- 1/f stripes
     def measure_stripes(self) -> None:
         """Measure each level-2 calibration and validation image's 1/f stripes in the
-        halo of its residual at the current state (:func:`stripe_covariance`, the star at
+        halo of its residual at the current state (:func:`stripes_around_peak`, the star at
         the model's peak, as ``amigo fit`` does) and whiten its likelihood for them from
         here on (:meth:`SlopeData.with_stripes`). Does nothing for calslope data (``amigo
         process`` removes their stripes) or with ``settings.stripes`` off."""
@@ -284,15 +284,8 @@ class Trainer:
             for p, d in zip(params, datasets, strict=True):
                 plain = d.with_stripes(None)
                 model = np.asarray(compiled_model(base, p, plain, cache)[0], np.float64)
-                inverse_sigma = _inverse_sigma_dn_s(plain)
-                star = np.unravel_index(
-                    np.argmax(np.where(inverse_sigma > 0, model, -np.inf)), model.shape
-                )
-                t = d.group_time_s
-                residual = (np.asarray(plain.slopes_dn[0], np.float64) - model) / t
-                tau, length = stripe_covariance(
-                    residual, inverse_sigma, (float(star[0]), float(star[1]))
-                )
+                residual = (np.asarray(plain.slopes_dn[0], np.float64) - model) / d.group_time_s
+                tau, length = stripes_around_peak(residual, _inverse_sigma_dn_s(plain), model)
                 measured[key].append([tau, length])
         self.stripes = measured
         self.history.stripes_step.append(self.step)
