@@ -174,6 +174,13 @@ def test_the_solver_sees_the_stripes_covariance():
         _, normal = problem.normal_equations(vector, "test")
         scale = np.abs(gradient).max()
         np.testing.assert_allclose(normal, gradient, rtol=1e-4, atol=1e-6 * scale)
+        if e == 1:  # a science stage's gradient leaves the instrument block alone
+            assert not np.any(gradient[layout.optics])
+        # The other exposure's image is not computed: its residuals are zero.
+        assert not np.any(problem._residuals_at(vector)[1 - e])
+    # One reverse pass serves a stage only if its exposures are of one kind.
+    with pytest.raises(ValueError, match="calibrators only or science only"):
+        _Problem(fit, params, np.array([0, 1])).gradient(vector)
 
 
 @pytest.mark.slow

@@ -578,15 +578,19 @@ def _images(thetas, instrument, setup, psfs, anchor) -> Float[Array, "e 80 80"]:
 
 
 @programs.jit
-def _gradient(thetas, block, instrument, setup, anchor, pull, members, calibrator):
-    """Gradient of ``L = sum_e |W_e (d_e - m_e)|^2 / 2`` over the exposures with
-    ``members[e] = 1`` w.r.t. every exposure's local vector (E, n) and the instrument
-    block ``[Zernikes, defocus, geometry]``, by reverse mode, given ``pull`` (E, npix):
-    ``W_e^2 (d_e - m_e)``, the residuals weighted twice, from a model of any precision
-    (the reverse pass is linear in it; see the module notes, "Precision").
+def _gradient(thetas, block, instrument, setup, anchor, pull, wavefront):
+    """Gradient of ``L = sum_e |W_e (d_e - m_e)|^2 / 2`` over the exposures whose local
+    vectors are ``thetas`` (E, n), w.r.t. those vectors (E, n) and, where ``wavefront`` is
+    1, the instrument block ``[Zernikes, defocus, geometry]`` (else 0, not computed), by
+    reverse mode, given ``pull`` (E, npix): ``W_e^2 (d_e - m_e)``, the residuals weighted
+    twice, from a model of any precision (the reverse pass is linear in it; see the
+    module notes, "Precision").
 
-    Only exposures with ``calibrator[e] = 1`` inform the instrument block (science
-    exposures see it as a constant, as in :meth:`amigo.fitting.filter_fit.FilterFit.models`).
+    A stage's exposures are all calibrators (they inform the instrument block) or all
+    science exposures (they see it as a constant, as in
+    :meth:`amigo.fitting.filter_fit.FilterFit.models`), so one reverse pass of the images
+    serves both gradients; ``wavefront`` is a traced 0 or 1, so that both stages run one
+    compiled program.
     """
     shape = instrument.optics.zernikes_nm.shape
     n_wave = shape[0] * shape[1] + 1
@@ -604,13 +608,16 @@ def _gradient(thetas, block, instrument, setup, anchor, pull, members, calibrato
         return jax.vmap(lambda t: _local_image(t, at_instrument, at_setup, psfs, anchor))(thetas)
 
     images, image_pullback = jax.vjp(images_of, thetas, psfs, block[n_wave:])
-    # dL/dm_e = -mask_e W_e^2 (d_e - m_e), with the members' mask for the local vectors
-    # and the calibrators' for the instrument: both pulled back by one batched reverse
-    # pass (one copy of the model's backward graph, not two, to compile).
-    masks = jnp.stack([members, calibrator]).astype(images.dtype)
-    cotangents = (-masks[:, :, None] * pull[None]).reshape((2, *images.shape))
-    g_thetas, g_psfs, g_rest = jax.vmap(image_pullback)(cotangents)
-    return g_thetas[0], jnp.concatenate([pullback(g_psfs[1])[0], g_rest[1]])
+    # dL/dm_e = -W_e^2 (d_e - m_e)
+    g_thetas, g_psfs, g_rest = image_pullback(-pull.reshape(images.shape).astype(images.dtype))
+    # The PSFs' reverse pass only where the stage fits the instrument (a branch, not a
+    # product with 0: the science stage skips it).
+    g_block = jax.lax.cond(
+        wavefront > 0,
+        lambda: jnp.concatenate([pullback(g_psfs)[0], g_rest]),
+        lambda: jnp.zeros(block.shape, block.dtype),
+    )
+    return g_thetas, g_block
 
 
 # ------------------------------------------------------------------------------ solver
@@ -639,7 +646,12 @@ class _Problem:
         self.members = np.asarray(members, int)
         self.n_groups = len(self.members)
         # The prior acts only where the wavefront is fitted: on the calibrators' stage.
-        fits_wavefront = bool(np.any(np.asarray(fit.is_calibrator, bool)[self.members]))
+        # A problem's exposures are all calibrators or all science (or, for residuals
+        # only, every exposure: signature_amplitudes).
+        calibrators = np.asarray(fit.is_calibrator, bool)[self.members]
+        fits_wavefront = bool(np.any(calibrators))
+        self.fits_wavefront = fits_wavefront
+        self._one_kind = bool(np.all(calibrators) or not fits_wavefront)
         # Gaussian priors on the instrument block (only where it is fitted): the geometry's
         # always, the wavefront's if asked for; zero precision means no prior.
         lay = self.layout
@@ -672,11 +684,11 @@ class _Problem:
             self.layout.local(e, int(fit.source_index[e])) for e in range(fit.n_exposures)
         ]
         self.n_values = float(np.count_nonzero(self.weight[self.members]))
-        self.member_mask = np.isin(np.arange(fit.n_exposures), self.members)
         self.float64 = False
         self._models64: tuple[Instrument, FilterSetup] | None = None
         self._last_residuals: tuple[tuple[bytes, bool], np.ndarray] | None = None
         self._last_models: tuple[tuple[bytes, bool], np.ndarray] | None = None
+        self._last_psfs: dict[str, tuple[bytes, Array]] = {}
 
     def _models(self, float64: bool | None = None):
         if not (self.float64 if float64 is None else float64):
@@ -703,16 +715,34 @@ class _Problem:
         return instrument, setup, dtype, block, thetas, anchor
 
     def _psfs(self, instrument, setup, block, anchor):
+        """The filter's PSFs at the instrument ``block``, the last block's kept per
+        precision: the science stage holds the block fixed, and the calibrators' stage
+        takes its Jacobians where it has just taken the loss. ``instrument`` and ``setup``
+        are those of ``block`` (:meth:`_inputs`), so the block is the key."""
+        key = np.asarray(block).tobytes()
+        kept = self._last_psfs.get(str(block.dtype))
+        if kept is not None and kept[0] == key:
+            return kept[1]
         optics = _split_block(block, self.layout.zernike_shape)
-        return psfs_of(instrument, setup, optics, anchor)
+        psfs = psfs_of(instrument, setup, optics, anchor)
+        self._last_psfs[str(block.dtype)] = (key, psfs)
+        return psfs
 
     def _images_at(self, vector: np.ndarray) -> np.ndarray:
-        """(E, npix) model images (DN/s) at ``vector``, float64 from the current precision."""
+        """(E, npix) model images (DN/s) at ``vector``, float64 from the current precision,
+        of the member exposures; the others' rows hold their data (residuals of zero: the
+        problem does not see them, and their images are not computed).
+
+        One exposure per call, so that one compiled program serves every stage and
+        problem whatever its number of exposures (the PSFs are computed once, before)."""
+        models = self.data.copy()
         with self.precision():
             instrument, setup, _, wavefront, thetas, anchor = self._inputs(vector)
             psfs = self._psfs(instrument, setup, wavefront, anchor)
-            models = _images(thetas, instrument, setup, psfs, anchor)
-        return np.asarray(models, np.float64).reshape(self.fit.n_exposures, -1)
+            for e in self.members:
+                image = _images(thetas[e : e + 1], instrument, setup, psfs, anchor)
+                models[e] = np.asarray(image, np.float64).reshape(-1)
+        return models
 
     def _residuals(self, models: np.ndarray) -> np.ndarray:
         """(E, npix) whitened residuals ``(data - model) / sigma`` of every exposure (0
@@ -783,25 +813,26 @@ class _Problem:
     def gradient(self, vector: np.ndarray) -> np.ndarray:
         """``g = -grad L`` at ``vector``: one float32 reverse-mode pass of the residuals
         of the current precision (module notes, "Precision")."""
-        fit, lay = self.fit, self.layout
+        lay = self.layout
+        if not self._one_kind:
+            raise ValueError("a gradient needs a problem of calibrators only or science only")
         # J^T C^-1 r: the (stripe-)whitened residuals whitened once more, then / sigma.
         pull = self._whiten_stripes(self._residuals_at(vector).copy()) * self.weight
         instrument, setup, dtype, wavefront, thetas, anchor = self._inputs(vector, float64=False)
         g_thetas, g_wave = _gradient(
-            thetas,
+            thetas[self.members],
             wavefront,
             instrument,
             setup,
             anchor,
-            jnp.asarray(pull, dtype),
-            jnp.asarray(self.member_mask, dtype),
-            jnp.asarray(self.member_mask & np.asarray(fit.is_calibrator, bool), dtype),
+            jnp.asarray(pull[self.members], dtype),
+            jnp.asarray(self.fits_wavefront, dtype),
         )
         g_thetas = np.asarray(g_thetas, np.float64)
         g_wave = np.asarray(g_wave, np.float64)
         grad = np.zeros(lay.size)
-        for e in self.members:
-            np.add.at(grad, self.locals[e], g_thetas[e])
+        for k, e in enumerate(self.members):
+            np.add.at(grad, self.locals[e], g_thetas[k])
         grad[lay.optics] += g_wave + self.prior_precision * self._prior_offset(vector)
         grad += self.jitter_precision * (vector - self.jitter_centre)
         return -grad
