@@ -149,6 +149,23 @@ def test_calvis_observables_match_independent_projection(tmp_path):
     )
 
 
+def test_predicted_scenes_are_each_scenes_prediction(tmp_path):
+    """The batched prediction of the posterior predictive figure: each row is
+    :meth:`Observables.predicted` of its scene alone (two companions, three scenes)."""
+    rng = np.random.default_rng(6)
+    path = write_sim_calvis(tmp_path / "s_F480M_calvis.fits", "F480M", [(150.0, -40.0, 0.05)], rng)
+    block = obs.load(path)
+    offsets = rng.normal(0.0, 200.0, (3, 2, 2))
+    contrasts = 10.0 ** rng.uniform(-3.0, -1.0, (3, 2))
+    with jax.enable_x64(True):
+        batched = np.asarray(obs.predicted_scenes(block, offsets, contrasts, 0.0))
+        for k in range(3):
+            vis = scene_visibility(
+                block.uv_m, block.wavelengths_m, block.weights, offsets[k], contrasts[k]
+            )
+            np.testing.assert_allclose(batched[k], np.asarray(block.predicted(vis)), rtol=1e-10)
+
+
 def test_silent_uv_points_are_the_largest_weak_set_within_the_bound():
     rng = np.random.default_rng(11)
     n_obs, n_uv = 40, 30

@@ -38,6 +38,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
+from amigo import programs
+from amigo.companions.models import scene_visibility
 from amigo.errors import InputError
 from amigo.io.calvis import CalVis, is_calvis, read_calvis
 from amigo.io.files import require_file
@@ -197,6 +199,24 @@ class Observables(eqx.Module):
     def predicted(self, vis: Array) -> Leaf:
         """Model independent observables (data + wrapped difference, for plots)."""
         return self.observed() + self._whiten(self.raw(vis) - self.data_raw)
+
+
+@programs.jit
+def predicted_scenes(
+    block: Observables, offsets_mas: Array, contrasts: Array, diameter_mas: float
+) -> Array:
+    """(n, n_obs) :meth:`Observables.predicted` for ``n`` scenes of a primary of
+    ``diameter_mas`` and companions at ``offsets_mas`` (n, n_comp, 2) with flux ratios
+    ``contrasts`` (n, n_comp): one compiled program (the posterior predictive figure's 50
+    draws took ~2 s op by op)."""
+
+    def one(offsets, flux_ratios):
+        vis = scene_visibility(
+            block.uv_m, block.wavelengths_m, block.weights, offsets, flux_ratios, diameter_mas
+        )
+        return block.predicted(vis)
+
+    return jax.vmap(one)(offsets_mas, contrasts)
 
 
 # ---------------------------------------------------------------------------- builders

@@ -27,8 +27,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from amigo.companions.limits import COMBINED, lambda_over_d_mas
-from amigo.companions.models import scene_visibility
-from amigo.companions.observables import KIND_NAMES
+from amigo.companions.observables import KIND_NAMES, predicted_scenes
 from amigo.companions.search import DetectionResult
 from amigo.io.atomic import atomic_path
 from amigo.niriss import PUPIL_DIAMETER_M
@@ -306,28 +305,20 @@ def plot_posterior_predictive(
         median = (np.zeros(0), np.zeros(0), np.zeros((0, ds.n_filters)))
         params = []
 
-    def predict(dra, ddec, log10c):
-        offsets = np.column_stack([dra, ddec])
-        out = []
-        for i, b in enumerate(ds.blocks):
-            f = ds.filter_index(i)
-            vis = scene_visibility(
-                b.uv_m,
-                b.wavelengths_m,
-                b.weights,
-                offsets,
-                10.0 ** np.asarray(log10c)[:, f],
-                diameter,
+    def predict(scenes):
+        """Per block, (n_scenes, n_obs) model observables of ``scenes``, a list of
+        ``(dra, ddec, log10c)``."""
+        offsets = np.stack([np.column_stack([dra, ddec]) for dra, ddec, _ in scenes])
+        log10c = np.stack([np.asarray(c, float) for _, _, c in scenes])  # (n, n_comp, n_f)
+        return [
+            np.asarray(
+                predicted_scenes(b, offsets, 10.0 ** log10c[:, :, ds.filter_index(i)], diameter)
             )
-            out.append(np.asarray(b.predicted(vis)))
-        return out
+            for i, b in enumerate(ds.blocks)
+        ]
 
-    best = predict(*median)
-    spread = (
-        [np.std(np.stack(x), axis=0) for x in zip(*[predict(*p) for p in params], strict=True)]
-        if params
-        else None
-    )
+    best = [rows[0] for rows in predict([median])]
+    spread = [np.std(rows, axis=0) for rows in predict(params)] if params else None
     scales = ds.scale_vectors(result.group_scales)
     kinds_present = sorted({k for b in ds.blocks for k in b.kinds})
     fig, axes = plt.subplots(
