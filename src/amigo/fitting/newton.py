@@ -730,18 +730,15 @@ class _Problem:
 
     def _images_at(self, vector: np.ndarray) -> np.ndarray:
         """(E, npix) model images (DN/s) at ``vector``, float64 from the current precision,
-        of the member exposures; the others' rows hold their data (residuals of zero: the
-        problem does not see them, and their images are not computed).
-
-        One exposure per call, so that one compiled program serves every stage and
-        problem whatever its number of exposures (the PSFs are computed once, before)."""
+        of the member exposures, in one batched call; the others' rows hold their data
+        (residuals of zero: the problem does not see them, and their images are not
+        computed)."""
         models = self.data.copy()
         with self.precision():
             instrument, setup, _, wavefront, thetas, anchor = self._inputs(vector)
             psfs = self._psfs(instrument, setup, wavefront, anchor)
-            for e in self.members:
-                image = _images(thetas[e : e + 1], instrument, setup, psfs, anchor)
-                models[e] = np.asarray(image, np.float64).reshape(-1)
+            images = _images(thetas[self.members], instrument, setup, psfs, anchor)
+        models[self.members] = np.asarray(images, np.float64).reshape(len(self.members), -1)
         return models
 
     def _residuals(self, models: np.ndarray) -> np.ndarray:
