@@ -589,8 +589,9 @@ def _gradient(thetas, block, instrument, setup, anchor, pull, wavefront):
     A stage's exposures are all calibrators (they inform the instrument block) or all
     science exposures (they see it as a constant, as in
     :meth:`amigo.fitting.filter_fit.FilterFit.models`), so one reverse pass of the images
-    serves both gradients; ``wavefront`` is a traced 0 or 1, so that both stages run one
-    compiled program.
+    serves both gradients; ``wavefront`` is a traced 0 or 1, so that both stages share a
+    compiled program where they hold as many exposures (one science and one calibrator
+    exposure: one program; five calibrator dithers and two science exposures: two).
     """
     shape = instrument.optics.zernikes_nm.shape
     n_wave = shape[0] * shape[1] + 1
@@ -718,14 +719,16 @@ class _Problem:
         """The filter's PSFs at the instrument ``block``, the last block's kept per
         precision: the science stage holds the block fixed, and the calibrators' stage
         takes its Jacobians where it has just taken the loss. ``instrument`` and ``setup``
-        are those of ``block`` (:meth:`_inputs`), so the block is the key."""
+        are those of ``block`` (:meth:`_inputs`), so the block is the key, with the
+        precision the PSFs are computed in (a caller's ``jax.enable_x64`` included)."""
         key = np.asarray(block).tobytes()
-        kept = self._last_psfs.get(str(block.dtype))
+        context = f"{block.dtype}:{jax.config.jax_enable_x64}"
+        kept = self._last_psfs.get(context)
         if kept is not None and kept[0] == key:
             return kept[1]
         optics = _split_block(block, self.layout.zernike_shape)
         psfs = psfs_of(instrument, setup, optics, anchor)
-        self._last_psfs[str(block.dtype)] = (key, psfs)
+        self._last_psfs[context] = (key, psfs)
         return psfs
 
     def _images_at(self, vector: np.ndarray) -> np.ndarray:
