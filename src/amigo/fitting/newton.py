@@ -722,7 +722,7 @@ class _Problem:
         are those of ``block`` (:meth:`_inputs`), so the block is the key, with the
         precision the PSFs are computed in (a caller's ``jax.enable_x64`` included)."""
         key = np.asarray(block).tobytes()
-        context = f"{block.dtype}:{jax.config.jax_enable_x64}"
+        context = f"{block.dtype}:{jax.config.read('jax_enable_x64')}"
         kept = self._last_psfs.get(context)
         if kept is not None and kept[0] == key:
             return kept[1]
