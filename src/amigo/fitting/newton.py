@@ -650,15 +650,14 @@ class _Problem:
         # A problem's exposures are all calibrators or all science (or, for residuals
         # only, every exposure: signature_amplitudes).
         calibrators = np.asarray(fit.is_calibrator, bool)[self.members]
-        fits_wavefront = bool(np.any(calibrators))
-        self.fits_wavefront = fits_wavefront
-        self._one_kind = bool(np.all(calibrators) or not fits_wavefront)
+        self.fits_wavefront = bool(np.any(calibrators))
+        self._one_kind = bool(np.all(calibrators) or not self.fits_wavefront)
         # Gaussian priors on the instrument block (only where it is fitted): the geometry's
         # always, the wavefront's if asked for; zero precision means no prior.
         lay = self.layout
         self.prior_precision = np.zeros(len(lay.optics))
         n_wave = len(lay.wavefront)
-        if fits_wavefront:
+        if self.fits_wavefront:
             self.prior_precision[n_wave:-1] = 1.0 / np.square(geometry_prior_sigma)
             self.prior_precision[-1] = 1.0 / float(band_taper_prior) ** 2
             if wavefront_prior_nm is not None:
