@@ -8,6 +8,8 @@ float64 potential far below what moves a sample.
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.extend
 import jax.numpy as jnp
@@ -271,3 +273,87 @@ def test_fits_side_by_side_take_the_steps_each_takes_alone(tmp_path, monkeypatch
             fitting.fit_companions_many(
                 dataset, [starts[0], (np.zeros((2, 2)), np.full((2, f), -2.0))], scales
             )
+
+
+def test_the_padded_view_is_the_same_posterior(tmp_path):
+    """Padded to bucket sizes (inert uv points and observables, padded rows in a group of
+    scale 1), the potential's value and gradient are the dataset's own, in float64 and in
+    the float32 NUTS evaluates."""
+    with jax.enable_x64(True):
+        dataset = _dataset(tmp_path)
+        z, bounds = _point(dataset)
+        for d in (dataset, dataset.single_precision()):
+            view = obs.program_view(d)
+            for block, padded, rows in zip(d.blocks, view.dataset.blocks, view.rows, strict=True):
+                assert padded.n_uv == obs.uv_bucket(block.n_uv) > block.n_uv
+                assert padded.n_obs > block.n_obs == rows.size
+                assert padded.design_tail.dtype == block.design_tail.dtype
+
+            def value_and_gradient(v, d=d):
+                return (
+                    jax.value_and_grad(lambda q: _potential(q, d, bounds, 0.0))(z)
+                    if v is None
+                    else (
+                        jax.value_and_grad(
+                            lambda q: _potential(q, v.dataset, bounds, 0.0, v.groups)
+                        )(z)
+                    )
+                )
+
+            v0, g0 = value_and_gradient(None)
+            v1, g1 = value_and_gradient(view)
+            assert abs(float(v1) - float(v0)) <= 1e-6 * abs(float(v0))
+            for name in g0:
+                np.testing.assert_allclose(g1[name], g0[name], rtol=1e-4, atol=1e-6)
+
+
+def _fewer(block: obs.Observables, n_uv: int, n_rows: int) -> obs.Observables:
+    """``block`` without its last ``n_uv`` uv points and its first ``n_rows`` amplitude
+    observables (another target's silent knots and dropped DISCOs)."""
+    uv = np.arange(block.n_uv - n_uv)
+    rows = np.arange(n_rows, block.n_obs)
+    head, tail = np.asarray(block.design_head), np.asarray(block.design_tail)
+    return dataclasses.replace(
+        block,
+        uv_m=block.uv_m[uv],
+        wavelengths_m=block.wavelengths_m[uv],
+        weights=block.weights[uv],
+        design_head=head[n_rows:][:, uv],
+        design_tail=tail[:, np.concatenate([uv, block.n_uv + uv])],
+        exp_rows=block.exp_rows[rows],
+        wrap_rows=block.wrap_rows[rows],
+        data_raw=block.data_raw[rows],
+        errors=block.errors[rows],
+        kinds=tuple(np.asarray(block.kinds)[rows].tolist()),
+        source="another_calvis.fits",
+        target="ANOTHER",
+    )
+
+
+def test_another_targets_files_share_the_nuts_program(tmp_path):
+    """Two targets whose calvis files differ in their uv points, DISCO count and names
+    but fall in the same buckets give the NUTS program the same key: the second target
+    reads the first one's program from disk instead of compiling its own."""
+    from amigo.companions import posterior
+
+    with jax.enable_x64(True):
+        first = _dataset(tmp_path).blocks[1]
+        second = _fewer(first, 3, 2)
+        assert obs.uv_bucket(first.n_uv) == obs.uv_bucket(second.n_uv)
+
+        def key(block, padded=True):
+            dataset = obs.Dataset.from_blocks([block]).single_precision()
+            z, bounds = _point(dataset)
+            if padded:
+                view = obs.program_view(dataset)
+                data = (view.dataset, view.groups)
+            else:
+                groups = (jnp.asarray(dataset.group_index(0)),)
+                data = (dataset, groups)
+            args = ((z, jax.random.PRNGKey(0)), *data, bounds, 0.0, None, 10, 20)
+            leaves, treedef = jax.tree_util.tree_flatten((args, {}))
+            return posterior._nuts_draws._key(treedef, leaves)
+
+        assert key(first) == key(second)
+        # the files as read would not
+        assert key(first, padded=False) != key(second, padded=False)

@@ -20,7 +20,7 @@ import numpy.typing as npt
 
 from amigo import programs, runtime
 from amigo.companions.models import scene_visibility
-from amigo.companions.observables import Dataset, Observables
+from amigo.companions.observables import Dataset, Observables, program_view
 
 #: Lowest log10 flux ratio allowed in the fits (a companion 25 magnitudes fainter).
 LOG10_CONTRAST_FLOOR = -10.0
@@ -50,6 +50,20 @@ def block_residuals(
     )
 
 
+def own_residuals(
+    dataset: Dataset,
+    offsets_mas: jax.Array,
+    contrasts: jax.Array,
+    primary_diameter_mas: float = 0.0,
+) -> tuple[np.ndarray, ...]:
+    """:func:`block_residuals` (NumPy) evaluated on the dataset's
+    :func:`~amigo.companions.observables.program_view`, whose compiled program another
+    target's files of the same buckets share, and taken back to each block's own rows."""
+    view = program_view(dataset)
+    padded = block_residuals(view.dataset, offsets_mas, contrasts, primary_diameter_mas)
+    return tuple(np.asarray(r)[rows] for r, rows in zip(padded, view.rows, strict=True))
+
+
 def block_residual(
     block: Observables,
     offsets_mas: jax.Array,
@@ -69,7 +83,9 @@ def block_residual(
     return block.residuals(vis)
 
 
-def group_chi2(dataset: Dataset, residuals: tuple[jax.Array, ...]) -> tuple[np.ndarray, ...]:
+def group_chi2(
+    dataset: Dataset, residuals: tuple[jax.Array | np.ndarray, ...]
+) -> tuple[np.ndarray, ...]:
     """(chi2, number of observables) per group, from unscaled residuals."""
     chi2 = np.zeros(dataset.n_groups)
     count = np.zeros(dataset.n_groups, dtype=int)
@@ -87,7 +103,7 @@ def estimate_scales(
     primary_diameter_mas: float = 0.0,
 ) -> np.ndarray:
     """Maximum-likelihood error scales ``sqrt(chi2_g / n_g)`` per group for a given scene."""
-    residuals = block_residuals(
+    residuals = own_residuals(
         dataset, jnp.asarray(offsets_mas), jnp.asarray(contrasts), primary_diameter_mas
     )
     chi2, count = group_chi2(dataset, residuals)
@@ -380,7 +396,16 @@ def fit_companions_many(
     if not starts:
         return []
     scales = np.ones(dataset.n_groups) if group_scales is None else np.asarray(group_scales)
-    scale_vectors = dataset.scale_vectors(scales)
+    # The observables padded to bucket sizes (program_view): the programs of another
+    # target's files are then usually the ones on disk. Padded rows have residual 0 and
+    # Jacobian rows 0, so chi2, J^T J and J^T r are the dataset's own.
+    view = program_view(dataset)
+    scale_vectors = tuple(
+        _padded_scales(vector, rows, block.n_obs)
+        for vector, rows, block in zip(
+            dataset.scale_vectors(scales), view.rows, view.dataset.blocks, strict=True
+        )
+    )
     firsts = []
     for offsets_mas, log10_contrasts in starts:
         offsets0 = np.asarray(offsets_mas, dtype=float).reshape(-1, 2)
@@ -394,7 +419,7 @@ def fit_companions_many(
     if len(counts) > 1:
         raise ValueError(f"every start must have the same number of companions, got {counts}")
     k = counts.pop()
-    args = (dataset, scale_vectors, k, float(primary_diameter_mas))
+    args = (view.dataset, scale_vectors, k, float(primary_diameter_mas))
 
     def single(point: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         r, j = _residual_and_jacobian(jnp.asarray(point), args)
@@ -437,6 +462,14 @@ def fit_companions_many(
     return out
 
 
+def _padded_scales(vector: jax.Array | np.ndarray, rows: np.ndarray, n_obs: int) -> np.ndarray:
+    """A block's (n_obs,) error-scale vector on its padded observables (ones at the
+    padded rows: their residuals are 0)."""
+    out = np.ones(n_obs, dtype=np.asarray(vector).dtype)
+    out[rows] = vector
+    return out
+
+
 def _singles_up_to() -> int:
     """Up to how many points :func:`fit_companions_many` evaluates one by one, side by
     side on the CPU's cores, rather than as a padded batch.
@@ -467,7 +500,7 @@ def scaled_chi2(
 ) -> float:
     """chi2 of a scene (companions at ``offsets_mas`` (n, 2) with linear ``contrasts``
     (n, F)) with every group's errors multiplied by its scale (summed in NumPy)."""
-    parts = block_residuals(dataset, offsets_mas, contrasts, primary_diameter_mas)
+    parts = own_residuals(dataset, offsets_mas, contrasts, primary_diameter_mas)
     scales = dataset.scale_vectors(group_scales)
     return float(
         sum(

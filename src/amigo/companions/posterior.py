@@ -28,7 +28,7 @@ import numpy as np
 
 from amigo import programs
 from amigo.companions.fit import CompanionFitResult, block_residuals
-from amigo.companions.observables import Dataset
+from amigo.companions.observables import Dataset, program_view
 
 #: Thresholds below which a chain is reported as poorly converged.
 R_HAT_MAX = 1.05
@@ -145,13 +145,22 @@ def _from_box(x: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
 
 
 @eqx.filter_jit
-def _potential(z: dict, dataset: Dataset, bounds: dict, primary_diameter_mas: float):
+def _potential(
+    z: dict,
+    dataset: Dataset,
+    bounds: dict,
+    primary_diameter_mas: float,
+    groups: tuple[jax.Array, ...] | None = None,
+):
     """Negative log posterior density in the unconstrained coordinates ``z``.
 
     Each site has a uniform prior on a box, sampled through ``x = lo + (hi - lo)
     sigmoid(z)``: the prior density in ``z`` is the Jacobian ``sigmoid(z) sigmoid(-z)``
     (up to a constant). The likelihood is Gaussian in the whitened residuals with one
     error scale per group: ``-chi2 / 2 - sum log(scale)`` over the observables.
+    ``groups``: each block's group index per observable (a
+    :class:`~amigo.companions.observables.ProgramView`'s, whose
+    padded rows point at an inert slot of scale 1); ``None``: the dataset's own.
 
     Compiled as one program (value and gradient): numpyro evaluates it eagerly while it
     initialises the chains, which op by op costs minutes of compilation on a small CPU.
@@ -166,9 +175,13 @@ def _potential(z: dict, dataset: Dataset, bounds: dict, primary_diameter_mas: fl
     offsets = jnp.stack([x["dra"], x["ddec"]], axis=-1).astype(dtype)
     contrasts = (10.0 ** x["log10c"]).astype(dtype)
     residuals = block_residuals(dataset, offsets, contrasts, primary_diameter_mas)
+    if groups is None:
+        groups = tuple(jnp.asarray(dataset.group_index(i)) for i in range(len(residuals)))
+    # The last slot, scale 1, is padded rows' (residual 0): they add nothing.
+    scales = jnp.concatenate([x["scale"], jnp.ones((1,), x["scale"].dtype)])
     loglike: float | jax.Array = 0.0
     for i, r in enumerate(residuals):
-        s = x["scale"][dataset.group_index(i)]
+        s = scales[groups[i]]
         loglike = loglike - 0.5 * jnp.sum((r.astype(s.dtype) / s) ** 2) - jnp.sum(jnp.log(s))
     return -(loglike + log_jacobian)
 
@@ -177,6 +190,7 @@ def _potential(z: dict, dataset: Dataset, bounds: dict, primary_diameter_mas: fl
 def _nuts_draws(
     start: Any,
     dataset: Dataset,
+    groups: tuple[jax.Array, ...],
     bounds: dict,
     primary_diameter_mas: float,
     inverse_mass: jax.Array | None,
@@ -196,14 +210,17 @@ def _nuts_draws(
     observables and the boxes as arguments (a potential that closed over them would put
     every matrix into the program as a constant, 21-85 MB a program, and a new target
     would compile anew): the program is the same for every chain and target of these
-    shapes, and kept on disk (:mod:`amigo.programs`); numpyro's ``MCMC``
+    shapes, and kept on disk (:mod:`amigo.programs`); the observables come padded to
+    bucket sizes (:func:`~amigo.companions.observables.program_view`) so that another
+    target's files usually have these shapes too; numpyro's ``MCMC``
     lowered a sampling loop of its own for every chain and every run (16 per AB Dor
     detection, 8 s of a warm run on a 2-core CPU).
     """
     from numpyro.infer.hmc import HMCState, hmc
 
     init_kernel, sample_kernel = hmc(
-        potential_fn=lambda z: _potential(z, dataset, bounds, primary_diameter_mas), algo="NUTS"
+        potential_fn=lambda z: _potential(z, dataset, bounds, primary_diameter_mas, groups),
+        algo="NUTS",
     )
     continuing = isinstance(start, HMCState)
     z0, key = (start.z, start.rng_key) if continuing else start
@@ -311,7 +328,7 @@ def sample_posterior(
         }
         z0 = {name: jnp.asarray(_from_box(start[name], *bounds[name])) for name in SITES}
         diameter = float(primary_diameter_mas)
-        evaluated = dataset.single_precision() if single_precision else dataset
+        evaluated = program_view(dataset.single_precision() if single_precision else dataset)
         boxes = jax.tree.map(jnp.asarray, bounds)
         inverse_mass = (
             _laplace_inverse_mass(dataset, best, scales0, start, bounds) if laplace_mass else None
@@ -324,7 +341,7 @@ def sample_posterior(
         def run(starts: list, n: int) -> tuple[dict[str, np.ndarray], list]:
             """Every chain's next ``n`` draws from ``starts``: (chains, n, ...) per site in
             the physical box, and the chains' last states."""
-            common = (evaluated, boxes, diameter, mass, num_warmup, n)
+            common = (evaluated.dataset, evaluated.groups, boxes, diameter, mass, num_warmup, n)
             # Side by side in threads: each chain alone leaves a 2-core CPU a third idle.
             results = programs.side_by_side(lambda start: _nuts_draws(start, *common), starts)
             per_chain, ends = [r[0] for r in results], [r[1] for r in results]

@@ -27,7 +27,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from amigo.companions.limits import COMBINED, lambda_over_d_mas
-from amigo.companions.observables import KIND_NAMES, predicted_scenes
+from amigo.companions.observables import KIND_NAMES, predicted_scenes, program_view
 from amigo.companions.search import DetectionResult
 from amigo.io.atomic import atomic_path
 from amigo.niriss import PUPIL_DIAMETER_M
@@ -310,11 +310,13 @@ def plot_posterior_predictive(
         ``(dra, ddec, log10c)``."""
         offsets = np.stack([np.column_stack([dra, ddec]) for dra, ddec, _ in scenes])
         log10c = np.stack([np.asarray(c, float) for _, _, c in scenes])  # (n, n_comp, n_f)
+        # On the padded blocks (programs shared with other targets), back to each's rows.
+        view = program_view(ds)
         return [
             np.asarray(
                 predicted_scenes(b, offsets, 10.0 ** log10c[:, :, ds.filter_index(i)], diameter)
-            )
-            for i, b in enumerate(ds.blocks)
+            )[:, rows]
+            for i, (b, rows) in enumerate(zip(view.dataset.blocks, view.rows, strict=True))
         ]
 
     best = [rows[0] for rows in predict([median])]
