@@ -357,3 +357,15 @@ def test_another_targets_files_share_the_nuts_program(tmp_path):
         assert key(first) == key(second)
         # the files as read would not
         assert key(first, padded=False) != key(second, padded=False)
+
+
+def test_a_datasets_view_is_made_once_and_stays_on_the_device(tmp_path):
+    """Every candidate fit asks for the view of the same dataset: made once, and for a
+    dataset on the device, on the device (each compiled call would otherwise copy it)."""
+    with jax.enable_x64(True):
+        dataset = jax.device_put(_dataset(tmp_path))
+        view = obs.program_view(dataset)
+        assert obs.program_view(dataset) is view
+        assert all(isinstance(leaf, jax.Array) for leaf in jax.tree.leaves(view.dataset))
+        assert all(isinstance(g, jax.Array) for g in view.groups)
+        assert obs.program_view(obs.Dataset.from_blocks(dataset.blocks)) is not view

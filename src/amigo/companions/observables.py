@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import threading
 import weakref
 from collections.abc import Sequence
 from typing import Any, Literal, TypeVar, cast
@@ -752,6 +753,7 @@ class ProgramView:
 
 #: Views made lately: (a weak reference to the dataset, its view), newest last.
 _VIEWS: list[tuple[weakref.ref, ProgramView]] = []
+_VIEWS_LOCK = threading.Lock()
 #: How many views are kept (a detection alternates between a few datasets: the joint
 #: one, each filter's, their float32 copies).
 VIEWS_KEPT = 8
@@ -774,17 +776,18 @@ def program_view(dataset: Dataset) -> ProgramView:
     the last :data:`VIEWS_KEPT` views are kept while their datasets live (every compiled
     call would otherwise copy the padded matrices to the device again).
     """
-    for ref, view in _VIEWS:
-        if ref() is dataset:
-            return view
-    view = _program_view(dataset)
-    if any(isinstance(leaf, jax.Array) for leaf in jax.tree.leaves(dataset)):
-        view = dataclasses.replace(
-            view, dataset=jax.device_put(view.dataset), groups=jax.device_put(view.groups)
-        )
-    _VIEWS[:] = [(ref, v) for ref, v in _VIEWS if ref() is not None][-(VIEWS_KEPT - 1) :]
-    _VIEWS.append((weakref.ref(dataset), view))
-    return view
+    with _VIEWS_LOCK:  # fits run side by side in threads
+        for ref, view in _VIEWS:
+            if ref() is dataset:
+                return view
+        view = _program_view(dataset)
+        if any(isinstance(leaf, jax.Array) for leaf in jax.tree.leaves(dataset)):
+            view = dataclasses.replace(
+                view, dataset=jax.device_put(view.dataset), groups=jax.device_put(view.groups)
+            )
+        _VIEWS[:] = [(ref, v) for ref, v in _VIEWS if ref() is not None][-(VIEWS_KEPT - 1) :]
+        _VIEWS.append((weakref.ref(dataset), view))
+        return view
 
 
 def _program_view(dataset: Dataset) -> ProgramView:
