@@ -34,7 +34,7 @@ from scipy import ndimage
 
 from amigo import programs, runtime
 from amigo.companions.models import MAS_TO_RAD, scene_terms
-from amigo.companions.observables import Dataset, Observables, single_precision
+from amigo.companions.observables import Dataset, Observables, program_view, single_precision
 from amigo.companions.significance import log_chi2_sf, sigma_from_log_p
 
 #: Bounds of the contrast solved at each grid point (flux ratios).
@@ -323,12 +323,14 @@ def _solve_chunk(blocks, background, scales, r0, x_phasors, y_phasors, n_steps):
 class _FilterScene:
     """One filter's blocks with a fixed background scene, ready for the grid."""
 
-    blocks: tuple[Observables, ...]
+    blocks: tuple[Observables, ...]  # padded (observables.program_view)
     background: _Background
     residuals: tuple[jax.Array, ...]  # per block, whitened, unit error scales
     x_phasors: tuple[np.ndarray, ...]  # (n_x, n_uv, n_wl), band weights folded in
     y_phasors: tuple[jax.Array, ...]  # (n_y, n_uv, n_wl)
-    groups: np.ndarray  # (n_obs,) the dataset's group index of each observable
+    groups: np.ndarray  # (n_obs padded,) group index of each observable, n_groups: padded
+    n_obs: int  # the blocks' own observables
+    iwa_mas: float  # the files' inner working angle
 
 
 def _filter_blocks(dataset: Dataset, f: int) -> list[int]:
@@ -340,7 +342,10 @@ def _filter_scene(
     dataset: Dataset, f: int, grid: Grid, offsets: np.ndarray, flux: np.ndarray, diameter: float
 ) -> _FilterScene:
     index = _filter_blocks(dataset, f)
-    blocks = tuple(dataset.blocks[i] for i in index)
+    # The padded blocks: another target's files of the same buckets share the programs.
+    # Padded rows' residuals and series are 0 and their group is none of the dataset's.
+    view = program_view(dataset)
+    blocks = tuple(view.dataset.blocks[i] for i in index)
     terms = [
         _background_terms(b, jnp.asarray(offsets), jnp.asarray(flux[:, f]), diameter)
         for b in blocks
@@ -353,7 +358,9 @@ def _filter_scene(
             _axis_phasors(b, grid.x_mas, 0) * np.asarray(b.weights)[None] for b in blocks
         ),
         y_phasors=tuple(jnp.asarray(_axis_phasors(b, grid.y_mas, 1)) for b in blocks),
-        groups=np.concatenate([dataset.group_index(i) for i in index]),
+        groups=np.concatenate([np.asarray(view.groups[i]) for i in index]),
+        n_obs=sum(dataset.blocks[i].n_obs for i in index),
+        iwa_mas=inner_working_angle_mas([dataset.blocks[i] for i in index]),
     )
 
 
@@ -438,7 +445,7 @@ def grid_statistics(
             out.append(None)  # contrast_grid builds this filter's scene and solves it exactly
             continue
         scene = _filter_scene(dataset, f, grid, offsets, flux, primary_diameter_mas)
-        groups = np.unique(scene.groups)
+        groups = np.unique(scene.groups[scene.groups < dataset.n_groups])
         onehot = jnp.asarray((scene.groups[:, None] == groups[None, :]).astype(float))
         r0 = jnp.concatenate(scene.residuals)
         # The products in float32: twice the rate of float64 on a CPU, and their rounding
@@ -467,8 +474,8 @@ def grid_statistics(
                 cross=cross.astype(np.float64),
                 background=np.asarray(jnp.einsum("o,o,og->g", r0, r0, onehot)),
                 groups=groups,
-                n_obs=int(r0.size),
-                iwa_mas=inner_working_angle_mas(scene.blocks),
+                n_obs=scene.n_obs,
+                iwa_mas=scene.iwa_mas,
             )
         )
     return tuple(out)
@@ -529,7 +536,9 @@ def contrast_grid(
         else:
             scene = _filter_scene(dataset, f, grid, offsets, flux, primary_diameter_mas)
             ends = np.cumsum([b.n_obs for b in scene.blocks])[:-1]
-            scales = tuple(jnp.asarray(x) for x in np.split(scales_all[scene.groups], ends))
+            # Padded rows (group n_groups) keep scale 1: their residuals are 0.
+            scale_of = np.append(scales_all, 1.0)
+            scales = tuple(jnp.asarray(x) for x in np.split(scale_of[scene.groups], ends))
             r0 = jnp.concatenate([r / x for r, x in zip(scene.residuals, scales, strict=True)])
             c, sigma, dchi2 = _over_columns(
                 lambda xs, sc=scene, s=scales, r=r0: _solve_chunk(
@@ -539,8 +548,8 @@ def contrast_grid(
                 grid,
                 chunk_columns,
             )
-            chi2_background, n_obs = float(jnp.sum(r0**2)), int(r0.size)
-            iwa = inner_working_angle_mas(scene.blocks)
+            chi2_background, n_obs = float(jnp.sum(r0**2)), scene.n_obs
+            iwa = scene.iwa_mas
         maps.append(
             ContrastMap(
                 filter_name=name,
