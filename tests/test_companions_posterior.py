@@ -9,6 +9,7 @@ float64 potential far below what moves a sample.
 from __future__ import annotations
 
 import dataclasses
+import gc
 
 import jax
 import jax.extend
@@ -355,6 +356,10 @@ def test_another_targets_files_share_the_nuts_program(tmp_path):
             return posterior._nuts_draws._key(treedef, leaves)
 
         assert key(first) == key(second)
+        # and in memory too (equinox's and JAX's caches compare the static fields)
+        views = [obs.program_view(obs.Dataset.from_blocks([b])) for b in (first, second)]
+        structures = [jax.tree_util.tree_structure(v.dataset) for v in views]
+        assert structures[0] == structures[1]
         # the files as read would not
         assert key(first, padded=False) != key(second, padded=False)
 
@@ -368,4 +373,25 @@ def test_a_datasets_view_is_made_once_and_stays_on_the_device(tmp_path):
         assert obs.program_view(dataset) is view
         assert all(isinstance(leaf, jax.Array) for leaf in jax.tree.leaves(view.dataset))
         assert all(isinstance(g, jax.Array) for g in view.groups)
-        assert obs.program_view(obs.Dataset.from_blocks(dataset.blocks)) is not view
+        # another dataset object (the same blocks) gets its own view; a dead dataset's
+        # view goes with it
+        other = obs.Dataset.from_blocks(dataset.blocks)
+        assert obs.program_view(other) is not view
+        kept = len(obs._VIEWS)
+        del other
+        gc.collect()
+        assert len(obs._VIEWS) == kept - 1
+        assert all(v is not None for v in obs._VIEWS.values())
+
+
+def test_a_section_without_observables_stays_empty(tmp_path):
+    """A phase-only block (``amigo detect --observables phase``) has no amplitude rows:
+    its view pads none either (32 zero rows would cost a product each call)."""
+    with jax.enable_x64(True):
+        phases = obs.select_kinds(_dataset(tmp_path).blocks[0], ["phase"])
+        view = obs.program_view(obs.Dataset.from_blocks([phases]))
+        padded = view.dataset.blocks[0]
+        assert padded.design_head.shape == (0, obs.uv_bucket(phases.n_uv))
+        assert padded.n_obs == -(-phases.n_obs // obs.ROW_MULTIPLE) * obs.ROW_MULTIPLE
+        with pytest.raises(ValueError, match="kinds"):
+            view.dataset.group_index(0)

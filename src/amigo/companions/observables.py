@@ -28,6 +28,7 @@ calvis files ``b_sky = S^T b`` with ``S`` the file's sky-to-uv matrix, so that
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 import threading
 import weakref
@@ -603,6 +604,9 @@ class Dataset(eqx.Module):
     def group_index(self, block: int) -> np.ndarray:
         """(n_obs,) group index of each observable of block ``block``."""
         b = self.blocks[block]
+        if len(b.kinds) != b.n_obs:
+            # A program view's block (program_view): its groups are the view's arrays.
+            raise ValueError("a block without its kinds has no group index here")
         lookup = {g: i for i, g in enumerate(self.groups)}
         return np.array([lookup[(b.filter_name, KIND_NAMES[k])] for k in np.asarray(b.kinds)])
 
@@ -659,7 +663,8 @@ def uv_bucket(n: int) -> int:
 
 
 def _row_bucket(n: int) -> int:
-    return max(ROW_MULTIPLE, -(-n // ROW_MULTIPLE) * ROW_MULTIPLE)
+    """Rows a section of ``n`` is padded to (an empty section stays empty)."""
+    return -(-n // ROW_MULTIPLE) * ROW_MULTIPLE
 
 
 def _padded_rows(values: Leaf, n_head: int, heads: int, tails: int, fill: Any) -> np.ndarray:
@@ -714,6 +719,11 @@ def _padded_block(block: Observables) -> tuple[Observables, np.ndarray]:
     return padded, rows
 
 
+#: "Unknown" of a view block's numbers: one object, since two NaN objects are unequal and
+#: would give every view a structure of its own (equinox and JAX compare static fields).
+_UNKNOWN = float("nan")
+
+
 def _anonymous(block: Observables) -> Observables:
     """The block without the metadata no program reads (file, target, photon count,
     orientation, longest baseline, kinds: the groups travel as arrays instead)."""
@@ -722,10 +732,10 @@ def _anonymous(block: Observables) -> Observables:
         kinds=(),
         source="",
         target="",
-        n_photons=float("nan"),
+        n_photons=_UNKNOWN,
         photon_source="",
         sky_to_uv=((1.0, 0.0), (0.0, 1.0)),
-        longest_baseline_m=float("nan"),
+        longest_baseline_m=_UNKNOWN,
     )
 
 
@@ -751,12 +761,21 @@ class ProgramView:
     rows: tuple[np.ndarray, ...]
 
 
-#: Views made lately: (a weak reference to the dataset, its view), newest last.
-_VIEWS: list[tuple[weakref.ref, ProgramView]] = []
+#: Views of living datasets, by the dataset's id: (a weak reference to it, its view),
+#: oldest first. An entry leaves when its dataset dies (the reference's callback).
+_VIEWS: dict[int, tuple[weakref.ref, ProgramView]] = {}
 _VIEWS_LOCK = threading.Lock()
-#: How many views are kept (a detection alternates between a few datasets: the joint
-#: one, each filter's, their float32 copies).
+#: How many views are kept at most (a detection alternates between a few datasets: the
+#: joint one and each filter's).
 VIEWS_KEPT = 8
+
+
+def _forget(key: int, ref: weakref.ref) -> None:
+    """A dataset died: its view goes (unless the key already holds another's). Called by
+    the garbage collector, so without the lock (one dict operation is atomic)."""
+    kept = _VIEWS.get(key)
+    if kept is not None and kept[0] is ref:
+        _VIEWS.pop(key, None)
 
 
 def program_view(dataset: Dataset) -> ProgramView:
@@ -772,21 +791,24 @@ def program_view(dataset: Dataset) -> ProgramView:
     The values of the residuals at the real rows, of every sum of squares and of every
     product with a Jacobian are the block's own (to rounding).
 
-    A dataset on the device (``jax.device_put``) gets a view on the device, made once:
-    the last :data:`VIEWS_KEPT` views are kept while their datasets live (every compiled
-    call would otherwise copy the padded matrices to the device again).
+    A dataset on the device (``jax.device_put``) gets a view on the device, made once
+    and kept while the dataset lives (at most :data:`VIEWS_KEPT` of them): every compiled
+    call would otherwise copy the padded matrices to the device again.
     """
+    key = id(dataset)
     with _VIEWS_LOCK:  # fits run side by side in threads
-        for ref, view in _VIEWS:
-            if ref() is dataset:
-                return view
+        kept = _VIEWS.get(key)
+        if kept is not None and kept[0]() is dataset:
+            return kept[1]
         view = _program_view(dataset)
         if any(isinstance(leaf, jax.Array) for leaf in jax.tree.leaves(dataset)):
             view = dataclasses.replace(
                 view, dataset=jax.device_put(view.dataset), groups=jax.device_put(view.groups)
             )
-        _VIEWS[:] = [(ref, v) for ref, v in _VIEWS if ref() is not None][-(VIEWS_KEPT - 1) :]
-        _VIEWS.append((weakref.ref(dataset), view))
+        ref = weakref.ref(dataset, functools.partial(_forget, key))
+        _VIEWS[key] = (ref, view)
+        while len(_VIEWS) > VIEWS_KEPT:
+            _VIEWS.pop(next(iter(_VIEWS)), None)
         return view
 
 

@@ -18,7 +18,7 @@ parameter; poor values are reported (returned and emitted as :class:`PosteriorWa
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import equinox as eqx
@@ -328,7 +328,9 @@ def sample_posterior(
         }
         z0 = {name: jnp.asarray(_from_box(start[name], *bounds[name])) for name in SITES}
         diameter = float(primary_diameter_mas)
-        evaluated = program_view(dataset.single_precision() if single_precision else dataset)
+        evaluated = program_view(dataset)  # the search's view, made once
+        if single_precision:
+            evaluated = replace(evaluated, dataset=evaluated.dataset.single_precision())
         boxes = jax.tree.map(jnp.asarray, bounds)
         inverse_mass = (
             _laplace_inverse_mass(dataset, best, scales0, start, bounds) if laplace_mass else None
