@@ -27,6 +27,7 @@ calvis files ``b_sky = S^T b`` with ``S`` the file's sky-to-uv matrix, so that
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import functools
 import os
@@ -764,6 +765,9 @@ class ProgramView:
 #: Views of living datasets, by the dataset's id: (a weak reference to it, its view),
 #: oldest first. An entry leaves when its dataset dies (the reference's callback).
 _VIEWS: dict[int, tuple[weakref.ref, ProgramView]] = {}
+#: The keys in the order their views were made (some may have left already): eviction
+#: reads this, never iterates the dict, which a garbage-collector callback may change.
+_ORDER: collections.deque[int] = collections.deque()
 _VIEWS_LOCK = threading.Lock()
 #: How many views are kept at most (a detection alternates between a few datasets: the
 #: joint one and each filter's).
@@ -807,8 +811,13 @@ def program_view(dataset: Dataset) -> ProgramView:
             )
         ref = weakref.ref(dataset, functools.partial(_forget, key))
         _VIEWS[key] = (ref, view)
-        while len(_VIEWS) > VIEWS_KEPT:
-            _VIEWS.pop(next(iter(_VIEWS)), None)
+        _ORDER.append(key)
+        while len(_VIEWS) > VIEWS_KEPT and _ORDER:
+            _VIEWS.pop(_ORDER.popleft(), None)
+        if len(_ORDER) > 4 * VIEWS_KEPT:  # keys whose views died with their datasets
+            live = [k for k in _ORDER if k in _VIEWS]
+            _ORDER.clear()
+            _ORDER.extend(live)
         return view
 
 
