@@ -142,6 +142,29 @@ def write_sim_calvis(
     )
 
 
+def sim_dataset(
+    folder: Path,
+    filters: tuple[str, ...],
+    companions: list[tuple[float, float, float]],
+    rng: np.random.Generator,
+    prefix: str = "S",
+):
+    """A :class:`~amigo.companions.observables.Dataset` of one calvis file per filter
+    (:func:`write_sim_calvis`, splodges sampled at 7 uv points), written into ``folder``
+    as ``<prefix>_<filter>_calvis.fits``."""
+    from amigo.companions import observables as obs
+
+    blocks = [
+        obs.load(
+            write_sim_calvis(
+                folder / f"{prefix}_{f}_calvis.fits", f, companions, rng, splodge_radius_m=0.4
+            )
+        )
+        for f in filters
+    ]
+    return obs.Dataset.from_blocks(blocks)
+
+
 def oifits_baselines(pa_deg: float = 30.0) -> tuple[np.ndarray, list[tuple[int, int, int]]]:
     """The 21 NIRISS baselines rotated onto the sky (u east, v north) and the 35 triangles."""
     holes = niriss.HOLE_CENTRES_M

@@ -11,7 +11,7 @@ import pytest
 from amigo.companions import fit as fitting
 from amigo.companions import grid as grid_search
 from amigo.companions import observables as obs
-from detect_helpers import write_sim_calvis
+from detect_helpers import sim_dataset
 
 TRUTH = (-210.0, 95.0, 0.012)
 
@@ -28,14 +28,7 @@ def _unpadded(dataset: obs.Dataset) -> obs.ProgramView:
 
 @pytest.fixture
 def dataset(tmp_path) -> obs.Dataset:
-    rng = np.random.default_rng(11)
-    blocks = [
-        obs.load(
-            write_sim_calvis(tmp_path / f"P_{f}_calvis.fits", f, [TRUTH], rng, splodge_radius_m=0.4)
-        )
-        for f in ("F430M", "F480M")
-    ]
-    return obs.Dataset.from_blocks(blocks)
+    return sim_dataset(tmp_path, ("F430M", "F480M"), [TRUTH], np.random.default_rng(11), "P")
 
 
 def test_the_grid_on_padded_observables_is_the_files_grid(dataset, monkeypatch):

@@ -19,20 +19,13 @@ import pytest
 
 from amigo.companions import observables as obs
 from amigo.companions.posterior import _potential
-from detect_helpers import write_sim_calvis
+from detect_helpers import sim_dataset
 
 TRUTH = (-323.4, 59.9, 0.0188)
 
 
 def _dataset(tmp_path) -> obs.Dataset:
-    rng = np.random.default_rng(3)
-    blocks = [
-        obs.load(
-            write_sim_calvis(tmp_path / f"S_{f}_calvis.fits", f, [TRUTH], rng, splodge_radius_m=0.4)
-        )
-        for f in ("F380M", "F480M")
-    ]
-    return obs.Dataset.from_blocks(blocks)
+    return sim_dataset(tmp_path, ("F380M", "F480M"), [TRUTH], np.random.default_rng(3))
 
 
 def _point(dataset: obs.Dataset):

@@ -400,12 +400,7 @@ def fit_companions_many(
     # target's files are then usually the ones on disk. Padded rows have residual 0 and
     # Jacobian rows 0, so chi2, J^T J and J^T r are the dataset's own.
     view = program_view(dataset)
-    scale_vectors = tuple(
-        _padded_scales(vector, rows, block.n_obs)
-        for vector, rows, block in zip(
-            dataset.scale_vectors(scales), view.rows, view.dataset.blocks, strict=True
-        )
-    )
+    scale_vectors = view.scale_vectors(scales)
     firsts = []
     for offsets_mas, log10_contrasts in starts:
         offsets0 = np.asarray(offsets_mas, dtype=float).reshape(-1, 2)
@@ -459,14 +454,6 @@ def fit_companions_many(
                 converged=converged,
             )
         )
-    return out
-
-
-def _padded_scales(vector: jax.Array | np.ndarray, rows: np.ndarray, n_obs: int) -> np.ndarray:
-    """A block's (n_obs,) error-scale vector on its padded observables (ones at the
-    padded rows: their residuals are 0)."""
-    out = np.ones(n_obs, dtype=np.asarray(vector).dtype)
-    out[rows] = vector
     return out
 
 

@@ -34,7 +34,13 @@ from scipy import ndimage
 
 from amigo import programs, runtime
 from amigo.companions.models import MAS_TO_RAD, scene_terms
-from amigo.companions.observables import Dataset, Observables, program_view, single_precision
+from amigo.companions.observables import (
+    Dataset,
+    Observables,
+    padded_scale_vector,
+    program_view,
+    single_precision,
+)
 from amigo.companions.significance import log_chi2_sf, sigma_from_log_p
 
 #: Bounds of the contrast solved at each grid point (flux ratios).
@@ -536,9 +542,10 @@ def contrast_grid(
         else:
             scene = _filter_scene(dataset, f, grid, offsets, flux, primary_diameter_mas)
             ends = np.cumsum([b.n_obs for b in scene.blocks])[:-1]
-            # Padded rows (group n_groups) keep scale 1: their residuals are 0.
-            scale_of = np.append(scales_all, 1.0)
-            scales = tuple(jnp.asarray(x) for x in np.split(scale_of[scene.groups], ends))
+            scales = tuple(
+                jnp.asarray(x)
+                for x in np.split(padded_scale_vector(scales_all, scene.groups), ends)
+            )
             r0 = jnp.concatenate([r / x for r, x in zip(scene.residuals, scales, strict=True)])
             c, sigma, dchi2 = _over_columns(
                 lambda xs, sc=scene, s=scales, r=r0: _solve_chunk(

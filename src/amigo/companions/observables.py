@@ -761,6 +761,18 @@ class ProgramView:
     groups: tuple[Leaf, ...]
     rows: tuple[np.ndarray, ...]
 
+    def scale_vectors(self, group_scales: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Per padded block, (n_obs padded,) error-scale vectors from (n_groups,) group
+        scales (:func:`padded_scale_vector`)."""
+        return tuple(padded_scale_vector(group_scales, groups) for groups in self.groups)
+
+
+def padded_scale_vector(group_scales: np.ndarray, groups: Leaf) -> np.ndarray:
+    """Each observable's error scale from (n_groups,) group scales and its group index
+    ``groups`` (a :class:`ProgramView`'s, padded rows at ``n_groups``): 1 at the padded
+    rows, whose residuals are 0."""
+    return np.append(np.asarray(group_scales, dtype=float), 1.0)[np.asarray(groups)]
+
 
 #: Views of living datasets, by the dataset's id: (a weak reference to it, its view),
 #: oldest first. An entry leaves when its dataset dies (the reference's callback).

@@ -305,13 +305,14 @@ def plot_posterior_predictive(
         median = (np.zeros(0), np.zeros(0), np.zeros((0, ds.n_filters)))
         params = []
 
+    # On the padded blocks (programs shared with other targets), back to each's rows.
+    view = program_view(ds)
+
     def predict(scenes):
         """Per block, (n_scenes, n_obs) model observables of ``scenes``, a list of
         ``(dra, ddec, log10c)``."""
         offsets = np.stack([np.column_stack([dra, ddec]) for dra, ddec, _ in scenes])
         log10c = np.stack([np.asarray(c, float) for _, _, c in scenes])  # (n, n_comp, n_f)
-        # On the padded blocks (programs shared with other targets), back to each's rows.
-        view = program_view(ds)
         return [
             np.asarray(
                 predicted_scenes(b, offsets, 10.0 ** log10c[:, :, ds.filter_index(i)], diameter)
