@@ -213,8 +213,8 @@ class Solution:
     decrement: float
     history: list[float]
     fisher: np.ndarray | None
-    #: Fall of the loss over the last iteration (0 when its normal equations only
-    #: confirmed convergence).
+    #: Fall of the loss over the last iteration (where its normal equations confirmed
+    #: convergence, that of the final undamped step alone: ~0).
     last_fall: float = 0.0
     #: The last Fisher matrix used (float32 or float64; at or near the final vector).
     last_fisher: np.ndarray | None = None
@@ -268,8 +268,10 @@ def minimise(
 
     def damped_step(solver, grad) -> float | None:
         """A Levenberg-Marquardt step from ``vector``: the fall of the loss, or None if
-        no damping makes the loss fall."""
+        no damping makes the loss fall (the damping is then left as it was: the next
+        matrix starts from it, not from the search's 4^12 times more)."""
         nonlocal vector, loss, damping
+        entry = damping
         for _ in range(12):
             trial = vector + solver(grad, damping)
             trial_loss = problem.loss(trial)
@@ -280,6 +282,7 @@ def minimise(
                 history.append(loss)
                 return fall
             damping *= 4.0
+        damping = entry
         return None
 
     def final_step(solver, grad) -> None:
