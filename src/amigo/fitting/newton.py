@@ -647,8 +647,8 @@ class _Problem:
         self.members = np.asarray(members, int)
         self.n_groups = len(self.members)
         # The prior acts only where the wavefront is fitted: on the calibrators' stage.
-        # A problem's exposures are all calibrators or all science (or, for residuals
-        # only, every exposure: signature_amplitudes).
+        # A problem's exposures are all calibrators or all science, or every exposure
+        # (signature_amplitudes: residuals and Jacobians at the optimum, no gradient).
         calibrators = np.asarray(fit.is_calibrator, bool)[self.members]
         self.fits_wavefront = bool(np.any(calibrators))
         self._one_kind = bool(np.all(calibrators) or not self.fits_wavefront)
@@ -689,6 +689,21 @@ class _Problem:
         self._last_residuals: tuple[tuple[bytes, bool], np.ndarray] | None = None
         self._last_models: tuple[tuple[bytes, bool], np.ndarray] | None = None
         self._last_psfs: dict[str, tuple[bytes, Array]] = {}
+
+    @classmethod
+    def with_priors(
+        cls, fit: JointFit, params: FitParams, members: np.ndarray, config: NewtonConfig
+    ) -> _Problem:
+        """The problem of ``members`` with the priors of the settings ``config``."""
+        return cls(
+            fit,
+            params,
+            members,
+            config.wavefront_prior_nm,
+            config.geometry_prior_sigma,
+            config.jitter_prior_mas,
+            config.band_taper_prior,
+        )
 
     def _models(self, float64: bool | None = None):
         if not (self.float64 if float64 is None else float64):
@@ -887,7 +902,11 @@ class _Problem:
 
 
 def signature_amplitudes(
-    fit: JointFit, without: JointFit, params: FitParams, label: str = "fit"
+    fit: JointFit,
+    without: JointFit,
+    params: FitParams,
+    label: str = "fit",
+    config: NewtonConfig | None = None,
 ) -> list[tuple[float, float]]:
     """Per exposure, ``(a, sigma_a)``: how much of a signature in the data the data want.
 
@@ -913,13 +932,17 @@ def signature_amplitudes(
     directions (the latent knots the data barely see), so a Fisher matrix one step away
     or whitened for other stripes (1 % off) doubled it on a simulated pair. ``F`` is
     scaled to unit diagonal on the parameters it sees and solved with a ridge of 1e-9.
+    ``config``: the settings the fit was made with (its priors are part of the
+    likelihood whose optimum ``params`` is; default :class:`NewtonConfig`).
     """
+    config = NewtonConfig() if config is None else config
     layout = Layout.of(params)
     vector = layout.pack(params)
     members = np.arange(fit.n_exposures)
-    with_it = _Problem(fit, params, members)
+    with_it = _Problem.with_priors(fit, params, members, config)
     residuals = with_it._residuals_at(vector)
-    signatures = _Problem(without, params, members)._residuals_at(vector) - residuals
+    without_it = _Problem.with_priors(without, params, members, config)
+    signatures = without_it._residuals_at(vector) - residuals
     n = layout.size
     fisher, gradient, pulls = np.zeros((n, n)), np.zeros(n), np.zeros((n, fit.n_exposures))
     for e, index, wj in with_it.whitened_jacobians(vector, f"{label}: signature"):
@@ -1041,15 +1064,7 @@ def levenberg_marquardt(
     for members, stage_label in stages:
         if len(members) == 0:
             continue
-        problem = _Problem(
-            fit,
-            params,
-            members,
-            config.wavefront_prior_nm,
-            config.geometry_prior_sigma,
-            config.jitter_prior_mas,
-            config.band_taper_prior,
-        )
+        problem = _Problem.with_priors(fit, params, members, config)
         # The stage's part of a given matrix is passed without a name here, so that the
         # solver can free it once it has new Jacobians.
         result = minimise(

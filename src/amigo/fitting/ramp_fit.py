@@ -48,6 +48,7 @@ from jaxtyping import Array, Float
 from amigo import programs
 from amigo.fitting.filter_fit import FilterFit, FilterFitResult, FitConfig, FitExposure
 from amigo.fitting.newton import (
+    NewtonConfig,
     levenberg_marquardt,
     local_illuminance,
     local_vector,
@@ -347,7 +348,13 @@ class RampDetector:
                 dropped.append(name)
         return dropped
 
-    def check_detector(self, fit: FilterFit, params: FitParams, label: str = "fit") -> list[str]:
+    def check_detector(
+        self,
+        fit: FilterFit,
+        params: FitParams,
+        label: str = "fit",
+        newton: NewtonConfig | None = None,
+    ) -> list[str]:
         """Measure, in each level-2 image, the amplitude of what the base model's detector
         adds to the linear image at the fit's optimum (1: there as the model says, 0:
         absent): the amplitude of the correction ``B = D`` (charge migration, IPC and
@@ -360,7 +367,8 @@ class RampDetector:
         imprint them: pixel z-scores 1.8-2.3 instead of ~1.0 on an independent one).
         Only images whose pixel z-scores have a standard deviation above
         :data:`DETECTOR_CHECK_ZSCORE` are measured. Returns the names of the images
-        dropped; the amplitudes go to ``detector_amplitudes``.
+        dropped; the amplitudes go to ``detector_amplitudes``. ``newton``: the settings
+        the fit was made with (its priors).
         """
         models = np.asarray(fit.models(params), np.float64)
         todo = [
@@ -380,7 +388,7 @@ class RampDetector:
                 for i, e in enumerate(fit.exposures)
             ]
         )
-        amplitudes = signature_amplitudes(fit, linear, params, label)
+        amplitudes = signature_amplitudes(fit, linear, params, label, newton)
         dropped = []
         for e, exposure in enumerate(fit.exposures):
             if not todo[e]:
@@ -410,12 +418,13 @@ class RampDetector:
         params: FitParams,
         with_network: list[np.ndarray],
         label: str = "fit",
+        newton: NewtonConfig | None = None,
     ) -> tuple[float, float, bool] | None:
         """Measure, in a filter's calslope exposures at the fit's optimum ``params``, the
         amplitude ``a`` of the network's charge migration (1: as the network predicts,
         0: none), and apply it where the data want another one. ``with_network``: the
         corrections at ``params`` as :meth:`corrections` gives them (the caller's next
-        round starts from them).
+        round starts from them); ``newton``: the settings the fit was made with.
 
         The signature is ``B = D1 - D0``, the correction with the network less the
         correction without it (flat, IPC, non-linearity and dark in both), both at
@@ -444,7 +453,9 @@ class RampDetector:
         without = self.corrections(fit, params, self.base.with_linear_detector())
         fit_with = fit.with_exposures(self.corrected(fit.exposures, with_network))
         fit_without = fit.with_exposures(self.corrected(fit.exposures, without))
-        amplitudes = signature_amplitudes(fit_with, fit_without, params, f"{label}: migration")
+        amplitudes = signature_amplitudes(
+            fit_with, fit_without, params, f"{label}: migration", newton
+        )
         values = np.array([a for a, _ in amplitudes])
         weights = np.array([e**-2 if np.isfinite(e) and e > 0 else 0.0 for _, e in amplitudes])
         if not weights.sum() > 0 or not np.all(np.isfinite(values[weights > 0])):
@@ -569,7 +580,7 @@ def fit_through_detector(
     result = fit.fit(config, label=label)
     # The whole detector first: it compares the fit with the corrections of the inputs
     # as they are, which the dark check may change.
-    linear = detector.check_detector(fit, result.params, label)
+    linear = detector.check_detector(fit, result.params, label, config.newton)
     for name in linear:
         amplitude, error = detector.detector_amplitudes[name]
         step(
@@ -585,7 +596,7 @@ def fit_through_detector(
     # The first round's correction, at the optimum: the migration's measurement needs
     # it too, and only a rescaled network makes it stale.
     at_optimum = detector.corrections(fit, result.params)
-    migration = detector.calibrate_migration(fit, result.params, at_optimum, label)
+    migration = detector.calibrate_migration(fit, result.params, at_optimum, label, config.newton)
     rescaled = migration is not None and migration[2]
     first: list[np.ndarray] | None = None if rescaled else at_optimum
     if migration is not None:
