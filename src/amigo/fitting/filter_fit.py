@@ -182,11 +182,12 @@ class FilterFitResult:
     converged
         Whether the convergence tests passed.
     iterations
-        Gradient-descent iterations run (plus BFGS steps, if any).
+        Iterations run: natural-gradient and polishing steps, then Levenberg-Marquardt.
     loss_history
         ``L = chi2 / 2`` per iteration.
     loss_change
-        Fall of the best ``L`` over the last window (per exposure).
+        Fall of ``L`` per exposure: over the Levenberg-Marquardt finish's last iteration,
+        or, without the finish, of the best ``L`` over the descent's last window.
     newton_decrement
         ``g^T F^-1 g`` at the end (per exposure).
     seconds
@@ -238,6 +239,14 @@ class FilterFit:
         self.setup = setup
         self.exposures = list(exposures)
         self.targets: list[str] = list(dict.fromkeys(e.target for e in exposures))
+        # The solver's stages (calibrators, then science) own disjoint parameters, and
+        # the calibration needs a calibrator target: one target in both roles would be
+        # neither (the pipeline keys targets by role and visit, amigo.pipeline).
+        mixed = [t for t in self.targets if len({e.role for e in exposures if e.target == t}) > 1]
+        if mixed:
+            raise ValueError(
+                f"target(s) {', '.join(mixed)} have both science and calibrator exposures"
+            )
         self.source_index = np.array([self.targets.index(e.target) for e in exposures])
         self.is_calibrator = np.array([e.role == "calibrator" for e in exposures])
         self.pixels = jax.tree.map(
@@ -294,7 +303,7 @@ class FilterFit:
         return len(self.exposures)
 
     def target_roles(self) -> dict[str, str]:
-        """Role of each target (a target is a calibrator if all its exposures are)."""
+        """Role of each target (every exposure of a target has its role: __init__)."""
         return {
             t: "calibrator"
             if all(e.role == "calibrator" for e in self.exposures if e.target == t)
@@ -459,7 +468,11 @@ class FilterFit:
             fisher = np.pad(fisher, ((0, n_opt), (0, n_opt)))
         vis = self.fisher_vis(params)
         if vis_mode == "diagonal":
-            inverse = np.stack([np.diag(1.0 / np.diag(f)) for f in vis])
+            # No step (0) where a latent has no information, as in whitening().
+            diagonals = [np.diag(f) for f in vis]
+            inverse = np.stack(
+                [np.diag(np.where(d > 0, 1.0 / np.where(d > 0, d, 1.0), 0.0)) for d in diagonals]
+            )
         elif vis_mode == "block":
             inverse = np.stack([_pinv(f, PINV_RCOND) for f in vis])
         else:
@@ -517,7 +530,10 @@ class FilterFit:
         params: FitParams | None = None,
         label: str = "fit",
     ) -> FilterFitResult:
-        """Natural-gradient descent from ``params`` (default :meth:`initial_params`)."""
+        """Fit from ``params`` (default :meth:`initial_params`): natural-gradient
+        descent for ``config.max_iterations`` steps (none by default) and polishing
+        steps, then the Levenberg-Marquardt finish (:mod:`amigo.fitting.newton`) unless
+        ``config.newton.max_iterations`` is 0."""
         config = FitConfig() if config is None else config
         start = time.perf_counter()
         params = self.initial_params() if params is None else params
@@ -619,8 +635,10 @@ class FilterFit:
             last_fisher = newton.last_fisher
             exact = newton.exact_exposures
             iteration += newton.iterations
-            history.extend(newton.loss_history[1:])
-            final_loss = newton.loss
+            # The finish starts where the descent ended (its first loss is the descent's
+            # last) and ends at its own last loss (not appended again below).
+            history.extend(newton.loss_history[1:] if history else newton.loss_history)
+            final_loss = history.pop()
             final_decrement = newton.decrement * per_exposure
             change = newton.loss_change
         else:
@@ -787,7 +805,8 @@ class Preconditioner(eqx.Module):
         small = jnp.where(diag > 0, 1.0 / jnp.sqrt(jnp.where(diag > 0, diag, 1.0)), 0.0)
         out = _unpack(params, small.astype(params.sources.amp.dtype))
         n_amp = params.sources.amp.shape[1]
-        vis = 1.0 / jnp.sqrt(self.vis_diagonal)
+        d = self.vis_diagonal
+        vis = jnp.where(d > 0, 1.0 / jnp.sqrt(jnp.where(d > 0, d, 1.0)), 0.0)
         return eqx.tree_at(
             lambda p: (p.sources.amp, p.sources.phase), out, (vis[:, :n_amp], vis[:, n_amp:])
         )
@@ -885,7 +904,7 @@ def latent_information(
     """
     start = time.perf_counter()
     n = params.sources.amp.shape[1] + params.sources.phase.shape[1]
-    names = nuisance_names()
+    names = nuisance_names(*params.optics.zernikes_nm.shape)
     hessian = np.zeros((len(fit.targets), n, n))
     cross = np.zeros((n, len(names)))
     cal_hessian = np.zeros((n, n))

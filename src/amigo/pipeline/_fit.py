@@ -726,10 +726,10 @@ def _detector_record(detector, name: str) -> dict:
         record["migration_applied"] = bool(applied)
     if name in detector.pattern_amplitudes:
         amplitude, error = detector.pattern_amplitudes[name]
-        record["dark_pattern_amplitude"] = round(amplitude, 4)
-        record["dark_pattern_amplitude_err"] = round(error, 4)
+        record["dark_pattern_amplitude"] = _json_number(amplitude, 4)
+        record["dark_pattern_amplitude_err"] = _json_number(error, 4)
     if name in detector.added_sigma_dn_s:
-        record["read_offset_sigma_dn_s"] = round(detector.added_sigma_dn_s[name], 4)
+        record["read_offset_sigma_dn_s"] = _json_number(detector.added_sigma_dn_s[name], 4)
     return record
 
 
