@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -480,3 +482,47 @@ def test_signature_amplitudes_see_what_the_parameters_absorbed():
             r0 = _Problem(without, params, np.array([0]))._residuals_at(vector)[0]
             b = r0 - r1
             assert 1.0 + float(b @ r1) / float(b @ b) > 0.3
+    # The fit's priors are part of its likelihood: a wavefront held by a tight prior
+    # absorbs less of B, so the same data measure it more precisely (strictly: the prior
+    # adds to the Fisher matrix what the parameters could take of the signature).
+    held = FitConfig(newton=NewtonConfig(max_iterations=12, wavefront_prior_nm=0.5))
+    params = with_it.fit(held).params
+    free = signature_amplitudes(with_it, without, params, "test")
+    tight = signature_amplitudes(with_it, without, params, "test", held.newton)
+    assert tight[0][1] < free[0][1]
+    assert abs(tight[0][0] - 1.0) < 3 * tight[0][1] + 0.05
+
+
+class _Flat32(_Curve):
+    """A :class:`_Curve` whose float32 loss cannot fall (a constant): the solver's damped
+    search fails there and it goes on in float64, where the loss is the curve's."""
+
+    def loss(self, v):
+        return super().loss(v) if self.float64 else 1e12
+
+
+def test_a_failed_damped_search_leaves_the_damping_as_it_was():
+    """After twelve rejected dampings (each 4 times the last) the solver goes on in
+    float64; its first step there is taken with the damping it had before the search, a
+    nearly Gauss-Newton step that takes most of the way to the optimum, not one damped
+    4^12 times more that barely moves."""
+    from amigo.solvers.levenberg_marquardt import minimise
+
+    problem = _Flat32()
+    found = minimise(problem, np.array([1.0, 1.0, 0.0]), _Settings(), "flat32")
+    assert found.converged and problem.float64
+    start = found.history.index(1e12) + 1  # the loss re-evaluated in float64
+    first_fall = found.history[start] - found.history[start + 1]
+    assert first_fall > 0.5 * (found.history[start] - found.history[-1])
+
+
+def test_a_target_in_both_roles_is_refused():
+    """One target with a calibrator and a science exposure would share its latent
+    visibilities between the solver's two stages and leave no calibrator to calibrate
+    against: refused by name (the pipeline keys such targets apart by role and visit)."""
+    from amigo.fitting.filter_fit import FilterFit
+
+    fit = _small_fit(np.random.default_rng(0), np.zeros((7, 10)))
+    same = [dataclasses.replace(e, target="STAR") for e in fit.exposures]
+    with pytest.raises(ValueError, match="STAR"):
+        FilterFit(fit.instrument, fit.setup, same)
