@@ -9,7 +9,7 @@ from click.testing import CliRunner
 from amigo.cli import cli
 from amigo.io.jwst import read_exposure
 from amigo.likelihood.pixels import ImageData
-from jwst_files import write_level2, write_uncal
+from jwst_files import nominal_star, write_level2, write_uncal
 
 
 def _run(args):
@@ -206,3 +206,50 @@ def test_images_without_a_star_are_named_for_what_they_show():
     y, x = np.mgrid[:80, :80]
     star = 3e3 * np.exp(-((x - 40.0) ** 2 + (y - 40.0) ** 2) / (2 * 4.0**2))  # 1 % at peak
     assert problem(star + noise) is None
+
+
+def test_a_file_given_twice_or_a_filter_without_calibrator_alone_is_refused(tmp_path, capsys):
+    """Exposures are known by their file names: the same file twice (its pixels counted
+    twice), or two files of one name, is one line and exit 2. A science filter without a
+    calibrator, when no other filter can be fitted, is a bad input too (with another
+    filter fitted it is that filter's failure instead: tests/test_fit_outcomes.py)."""
+    cal = write_level2(tmp_path / "c_cal.fits", np.ones((80, 80)))
+    sci = write_level2(tmp_path / "s_cal.fits", np.ones((80, 80)))
+    out = tmp_path / "o"
+    assert _run(["fit", "--sci", str(sci), str(sci), "--cal", str(cal), "--out", str(out)]) == 2
+    assert "s_cal.fits: is given twice" in capsys.readouterr().err
+    (tmp_path / "other").mkdir()
+    twin = write_level2(tmp_path / "other" / "c_cal.fits", np.ones((80, 80)))
+    assert _run(["fit", "--sci", str(sci), "--cal", str(cal), str(twin), "--out", str(out)]) == 2
+    assert "has the same name as" in capsys.readouterr().err
+    star = nominal_star("F430M")
+    sci = write_level2(tmp_path / "star_cal.fits", star)
+    blue = write_level2(tmp_path / "b_cal.fits", star, overrides={"FILTER": "F380M"})
+    assert _run(["fit", "--sci", str(sci), "--cal", str(blue), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "star_cal.fits: no calibrator exposure in F430M" in err and "Traceback" not in err
+    assert not out.exists()
+
+
+def test_a_calibrators_visits_may_differ_in_roll_a_science_targets_may_not():
+    """The roll check holds a science target's exposures to 0.1 deg (its visibilities
+    rotate with the sky); a calibrator's visits, a point source's, may drift apart."""
+    from types import SimpleNamespace
+
+    import pytest
+
+    from amigo.errors import InputError
+    from amigo.pipeline._fit import _check_orientations
+
+    def item(role: str, pa: float):
+        meta = SimpleNamespace(
+            path=f"{role}_{pa}.fits",
+            target="STAR",
+            filter="F480M",
+            orientation=SimpleNamespace(pa_aper_deg=pa),
+        )
+        return SimpleNamespace(role=role, target="STAR"), meta
+
+    _check_orientations([item("calibrator", 171.98), item("calibrator", 172.55)])
+    with pytest.raises(InputError, match=r"roll angles 0\.57 deg apart"):
+        _check_orientations([item("science", 171.98), item("science", 172.55)])

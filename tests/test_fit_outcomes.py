@@ -4,9 +4,10 @@ filters of small simulated level-2 images).
 
 One sequence of runs on the same inputs, each building on the last:
 
-1. a fit whose F430M solver fails (injected: a singular matrix, what numpy raises) and
-   whose F480M has a calibrator with every pixel flagged: F480M is fitted without that
-   calibrator, F430M is reported failed, exit status 3, nothing for F430M written (the
+1. a fit whose F430M solver fails (injected: a singular matrix, what numpy raises),
+   whose F480M has a calibrator with every pixel flagged and whose F380M has a science
+   exposure but no calibrator: F480M is fitted without that calibrator, F430M and F380M
+   are reported failed, exit status 3, nothing for them written (the
    later stages, the latent Hessians, covariances and kernel, turn the same errors into
    the same record through the same ``amigo.errors.numerical``);
 2. the same command again: F480M is kept (its products are complete and record the same
@@ -62,6 +63,12 @@ def inputs(tmp_path_factory) -> dict[str, Path]:
                     "OBSERVTN": observation,
                 },
             )
+    paths["blue"] = write_level2(  # never fitted: no calibrator in its filter
+        folder / "sci_F380M_cal.fits",
+        image,
+        error,
+        overrides={"FILTER": "F380M", "TARGPROP": "STAR-sci", "OBSERVTN": "001"},
+    )
     paths["flagged"] = write_level2(
         folder / "flagged_F480M_cal.fits",
         image,
@@ -72,12 +79,13 @@ def inputs(tmp_path_factory) -> dict[str, Path]:
     return paths
 
 
-def _args(inputs: dict[str, Path], out: Path, flagged: bool) -> list[str]:
+def _args(inputs: dict[str, Path], out: Path, flagged: bool, blue: bool = False) -> list[str]:
     cal = [inputs[f"cal_{f}"] for f in FILTERS] + ([inputs["flagged"]] if flagged else [])
+    sci = [inputs[f"sci_{f}"] for f in FILTERS] + ([inputs["blue"]] if blue else [])
     return [
         "fit",
         "--sci",
-        *[str(inputs[f"sci_{f}"]) for f in FILTERS],
+        *map(str, sci),
         "--cal",
         *map(str, cal),
         "--out",
@@ -113,8 +121,9 @@ def test_failures_are_reported_per_filter_and_runs_resume(inputs, tmp_path, monk
 
     # 1. F430M fails, F480M is fitted without its calibrator that has no usable pixel
     monkeypatch.setattr(FilterFit, "fit", singular_in_f430m)
-    assert amigo_status(_args(inputs, out, flagged=True)) == 3
+    assert amigo_status(_args(inputs, out, flagged=True, blue=True)) == 3
     err = capsys.readouterr().err
+    assert "F380M: no calibrator exposure: its science exposures are not fitted" in err
     assert "flagged_F480M_cal.fits: only 0 usable pixels" in err
     assert "F430M: failed (fit: LinAlgError: Singular matrix)" in err
     assert "Traceback" not in err
@@ -123,10 +132,12 @@ def test_failures_are_reported_per_filter_and_runs_resume(inputs, tmp_path, monk
     assert f430["status"] == "failed" and f430["products"] == []
     assert "Singular matrix" in f430["problem"]
     assert f480["status"] == "ok"
+    assert summary["filters"]["F380M"]["status"] == "failed"
     assert f480["products"] == ["STAR-sci_F480M_calvis.fits", "STAR-sci_F480M.oifits"]
     status = {e["file"]: e["status"] for e in summary["exposures"]}
     assert status == {
         "flagged_F480M_cal.fits": "excluded",
+        "sci_F380M_cal.fits": "failed",
         "sci_F430M_cal.fits": "failed",
         "cal_F430M_cal.fits": "failed",
         "sci_F480M_cal.fits": "ok",

@@ -178,7 +178,10 @@ def fit(
     for filter_name, inputs in given.items():
         roles = {role for role, _ in inputs}
         if "calibrator" not in roles:
-            raise InputError(inputs[0][1].path, f"no calibrator exposure in {filter_name}")
+            # A science target observed in more filters than its calibrator (a dithered
+            # calibrator visit in F480M alone): the other filters are fitted, this one is
+            # reported failed (exit status 3); with no filter left, a bad input below.
+            warn(f"{filter_name}: no calibrator exposure: its science exposures are not fitted")
         if "science" not in roles:
             step(f"{filter_name}: calibrators only (no science exposure): skipped")
     by_filter: dict[str, list] = defaultdict(list)
@@ -556,6 +559,17 @@ def check_roles(
     overlap = set(sci) & set(cal)
     if overlap:
         raise InputError(sorted(overlap)[0], "is given both as --sci and --cal")
+    # Exposures are known by their file names: a file given twice (or two files of one
+    # name) would count its pixels twice.
+    seen: dict[str, Path] = {}
+    for path in (*sci, *cal):
+        if Path(path).name in seen:
+            first = seen[Path(path).name]
+            same = Path(path).resolve() == first.resolve()
+            raise InputError(
+                path, "is given twice" if same else f"has the same name as {first}: rename one"
+            )
+        seen[Path(path).name] = Path(path)
     if superbias and not first_group:
         raise InputError(None, "--superbias cannot be combined with --no-first-group")
     # A reset level measured on a fitted exposure itself would count its slopes twice.
@@ -589,13 +603,17 @@ def _reset_level(paths: tuple[Path, ...], level: str, fit_model: FitModel, off: 
 
 
 def _refuse_if_nothing_left(fitted: dict[str, list], excluded: list) -> None:
-    """Bad input rather than a result: when the exposures without a star leave no filter
-    with both a science and a calibrator exposure, the first of them is refused."""
+    """Bad input rather than a result: when no filter has both a science and a
+    calibrator exposure left, the first exposure without a star is refused, or, where
+    none was left out, the first science exposure of a filter without a calibrator."""
     if any({"science", "calibrator"} <= {e.role for e, _ in items} for items in fitted.values()):
         return
     if excluded:
         _, item = excluded[0]
         raise InputError(item.meta.path, item.problem)
+    for filter_name, items in fitted.items():
+        if items and all(e.role == "science" for e, _ in items):
+            raise InputError(items[0][1].path, f"no calibrator exposure in {filter_name}")
 
 
 def _fit_filter(
@@ -682,10 +700,14 @@ def _grid(knots: int | None, spacing: float | None):
 
 
 def _check_orientations(items) -> None:
-    """Exposures of one target in one filter share visibilities: same roll required."""
+    """Exposures of one science target in one filter share visibilities: same roll
+    required. A calibrator's exposures are exempt: a point source looks the same at any
+    roll, and its visits drift by ~0.04 deg per hour (COM 1093's PA_APER), so two of
+    them a few hours apart would otherwise be refused."""
     by_target = defaultdict(list)
     for exposure, meta in items:
-        by_target[exposure.target].append(meta)
+        if exposure.role == "science":
+            by_target[exposure.target].append(meta)
     for metas in by_target.values():
         pas = [m.orientation.pa_aper_deg for m in metas]
         spread = max((p - pas[0] + 180) % 360 - 180 for p in pas) - min(
