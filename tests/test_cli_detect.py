@@ -233,3 +233,19 @@ def test_ab_dor_c_from_the_fitter(tmp_path):
     assert abs((companion["pa_deg"] - 280.5 + 180) % 360 - 180) < 0.7
     for f, paper in {"F380M": 4.313, "F430M": 4.354, "F480M": 4.381}.items():
         assert abs(companion["dmag"][f] - paper) < 0.15
+
+
+def test_a_file_twice_or_two_targets_are_refused(tmp_path, capsys):
+    """A calvis file given twice would count its observables twice (a 3.6-sigma candidate
+    read as 5.1); calvis files of two targets are two searches. Each is one line naming
+    the file, exit 2, nothing written."""
+    rng = np.random.default_rng(3)
+    one = write_sim_calvis(tmp_path / "a_F480M_calvis.fits", "F480M", [], rng)
+    other = write_sim_calvis(tmp_path / "b_F430M_calvis.fits", "F430M", [], rng, target="OTHER")
+    out = tmp_path / "out"
+    assert run([str(one), str(one), "--out", str(out)]) == 2
+    assert "a_F480M_calvis.fits: is given twice" in capsys.readouterr().err
+    assert run([str(one), str(other), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "b_F430M_calvis.fits: is of target 'OTHER'" in err and "one target at a time" in err
+    assert len(err.splitlines()) == 1 and not out.exists()

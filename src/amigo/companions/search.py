@@ -337,7 +337,10 @@ def _beam_search(
                         f"{sig.sigma:.1f} sigma ({sig.local_sigma:.1f} local, false-alarm "
                         f"probability {sig.false_alarm_probability:.2g})"
                     )
-                if sig.sigma < settings.threshold_sigma or _outside(cand.fit, settings, notes):
+                # "not >=": a NaN significance (a chi2 gain that is not finite) is no
+                # detection.
+                below = not sig.sigma >= settings.threshold_sigma
+                if below or _outside(cand.fit, settings, notes):
                     continue
                 if _rejected(dataset, cand.fit, sig, context):
                     if rank == 0:

@@ -162,7 +162,9 @@ def _search(
     from amigo.plots import companions as plots
     from amigo.progress import step
 
+    _refuse_repeats(files)
     blocks = [obs.load(f, cp_correlation=cp_correlation, observables=observables) for f in files]
+    _refuse_other_targets(files, blocks)
     for path, block in zip(files, blocks, strict=True):
         step(f"{path}: {block.filter_name}, {block.n_obs} observables, {block.n_uv} uv points")
     dataset = obs.Dataset.from_blocks(blocks)
@@ -219,3 +221,35 @@ def _search(
         print(f"warning: {message}", file=sys.stderr)
     print(f"wrote {out / 'companions.json'}, {out / 'contrast_limits.csv'} and figures")
     return result, document
+
+
+def _refuse_repeats(files) -> None:
+    """A file given twice would count its observables twice (every chi2 gain doubled,
+    a 3.6-sigma candidate read as 5.1): refused, as a bad input."""
+    seen: set[Path] = set()
+    for path in files:
+        resolved = Path(path).resolve()
+        if resolved in seen:
+            raise InputError(path, "is given twice")
+        seen.add(resolved)
+
+
+def _refuse_other_targets(files, blocks) -> None:
+    """One search is one star: calvis files of different science targets (``amigo
+    detect out/*_calvis.fits`` after a fit of two targets) are refused, naming the first
+    file of another target. OIFITS files are not checked (other tools name targets in
+    their own ways)."""
+    from amigo.io.calvis import is_calvis
+
+    first: tuple[Path, str] | None = None
+    for path, block in zip(files, blocks, strict=True):
+        if not is_calvis(path):
+            continue
+        if first is None:
+            first = (Path(path), block.target)
+        elif block.target != first[1]:
+            raise InputError(
+                path,
+                f"is of target {block.target!r}, {first[0].name} of {first[1]!r}: "
+                "detect one target at a time",
+            )
