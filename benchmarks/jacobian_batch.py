@@ -4,7 +4,7 @@ A fit's Jacobians (:func:`amigo.fitting.newton.local_jacobian` and
 :func:`~amigo.fitting.newton.optics_jacobian`) apply the model's linearisation to unit
 tangents in batches: a sequential loop whose steps each push ``batch`` columns through the
 model. On a CPU a small batch keeps its intermediate images in the caches (8 is the
-default, :data:`amigo.fitting.newton.JVP_BATCH`); on a GPU each step's kernels are small
+default, :data:`amigo.model.columns.JVP_BATCH`); on a GPU each step's kernels are small
 and a step may cost mostly its launches, so fewer, larger steps may win there: this
 measures it.
 
@@ -63,6 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     import amigo.fitting.newton as newton
     from amigo.cli import main as amigo_main
     from amigo.io.calvis import read_calvis
+    from amigo.model.columns import JVP_BATCH_ENV
 
     calls: dict[str, list[float]] = {"local": [], "optics": []}
     columns: dict[str, list[int]] = {"local": [], "optics": []}
@@ -94,7 +95,7 @@ def main(argv: list[str] | None = None) -> int:
           f"{os.cpu_count()} CPU cores; JAX {jax.__version__}")  # fmt: skip
     rows, reference = [], None
     for batch in batches:
-        os.environ[newton.JVP_BATCH_ENV] = str(batch)
+        os.environ[JVP_BATCH_ENV] = str(batch)
         jax.clear_caches()  # the Jacobians are traced again, with this batch
         walls = []
         for run in range(2):

@@ -344,16 +344,16 @@ def test_a_float64_gradient_confirms_convergence_with_the_last_matrix(monkeypatc
 
 
 def test_jacobian_batch_is_the_default_unless_the_environment_sets_it(monkeypatch):
-    from amigo.fitting import newton
+    from amigo.model import columns
 
-    monkeypatch.delenv(newton.JVP_BATCH_ENV, raising=False)
-    assert newton.jvp_batch() == newton.JVP_BATCH
-    monkeypatch.setenv(newton.JVP_BATCH_ENV, "48")
-    assert newton.jvp_batch() == 48
+    monkeypatch.delenv(columns.JVP_BATCH_ENV, raising=False)
+    assert columns.jvp_batch() == columns.JVP_BATCH
+    monkeypatch.setenv(columns.JVP_BATCH_ENV, "48")
+    assert columns.jvp_batch() == 48
     for bad in ("0", "-3", "many"):
-        monkeypatch.setenv(newton.JVP_BATCH_ENV, bad)
-        with pytest.raises(ValueError, match=newton.JVP_BATCH_ENV):
-            newton.jvp_batch()
+        monkeypatch.setenv(columns.JVP_BATCH_ENV, bad)
+        with pytest.raises(ValueError, match=columns.JVP_BATCH_ENV):
+            columns.jvp_batch()
 
 
 @pytest.mark.parametrize("batch", ["3", "64"])
@@ -362,16 +362,16 @@ def test_jacobian_columns_do_not_depend_on_the_batch(monkeypatch, batch):
     ``jax.jacfwd`` (the blocks' batches are shared evenly and padded with zero tangents)."""
     import jax
 
-    from amigo.fitting import newton
+    from amigo.model import columns
 
-    monkeypatch.setenv(newton.JVP_BATCH_ENV, batch)
+    monkeypatch.setenv(columns.JVP_BATCH_ENV, batch)
     x = jnp.linspace(-1.0, 1.0, 11)
     weights = jnp.arange(33.0).reshape(3, 11) / 10.0
 
     def function(v):
         return jnp.sin(weights @ v) * jnp.sum(v**2)
 
-    columns = newton._columns(function, x, (4,))
+    columns = columns.columns_of(function, x, (4,))
     np.testing.assert_allclose(columns, jax.jacfwd(function)(x).T, rtol=1e-5, atol=1e-6)
 
 

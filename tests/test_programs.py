@@ -97,7 +97,7 @@ def test_every_static_value_is_in_the_key(store):
 
 
 def test_only_the_variables_a_trace_reads_are_in_the_key(store, monkeypatch):
-    from amigo.fitting.newton import JVP_BATCH, JVP_BATCH_ENV
+    from amigo.model.columns import JVP_BATCH, JVP_BATCH_ENV
 
     assert programs.TRACED_VARIABLES[JVP_BATCH_ENV] == str(JVP_BATCH)  # the default
     x = jnp.ones(3)

@@ -270,8 +270,8 @@ def _versions() -> str:
 
 
 #: Environment variables that a traced program reads, each with the value a trace takes
-#: where it is unset (the Jacobians' batch of columns, :func:`amigo.fitting.newton.jvp_batch`,
-#: default :data:`~amigo.fitting.newton.JVP_BATCH`; tests/test_programs.py checks that they
+#: where it is unset (the Jacobians' batch of columns, :func:`amigo.model.columns.jvp_batch`,
+#: default :data:`~amigo.model.columns.JVP_BATCH`; tests/test_programs.py checks that they
 #: agree): part of every key as the value in effect, so that unset and set to the
 #: default are one program. No other variable changes a program, and setting one
 #: (``AMIGO_DEBUG`` for a traceback, a test's ``AMIGO_SHARED``) must not trace and

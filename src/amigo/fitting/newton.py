@@ -60,8 +60,6 @@ measured on the tests' small fit) and run at half the speed.
 
 from __future__ import annotations
 
-import itertools
-import os
 import time
 from collections.abc import Iterator
 from contextlib import AbstractContextManager
@@ -78,6 +76,7 @@ from amigo import heap, programs
 from amigo.fitting.params import FitParams
 from amigo.likelihood.pixels import PixelData
 from amigo.likelihood.stripes import decorrelate_rows, stripes_around_peak
+from amigo.model.columns import columns_of
 from amigo.model.image import (
     FilterSetup,
     Instrument,
@@ -93,32 +92,6 @@ from amigo.solvers.levenberg_marquardt import minimise
 
 if TYPE_CHECKING:
     from amigo.model.optics import NRMOptics
-
-#: Columns differentiated together on a CPU (memory: each holds the visibility FFTs of one
-#: image). Measured (2-core CPU, a warm one-filter fit of real data): 16 -> 103 s and 2.1 GB
-#: peak, 8 -> 80 s and 1.75 GB, 4 -> 85 s and 1.63 GB (smaller batches stay in cache).
-JVP_BATCH = 8
-#: Environment variable that sets the batch (benchmarks/jacobian_batch.py). On a GPU
-#: (an H200, a warm one-filter fit of the real pair in one process, docs/performance.md)
-#: the batch hardly matters: fits of 5.1 / 4.9 / 5.3 s at 8 / 64 / 256 columns, of which
-#: the Jacobians' calls 0.27 / 0.14 / 0.14 s; so 8 everywhere.
-JVP_BATCH_ENV = "AMIGO_JVP_BATCH"
-
-
-def jvp_batch() -> int:
-    """Jacobian columns per batch: :data:`JVP_BATCH`, or ``$AMIGO_JVP_BATCH`` when set.
-    Read when a Jacobian is traced: a compiled Jacobian keeps the batch it was traced with."""
-    value = os.environ.get(JVP_BATCH_ENV, "").strip()
-    if not value:
-        return JVP_BATCH
-    try:
-        batch = int(value)
-    except ValueError:
-        batch = 0
-    if batch < 1:
-        raise ValueError(f"{JVP_BATCH_ENV} must be a positive integer, got {value!r}")
-    return batch
-
 
 #: Standard deviations of the Gaussian prior on ``[rotation_deg, anisotropy, skew_deg,
 #: scale]`` around the instrument's geometry: 1 deg, 1 %, 1 deg, 1 % (the real data and
@@ -439,46 +412,6 @@ def _local_image(theta, instrument, setup, psfs, anchor) -> Float[Array, "80 80"
     return instrument.detector.after_jitter(blurred, jnp.exp(theta[2]))
 
 
-def _columns(function, x: Array, blocks: tuple[int, ...] = ()) -> Array:
-    """Forward-mode Jacobian of ``function`` at ``x``, (n, *out), in batches of columns.
-
-    The function is linearised once per block of ``x`` (``blocks``: the sizes of the
-    leading blocks; the rest of ``x`` is the last block), and each block's linear map is
-    applied to its unit tangents in batches. Two savings over ``jax.jvp`` per batch,
-    with identical columns:
-
-    * the primal evaluation (and what the tangents reuse of it: the PSFs' transforms,
-      the visibilities' exponentials) is computed once, not once per batch;
-    * parts of the model that do not depend on a block get symbolic-zero tangents: the
-      point source's full spectrum does not move with a latent visibility, and a
-      log-amplitude column leaves the phase's interpolation alone.
-
-    The tangents are padded with zero columns to a whole number of batches: ``lax.map``
-    would otherwise trace the remainder as a second copy of the model, which doubles the
-    compile time (minutes on a CPU) to save a few JVPs.
-    """
-    n = x.shape[0]
-    bounds = np.cumsum([0, *blocks, n - sum(blocks)])
-    parts = []
-    for lo, hi in itertools.pairwise(bounds.tolist()):
-        if hi == lo:
-            continue
-
-        def of_block(block, lo=lo, hi=hi):
-            return function(jnp.concatenate([x[:lo], block, x[hi:]]))
-
-        _, linear = jax.linearize(of_block, x[lo:hi])
-        size = hi - lo
-        # As many steps as the batch size asks for, shared evenly: the least padding
-        # (71 columns at 64 are 2 steps of 36, not 2 of 64).
-        steps = -(-size // jvp_batch())
-        batch = -(-size // steps)
-        padded = -(-size // batch) * batch
-        tangents = jnp.eye(padded, size, dtype=x.dtype)  # rows size.. are zero
-        parts.append(jax.lax.map(linear, tangents, batch_size=batch)[:size])
-    return jnp.concatenate(parts)
-
-
 @programs.jit
 def local_jacobian(
     theta: Array, instrument: Instrument, setup: FilterSetup, psfs: Array, anchor: Array
@@ -488,7 +421,7 @@ def local_jacobian(
     assert basis is not None  # a fitted filter's setup has its latent basis
     # Scalars, latent amplitudes, latent phases: linearised separately (see _columns).
     blocks = (N_LOCAL_SCALARS, basis.n_amp)
-    return _columns(lambda t: _local_image(t, instrument, setup, psfs, anchor), theta, blocks)
+    return columns_of(lambda t: _local_image(t, instrument, setup, psfs, anchor), theta, blocks)
 
 
 def optics_jacobian(
@@ -542,7 +475,7 @@ def _optics_jacobian(
     if windows is None:
         # The wavefront moves the PSFs; the geometry and band taper only the detector and
         # the spectrum: linearised apart, their columns skip the propagation's tangents.
-        return _columns(image_of, block, (n_zernike + 1,))
+        return columns_of(image_of, block, (n_zernike + 1,))
     optics = _split_block(block, shape)
     psfs, tangents_of = filter_psf_tangents(instrument, setup, optics, anchor, windows)
     # The image is linear in the PSFs: one linearisation carries every PSF tangent.
@@ -558,7 +491,7 @@ def _optics_jacobian(
     # all the same, so that the columns are the model's derivatives by construction.
     columns = columns.at[:, 0].add(-jnp.mean(columns[:, 0], axis=0))
     # Defocus, then the geometry and band taper, as in the whole-model path.
-    rest = _columns(
+    rest = columns_of(
         lambda tail: image_of(jnp.concatenate([block[:n_zernike], tail])), block[n_zernike:], (1,)
     )
     return jnp.concatenate([columns.reshape(n_zernike, *columns.shape[2:]), rest])
