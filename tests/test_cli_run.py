@@ -35,3 +35,21 @@ def test_help_lists_run_and_demo():
     result = CliRunner().invoke(cli, ["run", "--help"])
     for option in ("--sci", "--cal", "--out", "--model", "--detector", "--no-hmc"):
         assert option in result.output
+
+
+def test_science_files_of_two_targets_are_refused_before_any_work(tmp_path, capsys):
+    """``amigo run`` searches one star: science images of two targets (whose calvis files
+    ``amigo detect`` would refuse to search together) are one line and exit 2 before
+    anything is processed or fitted."""
+    import numpy as np
+
+    from jwst_files import write_level2
+
+    one = write_level2(tmp_path / "a_cal.fits", np.ones((80, 80)), overrides={"TARGPROP": "A"})
+    two = write_level2(tmp_path / "b_cal.fits", np.ones((80, 80)), overrides={"TARGPROP": "B"})
+    cal = write_level2(tmp_path / "c_cal.fits", np.ones((80, 80)), overrides={"TARGPROP": "C"})
+    out = tmp_path / "out"
+    assert _run(["run", "--sci", str(one), str(two), "--cal", str(cal), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "b_cal.fits: is of target 'B', a_cal.fits of 'A'" in err
+    assert len(err.splitlines()) == 1 and not out.exists()

@@ -635,8 +635,9 @@ class FilterFit:
             last_fisher = newton.last_fisher
             exact = newton.exact_exposures
             iteration += newton.iterations
-            # The finish starts where the descent ended (its first loss is the descent's
-            # last) and ends at its own last loss (not appended again below).
+            # The finish's history (levenberg_marquardt: the calibrators' stage, then all
+            # exposures) follows the descent's without its starting point where a descent
+            # ran; its last value is the final loss (appended below, not twice).
             history.extend(newton.loss_history[1:] if history else newton.loss_history)
             final_loss = history.pop()
             final_decrement = newton.decrement * per_exposure

@@ -419,7 +419,7 @@ def local_jacobian(
     """Jacobian of one exposure's image w.r.t. its local vector (instrument block fixed)."""
     basis = setup.basis
     assert basis is not None  # a fitted filter's setup has its latent basis
-    # Scalars, latent amplitudes, latent phases: linearised separately (see _columns).
+    # Scalars, latent amplitudes, latent phases: linearised separately (see columns_of).
     blocks = (N_LOCAL_SCALARS, basis.n_amp)
     return columns_of(lambda t: _local_image(t, instrument, setup, psfs, anchor), theta, blocks)
 

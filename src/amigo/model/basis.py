@@ -7,11 +7,12 @@ For one filter and one instrument state:
    the knots whose interpolation footprint touches the OTF (the others have zero
    columns). It is the fit's own image (:func:`amigo.model.image.jittered_illuminance`:
    the visibilities' band to the image in two matrix products per column) linearised
-   once and applied to the unit tangents in batches, as the fit's Jacobians are
-   (:func:`amigo.fitting.newton.local_jacobian`); :func:`amigo.model.image.unit_image`,
-   the same image through the FFTs, is its reference in the tests (float32 rounding
-   apart). On two CPU cores a filter's 2 x 1300 columns take 1.3 s this way, 4.5 s as a
-   forward-mode derivative of ``unit_image`` (format 2).
+   once and applied to the unit tangents in batches (:func:`amigo.model.columns.columns_of`,
+   as the fit's Jacobians are); the tests hold it against forward-mode differentiation
+   of the plain path through the FFTs (:func:`amigo.model.image.illuminance_from_psfs`,
+   then the detector). On two CPU cores a filter's 2 x 1300 columns take 1.3 s this way;
+   format 2 took 4.5 s differentiating the same image batch by batch, its forward pass
+   evaluated again for every batch of 16 columns.
 2. The Gauss-Newton Hessians with identity pixel covariance, ``H_a = J_a^T J_a`` and
    ``H_p = J_p^T J_p`` (amplitudes and phases are kept separate, as in the paper; their
    cross term vanishes for a centro-symmetric PSF).
@@ -58,9 +59,9 @@ from amigo.model.visibility import LatentBasis, UVGrid
 from amigo.progress import step
 
 #: Version of the basis algorithm and file layout (part of the cache key). 3: the
-#: Jacobian through the fit's band products (equal to format 2's FFT path to float32
-#: rounding, but eigenvectors of near-equal eigenvalues may turn: a new key, so that one
-#: installation never mixes bases of both).
+#: Jacobian linearised once (equal to format 2's to float32 rounding, but eigenvectors of
+#: near-equal eigenvalues may turn: a new key, so that one installation never mixes
+#: bases of both) and the MTF in float64.
 BASIS_FORMAT = 3
 #: MTF level that bounds the OTF support (see module notes).
 SUPPORT_MTF = 1e-3
@@ -215,6 +216,8 @@ def build_basis(
     spectrum = setup.spectrum(jnp.zeros((), jnp.float32))
     psfs = filter_psfs(instrument, setup, OpticsParams.from_instrument(instrument))
     knots = _touched_knots(setup, psfs)
+    if len(knots) == 0:
+        raise ValueError(f"basis {filter_name}: no knot of the grid reaches the OTF")
     step(f"basis {filter_name}: {len(knots)} of {grid.n_half} knots reach the OTF")
     step(f"basis {filter_name}: Jacobian of the knots")
     jac = np.asarray(knot_jacobian(instrument, setup, psfs, jnp.asarray(knots)), np.float64)

@@ -583,31 +583,6 @@ def locate(
     return position, flux
 
 
-def unit_image(
-    instrument: Instrument,
-    setup: FilterSetup,
-    log_amp_half: Float[Array, " h"],
-    phase_half: Float[Array, " h"],
-) -> Float[Array, "80 80"]:
-    """A centred unit-flux point source of flat SED seen with the instrument's nominal
-    wavefront, as a function of the free knot values (``V = 1`` at zero). The latent
-    basis is built from this function's Jacobian.
-    """
-    dtype = setup.injector.w_y.dtype
-    jitter_mas = (instrument.detector.jitter_arcsec * 1000.0).astype(dtype)
-    exposure = ExposureParams(jnp.zeros(2, dtype), jnp.zeros((), dtype), jitter_mas)
-    log_amp, phase = setup.grid.to_full(log_amp_half, phase_half)
-    return image_from_log_vis(
-        instrument,
-        setup,
-        OpticsParams.from_instrument(instrument),
-        jnp.zeros((), dtype),
-        exposure,
-        log_amp,
-        phase,
-    )
-
-
 def float64(tree: T) -> T:
     """Cast every floating array of a pytree to float64 (inside ``jax.enable_x64``)."""
     return cast(tree, jnp.float64)

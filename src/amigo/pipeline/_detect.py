@@ -80,6 +80,7 @@ def detect(
     settings = {k: v for k, v in options.items() if k not in ("files", "out", "force")}
     files = [str(f) for f in files]
     out = Path(out)
+    _refuse_repeats(files)  # before a kept search of the same list could be returned
     key = _detect_key(files, settings)
     kept = None if force else _kept_search(out, key)
     if kept is not None:
@@ -162,7 +163,6 @@ def _search(
     from amigo.plots import companions as plots
     from amigo.progress import step
 
-    _refuse_repeats(files)
     blocks = [obs.load(f, cp_correlation=cp_correlation, observables=observables) for f in files]
     _refuse_other_targets(files, blocks)
     for path, block in zip(files, blocks, strict=True):
@@ -238,12 +238,12 @@ def _refuse_other_targets(files, blocks) -> None:
     """One search is one star: calvis files of different science targets (``amigo
     detect out/*_calvis.fits`` after a fit of two targets) are refused, naming the first
     file of another target. OIFITS files are not checked (other tools name targets in
-    their own ways)."""
+    their own ways), nor calvis files without a target name."""
     from amigo.io.calvis import is_calvis
 
     first: tuple[Path, str] | None = None
     for path, block in zip(files, blocks, strict=True):
-        if not is_calvis(path):
+        if not is_calvis(path) or not block.target:
             continue
         if first is None:
             first = (Path(path), block.target)

@@ -176,13 +176,7 @@ def fit(
             read.append((item.exposure, item.meta))
             ramps[item.exposure.name] = item.ramp
     for filter_name, inputs in given.items():
-        roles = {role for role, _ in inputs}
-        if "calibrator" not in roles:
-            # A science target observed in more filters than its calibrator (a dithered
-            # calibrator visit in F480M alone): the other filters are fitted, this one is
-            # reported failed (exit status 3); with no filter left, a bad input below.
-            warn(f"{filter_name}: no calibrator exposure: its science exposures are not fitted")
-        if "science" not in roles:
+        if "science" not in {role for role, _ in inputs}:
             step(f"{filter_name}: calibrators only (no science exposure): skipped")
     by_filter: dict[str, list] = defaultdict(list)
     for fit_exposure, meta in key_targets(read):
@@ -195,6 +189,12 @@ def fit(
         if any(role == "science" for role, _ in inputs)
     }
     _refuse_if_nothing_left(fitted, excluded)
+    for filter_name, inputs in given.items():
+        if "science" in (roles := {role for role, _ in inputs}) and "calibrator" not in roles:
+            # A science target observed in more filters than its calibrator (a dithered
+            # calibrator visit in F480M alone): the other filters are fitted, this one is
+            # reported failed (exit status 3).
+            warn(f"{filter_name}: no calibrator exposure: its science exposures are not fitted")
     config = FitConfig(polish_steps=polish)
     if wavefront_prior is not None:
         config = dataclasses.replace(

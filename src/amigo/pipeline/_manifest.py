@@ -203,7 +203,9 @@ def _fit_and_detect(target: Target, folder: Path, settings: Mapping[str, Any], f
     """amigo fit then amigo detect of a target of level-2 or calslope files."""
     from amigo.pipeline._detect import detect
     from amigo.pipeline._fit import fit
+    from amigo.pipeline._run import one_science_target
 
+    one_science_target(tuple(map(Path, target.sci)))
     fitted = fit(
         target.sci,
         target.cal,

@@ -69,6 +69,7 @@ def run(
     superbias_paths = tuple(map(Path, superbias))
     out = Path(out)
     check_roles(sci_paths, cal_paths, superbias_paths, first_group)
+    one_science_target(sci_paths)
     inputs = tuple(dict.fromkeys((*sci_paths, *cal_paths, *superbias_paths)))
     # Raw ramps are processed; level-2 images and calslope files are slopes already
     # (amigo fit refuses a mix of the two levels, naming the file).
@@ -106,3 +107,29 @@ def run(
     step(f"run: searching {len(calvis)} calvis file(s) for companions")
     found = detect(calvis, out, rmax_mas=rmax_mas, hmc=hmc, force=force)
     return RunResult(processed, fitted, found)
+
+
+def one_science_target(sci: Sequence[Path]) -> None:
+    """``amigo run`` (and a manifest's target) searches one star: science files of two
+    targets (``TARGPROP``, else ``TARGNAME``) are refused before any work, naming the first
+    file of the second target. ``amigo fit`` takes several targets at once; each target's
+    calvis files are then searched apart (``amigo detect`` refuses two targets).
+    A file whose primary header cannot be read is passed over: the readers name it."""
+    from astropy.io import fits
+
+    first: tuple[str, Path] | None = None
+    for path in sci:
+        try:
+            header = fits.getheader(path)
+        except Exception:  # damaged or missing: the readers refuse it in their own words
+            continue
+        target = str(header.get("TARGPROP") or header.get("TARGNAME") or "").strip()
+        if first is None:
+            first = (target, Path(path))
+        elif target != first[0]:
+            raise InputError(
+                path,
+                f"is of target {target!r}, {first[1].name} of {first[0]!r}: amigo run "
+                "searches one science target (amigo fit takes several; then amigo detect "
+                "each target's calvis files, or list the targets in a --manifest)",
+            )
