@@ -127,6 +127,52 @@ def test_the_model_image_is_stcal_s_fit_of_the_model_ramp(bent_model):
     assert np.all(differences[-1][bright] < (1 - 5e-4) * differences[0][bright])
 
 
+def test_a_newer_pipelines_charge_migration_is_followed(tmp_path, bent_model):
+    """A level-2 file the charge-migration step ran on (``S_CHGMIG = 'COMPLETE'``, jwst
+    >= 1.14) had its groups above 25,000 DN left out of the ramp fit: the model's ramp is
+    fitted over the same groups, in training (SlopeData) and in fits (Level2Input); a
+    file without the keyword (COM 1093's CAL_VER 1.5.3) over all of them."""
+    from amigo.model.detector.pipeline_slope import charge_loss_groups
+    from amigo.pipeline._fit import _read_fit_exposure
+
+    rate, err = _image(np.random.default_rng(3))
+    rate = rate * 5.0  # peak 1e5 DN/s: 7,500 DN a group, over 25,000 DN by the 4th of 8
+    overrides = {"NGROUPS": 8, "FILTER": "F480M"}
+    old = write_level2(tmp_path / "old_cal.fits", rate, err, overrides=overrides)
+    new = write_level2(
+        tmp_path / "new_cal.fits", rate, err, overrides={**overrides, "S_CHGMIG": "COMPLETE"}
+    )
+    expected = charge_loss_groups(rate, 8, TGROUP, TGROUP)
+    assert expected.min() == 3 and 5 < np.sum(expected < 8) < 200
+    assert SlopeData.read(old, "calibrator").groups_used is None
+    data = SlopeData.read(new, "calibrator")
+    np.testing.assert_array_equal(np.asarray(data.groups_used), expected)
+    assert _read_fit_exposure(old, "science", "level2").ramp.groups_used is None
+    fitted = _read_fit_exposure(new, "science", "level2").ramp
+    np.testing.assert_array_equal(fitted.groups_used, expected)
+
+    # the model image: stcal's fit of the model ramp over those groups
+    base, _, source = bent_model
+    cache = base.pupil_cache()
+    with jax.enable_x64(True):
+        level2 = np.asarray(point_source_slopes(base, cache, source, data), np.float64)[0]
+        ramp_kind = dataclasses.replace(data, level2=False)
+        differences = np.asarray(point_source_slopes(base, cache, source, ramp_kind), np.float64)
+    ramp = np.concatenate([np.zeros((1, 80, 80)), np.cumsum(differences, axis=0)])
+    flags = np.arange(8)[:, None, None] >= expected[None]
+    stcal_rate, _ = _stcal(
+        ramp[None], flags[None], tgroup=TGROUP, tframe=TGROUP, nframes=1, groupgap=0,
+        read_noise=np.full((80, 80), MODEL_READ_NOISE_CDS_DN),
+        gain=np.full((80, 80), base.read.gain_e_per_dn), chargeloss=True,
+    )  # fmt: skip
+    bright = differences.mean(axis=0) > 20.0
+    np.testing.assert_allclose(level2[bright] / TGROUP, stcal_rate["slope"][bright], rtol=2e-5)
+    # and the Level2Input's correction is the same estimate, less the linear image
+    linear = differences.mean(axis=0) / TGROUP
+    correction = fitted.correction(differences, linear)
+    np.testing.assert_allclose((correction + linear)[bright], level2[bright] / TGROUP, rtol=1e-5)
+
+
 def test_the_model_behind_the_pipeline_keeps_what_it_learnt():
     config = BaseModelConfig(filters=("F480M",), shape=(8, 8))
     base = BaseModel.create(config, linear=True)

@@ -178,6 +178,10 @@ class Level2Input:
         The dark reference file the pipeline subtracted (``R_DARK``): a base model's
         per-group read offsets apply only behind the file they were measured behind
         (:meth:`~amigo.model.base.BaseModel.dark_residual_for`).
+    groups_used
+        (ny, nx) the leading groups of each pixel the pipeline fitted, where its
+        charge-migration step flagged the later ones
+        (:func:`~amigo.model.detector.pipeline_slope.charge_loss_groups`); ``None``: all.
     """
 
     data: ImageData
@@ -185,6 +189,7 @@ class Level2Input:
     nframes: int
     group_time_s: float
     dark_reference: str = ""
+    groups_used: np.ndarray | None = None
 
     @property
     def first_group(self) -> bool:
@@ -206,8 +211,9 @@ class Level2Input:
         from amigo.model.detector.pipeline_slope import pipeline_group_slope
 
         per_group = pipeline_group_slope(
-            jnp.asarray(slopes_dn), self.group_time_s, GAIN_E_PER_DN, self.nframes
-        )
+            jnp.asarray(slopes_dn), self.group_time_s, GAIN_E_PER_DN, self.nframes,
+            self.groups_used,
+        )  # fmt: skip
         return np.asarray(per_group, np.float64) / self.group_time_s - image_dn_s
 
     def sigma(self) -> np.ndarray:

@@ -164,6 +164,14 @@ class ExposureMeta:
         return str(self.primary_header.get("R_DARK", "")).strip().removeprefix("crds://")
 
     @property
+    def charge_migration_flagged(self) -> bool:
+        """Whether the pipeline's charge-migration step ran on this level-2 image
+        (``S_CHGMIG = 'COMPLETE'``): groups above its threshold were left out of the ramp
+        fit (:func:`amigo.model.detector.pipeline_slope.charge_loss_groups`)."""
+        step = str(self.primary_header.get("S_CHGMIG", "")).strip().upper()
+        return self.kind in LEVEL2_KINDS and step == "COMPLETE"
+
+    @property
     def is_flat(self) -> bool:
         """A flat-field (lamp) exposure, used only to calibrate per-pixel response."""
         return self.exp_type in FLAT_EXP_TYPES

@@ -35,7 +35,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 from jax.typing import DTypeLike
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, Int
 
 from amigo import niriss
 from amigo.errors import InputError
@@ -44,7 +44,7 @@ from amigo.io.jwst import DQ_SATURATED, Exposure, is_level2, read_exposure
 from amigo.likelihood.pixels import ImageData, SlopeNoise, auto_structure
 from amigo.likelihood.stripes import decorrelate
 from amigo.model.base import BaseModel, PupilCache
-from amigo.model.detector.pipeline_slope import pipeline_group_slope
+from amigo.model.detector.pipeline_slope import charge_loss_groups, pipeline_group_slope
 
 TRAINING_ROLES = ("calibrator", "flat", "validation")
 
@@ -73,6 +73,10 @@ class SlopeData(eqx.Module):
         Level-2 images: (nx, ny, ny) symmetric whitener of each column for the image's
         1/f stripes (:func:`amigo.likelihood.stripes.column_whiteners`), applied after
         the per-pixel whitening (:func:`whiten`); ``None``: no stripes (the default).
+    groups_used
+        Level-2 images the pipeline's charge-migration step ran on: (ny, nx) the leading
+        groups of each pixel its ramp fit used
+        (:func:`~amigo.model.detector.pipeline_slope.charge_loss_groups`); ``None``: all.
     """
 
     slopes_dn: Float[Array, "m ny nx"]
@@ -88,6 +92,7 @@ class SlopeData(eqx.Module):
     group_time_s: float = eqx.field(static=True, default=0.0)
     dark_reference: str = eqx.field(static=True, default="")
     stripes: Float[Array, "nx ny ny"] | None = None
+    groups_used: Int[Array, "ny nx"] | None = None
 
     @classmethod
     def from_calslope(
@@ -143,8 +148,11 @@ class SlopeData(eqx.Module):
         The image (integrations averaged as :meth:`ImageData.from_exposure` does) becomes
         one value per pixel, ``rate * TGROUP`` in DN per group, whitened by ``1 / (ERR *
         TGROUP)``. Pixels the pipeline flagged SATURATED are left out: their slope comes
-        from fewer groups than the header's NGROUPS, a ramp the model does not evaluate.
-        A flat field cannot be level-2 (the pipeline has divided it out).
+        from fewer groups than the header's NGROUPS, at a level the file does not state.
+        Where the pipeline's charge-migration step ran (``S_CHGMIG``), the groups it left
+        out are known from its threshold and the model's ramp is fitted as the pipeline
+        fitted the data's (``groups_used``). A flat field cannot be level-2 (the pipeline
+        has divided it out).
         """
         meta = exposure.meta
         if role not in TRAINING_ROLES:
@@ -162,6 +170,11 @@ class SlopeData(eqx.Module):
             used &= ~np.any((dq & DQ_SATURATED) != 0, axis=0)
         if not used.any():
             raise InputError(meta.path, "no usable pixel")
+        groups_used = None
+        if meta.charge_migration_flagged:
+            groups_used = charge_loss_groups(
+                image.data, meta.ngroups, meta.group_time_s, meta.frame_time_s, meta.nframes
+            )
         return cls.from_rate_image(
             image.data,
             image.error,
@@ -174,6 +187,7 @@ class SlopeData(eqx.Module):
             role=role,
             dtype=dtype,
             dark_reference=meta.dark_reference,
+            groups_used=groups_used,
         )
 
     @classmethod
@@ -191,10 +205,12 @@ class SlopeData(eqx.Module):
         role: str = "calibrator",
         dtype: DTypeLike = jnp.float32,
         dark_reference: str = "",
+        groups_used: np.ndarray | None = None,
     ) -> SlopeData:
         """A level-2 exposure from its (ny, nx) rate and error (DN/s) and the pixels to
         use: one value per pixel, ``rate * TGROUP`` (DN per group), whitened by
-        ``1 / (error * TGROUP)``; ``dark_reference`` names the pipeline's dark file."""
+        ``1 / (error * TGROUP)``; ``dark_reference`` names the pipeline's dark file,
+        ``groups_used`` the groups its ramp fit used per pixel (``None``: all)."""
         used = np.asarray(used, bool)
         t = float(group_time_s)
         ny, nx = used.shape
@@ -214,6 +230,7 @@ class SlopeData(eqx.Module):
             nframes=int(nframes),
             group_time_s=t,
             dark_reference=dark_reference,
+            groups_used=None if groups_used is None else jnp.asarray(groups_used, jnp.int32),
         )
 
     @classmethod
@@ -309,7 +326,9 @@ def point_source_slopes(
     slopes = predict_slopes(base, params.flux_e * unit, data.ngroups)
     if data.level2:
         gain = base.read.gain_e_per_dn
-        return pipeline_group_slope(slopes, data.group_time_s, gain, data.nframes)[None]
+        return pipeline_group_slope(
+            slopes, data.group_time_s, gain, data.nframes, data.groups_used
+        )[None]
     return slopes
 
 

@@ -82,7 +82,8 @@ def solve_dark_residual(
     for d, p in chosen:
         differences = _ramp_differences(model, p, d, cache)
         estimate = np.asarray(
-            pipeline_group_slope(differences, d.group_time_s, gain, d.nframes), np.float64
+            pipeline_group_slope(differences, d.group_time_s, gain, d.nframes, d.groups_used),
+            np.float64,
         )
         jacobian = offset_jacobian(differences, groups, d.group_time_s, gain, d.nframes)
         white = np.asarray(d.whitening, np.float64)[:, 0, 0].reshape(d.shape)

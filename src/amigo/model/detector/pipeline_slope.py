@@ -115,6 +115,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 #: stcal's S/N bin edges (lower bounds of every bin but the first) and the Fixsen
@@ -362,6 +363,7 @@ def pipeline_group_slope(
     group_time: float,
     gain: float,
     nframes: int = 1,
+    groups_used: Int[ArrayLike, "ny nx"] | None = None,
 ) -> Float[Array, "ny nx"]:
     """The pipeline's slope of one noiseless model integration, in DN per group.
 
@@ -370,14 +372,66 @@ def pipeline_group_slope(
     a level-2 image (DN/s) would hold, times ``group_time``, so that it compares with
     the mean group difference a linear detector would give. Differentiable (the S/N
     that picks the weights is held out of the gradient, as in :func:`pipeline_slopes`).
+    ``groups_used``: per pixel, the leading groups the pipeline fitted (the rest flagged,
+    e.g. by its charge-migration step: :func:`charge_loss_groups`); ``None``: all.
     """
     differences_dn = jnp.asarray(differences_dn)
     ramp = jnp.concatenate([jnp.zeros_like(differences_dn[:1]), jnp.cumsum(differences_dn, axis=0)])
+    flagged = None
+    if groups_used is not None:
+        k = jnp.arange(ramp.shape[0])[:, None, None]
+        flagged = (k >= jnp.asarray(groups_used)[None])[None]
     fitted = pipeline_slopes(
         ramp[None],
+        flagged,
         group_time=group_time,
         read_noise=MODEL_READ_NOISE_CDS_DN,
         gain=gain,
         nframes=nframes,
     )
     return fitted.slope[0] * group_time
+
+
+#: The JWST pipeline's ``charge_migration`` step: its ``signal_threshold`` default (DN),
+#: jwst's ``ChargeMigrationStep`` spec. A group whose value (superbias-subtracted,
+#: linearised, dark-subtracted DN) exceeds it is flagged CHARGELOSS and DO_NOT_USE, with
+#: every later group of the integration, in the pixel and its four edge neighbours; the
+#: ramp fit then uses the unflagged leading groups. Integrations of 1 or 2 groups are not
+#: flagged. The step records itself as ``S_CHGMIG = 'COMPLETE'`` (absent before jwst
+#: 1.14; COM 1093's CAL_VER 1.5.3 files do not have it).
+CHARGE_LOSS_THRESHOLD_DN: float = 25000.0
+
+
+def charge_loss_groups(
+    rate_dn_s: Float[np.ndarray, "ny nx"],
+    ngroups: int,
+    group_time: float,
+    frame_time: float,
+    nframes: int = 1,
+    threshold_dn: float = CHARGE_LOSS_THRESHOLD_DN,
+) -> Int[np.ndarray, "ny nx"]:
+    """Per pixel, how many leading groups the charge-migration step left to the ramp fit.
+
+    Emulates the step on the ramp a pixel of count rate ``rate_dn_s`` (DN/s, the level-2
+    image's; 0 or non-finite where unknown) would have recorded: group ``k`` (from 0) holds
+    ``rate * (k * TGROUP + (NFRAMES + 1) * TFRAME / 2)`` DN (the mean time since the reset
+    of its NFRAMES frames; for NISRAPID ``(k + 1) * TGROUP``), the first group above
+    ``threshold_dn`` and every later one are flagged, in the pixel and its four neighbours.
+    Returns ``ngroups`` where nothing is flagged, never fewer than 2 (a pixel with a slope
+    in the file had at least two groups). The level-2 rate is the fit of the leading groups
+    and the flat field is left out (within a few per cent of 1), so a pixel whose ramp
+    crosses the threshold within that much of a group boundary may be one group off.
+    """
+    rate = np.where(np.isfinite(rate_dn_s), np.asarray(rate_dn_s, np.float64), 0.0)
+    if ngroups < 3:
+        return np.full(rate.shape, ngroups, dtype=np.int32)
+    k = np.arange(ngroups)[:, None, None]
+    level = rate[None] * (k * group_time + (nframes + 1) * frame_time / 2.0)
+    # the rate's levels rise with k: the groups below the threshold are a prefix
+    below = np.sum(level <= threshold_dn, axis=0)
+    used = below.copy()
+    used[1:, :] = np.minimum(used[1:, :], below[:-1, :])
+    used[:-1, :] = np.minimum(used[:-1, :], below[1:, :])
+    used[:, 1:] = np.minimum(used[:, 1:], below[:, :-1])
+    used[:, :-1] = np.minimum(used[:, :-1], below[:, 1:])
+    return np.maximum(used, 2).astype(np.int32)
