@@ -124,6 +124,36 @@ def expect_error(path: Path, match: str, **kwargs) -> None:
     assert "\n" not in str(info.value)
 
 
+def test_a_photometrically_calibrated_image_is_read_back_in_dn_per_s(tmp_path):
+    """A level-2 image the pipeline's photom step converted to MJy/sr (SCI and ERR times
+    PHOTMJSR) reads as the count rates it came from; without a usable PHOTMJSR it is
+    refused with one line naming the keyword."""
+    rng = np.random.default_rng(5)
+    rate = rng.uniform(0.0, 3e4, (80, 80))
+    err = np.sqrt(rate / 30.0 + 4.0)
+    plain = jwst.read_exposure(write_level2(tmp_path / "a_cal.fits", rate, err))
+    conversion = 0.8573  # (MJy/sr) per (DN/s), the size of NIRISS's
+    path = write_level2(tmp_path / "b_cal.fits", rate * conversion, err * conversion)
+    with fits.open(path, mode="update") as hdul:
+        hdul["SCI"].header["BUNIT"] = "MJy/sr"
+        hdul["SCI"].header["PHOTMJSR"] = conversion
+    calibrated = jwst.read_exposure(path)
+    assert calibrated.meta.bunit == "DN/s" and calibrated.meta.in_dn_per_s
+    np.testing.assert_allclose(calibrated.data, plain.data, rtol=2e-7)
+    np.testing.assert_allclose(calibrated.err, plain.err, rtol=2e-7)
+    np.testing.assert_array_equal(calibrated.usable, plain.usable)
+    with fits.open(path) as hdul:  # the input is not touched
+        assert hdul["SCI"].header["BUNIT"] == "MJy/sr"
+    for value, match in ((None, "PHOTMJSR is missing"), (0.0, "PHOTMJSR is 0.0")):
+        with fits.open(path, mode="update") as hdul:
+            if value is None:
+                del hdul["SCI"].header["PHOTMJSR"]
+            else:
+                hdul["SCI"].header["PHOTMJSR"] = value
+        with pytest.raises(InputError, match=match):
+            jwst.read_exposure(path)
+
+
 def test_not_a_fits_file(tmp_path):
     path = tmp_path / "notes_cal.fits"
     path.write_text("these are my notes\n")

@@ -19,6 +19,7 @@ Kinds: ``uncal`` (SCI uint16, (nints, ngroups, ny, nx)), ``rateints`` / ``calint
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import re
@@ -129,8 +130,14 @@ class ExposureMeta:
     @property
     def in_dn_per_s(self) -> bool:
         """Whether BUNIT is a count rate in DN/s (level-2 images before the pipeline's
-        photometric calibration; after it, MJy/sr, the noise model in DN does not apply)."""
+        photometric calibration; :func:`read_exposure` undoes that calibration, MJy/sr,
+        with the file's PHOTMJSR)."""
         return self.bunit.strip().upper().replace(" ", "") in ("DN/S", "DNS-1", "DN.S**-1")
+
+    @property
+    def in_mjy_per_sr(self) -> bool:
+        """Whether BUNIT is a surface brightness in MJy/sr (the pipeline's photom step)."""
+        return self.bunit.strip().upper().replace(" ", "") in ("MJY/SR", "MJYSR-1", "MJY.SR**-1")
 
     @property
     def slope_time_s(self) -> float:
@@ -605,7 +612,31 @@ def _read_exposure(path: Path, hdul: fits.HDUList, need_slopes: bool) -> Exposur
     usable = np.broadcast_to(usable, data.shape) & ~flagged & ~nonfinite
     if err is not None:
         usable &= np.isfinite(err) & (err > 0)
+    if meta.in_mjy_per_sr:
+        # The photom step multiplied SCI and ERR by PHOTMJSR ((MJy/sr) per (DN/s), its
+        # time-dependence correction included); dividing by it gives the count rate back.
+        factor = photometric_conversion(path, meta)
+        data = data / factor
+        err = None if err is None else err / factor
+        meta = dataclasses.replace(meta, bunit="DN/s")
     return Exposure(meta=meta, data=data, err=err, dq=dq, usable=usable)
+
+
+def photometric_conversion(path: Path, meta: ExposureMeta) -> float:
+    """PHOTMJSR of a level-2 image in MJy/sr (SCI header, else primary): the factor the
+    pipeline's photom step multiplied the count rates by; :class:`InputError` when the
+    file has none or it is not a positive number."""
+    for header in (meta.sci_header, meta.primary_header):
+        value = header.get("PHOTMJSR")
+        if value is None:
+            continue
+        if not is_number(value) or not math.isfinite(float(value)) or float(value) <= 0:
+            raise InputError(path, f"PHOTMJSR is {value!r}: expected a positive number")
+        return float(value)
+    raise InputError(
+        path,
+        f"BUNIT is {meta.bunit!r} but PHOTMJSR is missing: the count rates cannot be recovered",
+    )
 
 
 def iter_ramps(
