@@ -91,14 +91,17 @@ def test_calints_are_averaged_with_errors_of_the_mean(tmp_path):
     err = np.full_like(data, 2.0)
     dq = np.zeros(data.shape, np.uint32)
     dq[1, 40, 40] = 1  # DO_NOT_USE in one integration
+    dq[2, 41, 41] = 2  # SATURATED in one: a slope of fewer groups than NGROUPS
+    dq[:, 42, 42] = 2  # SATURATED in all
     path = write_level2(tmp_path / "a_calints.fits", data, err, dq)
     image = ImageData.from_exposure(read_exposure(path))
     assert image.n_integrations == 4
     np.testing.assert_allclose(image.data[50, 50], data[:, 50, 50].mean(), rtol=1e-6)
     np.testing.assert_allclose(image.error[50, 50], 1.0, rtol=1e-6)  # 2 / sqrt(4)
-    used = data[[0, 2, 3], 40, 40]
-    np.testing.assert_allclose(image.data[40, 40], used.mean(), rtol=1e-6)
-    np.testing.assert_allclose(image.error[40, 40], 2 / np.sqrt(3), rtol=1e-6)
+    for (y, x), kept in (((40, 40), [0, 2, 3]), ((41, 41), [0, 1, 3])):
+        np.testing.assert_allclose(image.data[y, x], data[kept, y, x].mean(), rtol=1e-6)
+        np.testing.assert_allclose(image.error[y, x], 2 / np.sqrt(3), rtol=1e-6)
+    assert not image.mask[42, 42]
     assert not image.mask[:4].any()  # reference rows
 
 

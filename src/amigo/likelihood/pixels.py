@@ -34,7 +34,7 @@ from jaxtyping import Array, Bool, Float
 
 from amigo import niriss
 from amigo.errors import InputError, TooFewPixels
-from amigo.io.jwst import Exposure
+from amigo.io.jwst import DQ_SATURATED, Exposure
 
 if TYPE_CHECKING:
     from amigo.io.calslope import CalSlope
@@ -80,7 +80,10 @@ class ImageData:
 
     @classmethod
     def from_exposure(cls, exposure: Exposure) -> ImageData:
-        """Reduce a level-2 :class:`~amigo.io.jwst.Exposure` to one image."""
+        """Reduce a level-2 :class:`~amigo.io.jwst.Exposure` to one image: the mean of its
+        integrations' usable values. A value the pipeline flagged SATURATED is not used:
+        its slope comes from the groups before saturation, a number the file does not
+        state, so no model of the ramp can be fitted to it as the pipeline fitted it."""
         meta = exposure.meta
         if meta.is_ramp:
             raise InputError(meta.path, "is a raw ramp (uncal): run 'amigo process' first")
@@ -91,6 +94,8 @@ class ImageData:
                 meta.path, f"BUNIT is {meta.bunit!r}: level-2 images in DN/s are needed"
             )
         data, err, usable = exposure.data, exposure.err, exposure.usable
+        if exposure.dq is not None:
+            usable = usable & ((exposure.dq & DQ_SATURATED) == 0)
         if data.ndim == 2:
             data, err, usable = data[None], err[None], usable[None]
         n_used = usable.sum(axis=0)

@@ -40,7 +40,7 @@ from jaxtyping import Array, Float, Int
 from amigo import niriss
 from amigo.errors import InputError
 from amigo.io.calslope import CalSlope, read_calslope
-from amigo.io.jwst import DQ_SATURATED, Exposure, is_level2, read_exposure
+from amigo.io.jwst import Exposure, is_level2, read_exposure
 from amigo.likelihood.pixels import ImageData, SlopeNoise, auto_structure
 from amigo.likelihood.stripes import decorrelate
 from amigo.model.base import BaseModel, PupilCache
@@ -163,11 +163,8 @@ class SlopeData(eqx.Module):
             raise InputError(meta.path, f"BUNIT {meta.bunit!r}: level-2 images in DN/s needed")
         if meta.ngroups < 2:
             raise InputError(meta.path, f"NGROUPS {meta.ngroups}: at least 2 groups needed")
-        image = ImageData.from_exposure(exposure)
+        image = ImageData.from_exposure(exposure)  # leaves out SATURATED values
         used = image.mask.copy()
-        if exposure.dq is not None:
-            dq = np.asarray(exposure.dq).reshape(-1, *used.shape)
-            used &= ~np.any((dq & DQ_SATURATED) != 0, axis=0)
         if not used.any():
             raise InputError(meta.path, "no usable pixel")
         groups_used = None
