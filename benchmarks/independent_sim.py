@@ -609,6 +609,9 @@ def write_level2(
     primary["TARGPROP"] = targprop
     primary["TARGNAME"] = targprop
     primary["HISTORY"] = "Simulated by amigo's benchmarks/independent_sim.py (poppy, pysiaf)."
+    primary["S_CHGMIG"] = "SKIPPED"  # every group of a simulated ramp is in its slope
+    sci_header["BUNIT"] = "DN/s"  # what this simulation writes, whatever the template held
+    sci_header.pop("PHOTMJSR", None)
     out = fits.HDUList(
         [
             fits.PrimaryHDU(header=primary),

@@ -127,8 +127,11 @@ def write_calints(path: Path, template: Path, image: np.ndarray, target: str, ob
     primary["TARGPROP"] = primary["TARGNAME"] = target
     primary["OBSERVTN"] = observation
     primary["S_DARK"] = "SKIPPED"  # no dark residual in a simulation (docs/detector.md)
+    primary["S_CHGMIG"] = "SKIPPED"  # every group of a simulated ramp is in its slope
     primary.pop("R_DARK", None)
     sci_header["EXTNAME"] = "SCI"
+    sci_header["BUNIT"] = "DN/s"  # what this simulation writes, whatever the template held
+    sci_header.pop("PHOTMJSR", None)
     hdus = fits.HDUList([
         fits.PrimaryHDU(header=primary),
         fits.ImageHDU(cube.astype(np.float32), sci_header, name="SCI"),

@@ -50,6 +50,19 @@ def test_offset_jacobian_of_a_faint_ramp_is_the_least_squares_slope(ngroups):
     assert not jac[ngroups:].any()  # reads past the ramp's end do not enter it
 
 
+def test_offset_jacobian_follows_the_groups_the_pipeline_fitted():
+    """Where the pipeline's charge-migration step cut a pixel's ramp to its first ``n``
+    groups, an offset of a later read does not reach its slope, and the earlier reads act
+    as in a ramp of ``n`` groups."""
+    ngroups = 9
+    differences = jnp.full((ngroups - 1, 2, 3), 0.5)
+    used = np.array([[9, 5, 3], [2, 9, 7]])
+    jac = np.asarray(offset_jacobian(differences, 12, TGROUP, GAIN, 1, used))
+    for (y, x), n in np.ndenumerate(used):
+        np.testing.assert_allclose(jac[:n, y, x], _ols_weights(n), atol=1e-6)
+        assert not jac[n:, y, x].any()
+
+
 def test_offset_jacobian_is_stcal_s_response_to_a_read_offset():
     # Pixels from faint to bright (the pipeline's weights change with S/N); one
     # integration of 9 groups. stcal fits the ramp with read g raised by delta and

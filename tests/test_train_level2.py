@@ -173,6 +173,42 @@ def test_a_newer_pipelines_charge_migration_is_followed(tmp_path, bent_model):
     np.testing.assert_allclose((correction + linear)[bright], level2[bright] / TGROUP, rtol=1e-5)
 
 
+def test_saturated_and_flagged_pixels_cut_their_neighbours_as_the_step_does(tmp_path):
+    """The step reads the ramps, not the pixel DQ: a saturated pixel (its later groups,
+    or all of them, over 25,000 DN) cuts its four neighbours as any bright pixel does.
+    The groups amigo takes (:func:`pipeline_groups`) against the step's rule applied to
+    the ramps themselves, written out here: a partly saturated peak (SATURATED, its
+    value the slope of the groups before), a pixel saturated from its first group (NaN,
+    SATURATED + DO_NOT_USE), and a bright pixel flagged DO_NOT_USE with a value."""
+    from amigo.io.jwst import read_exposure
+    from amigo.likelihood.pixels import pipeline_groups
+    from test_pipeline_slope import _charge_migration_flags
+
+    ngroups = 8
+    yy, xx = np.mgrid[:80, :80]
+    rate = 50.0 + 1e5 * np.exp(-((xx - 40.0) ** 2 + (yy - 40.0) ** 2) / 6.0)  # DN/s
+    rate[20, 20] = 1e6  # over 25,000 DN in its first group
+    rate[60, 30] = 9e4  # a hot pixel flagged DO_NOT_USE, its value kept
+    ramps = (rate[None] * (np.arange(ngroups)[:, None, None] + 1) * TGROUP)[None]
+    flags = _charge_migration_flags(ramps)[0]
+    expected = np.maximum(np.sum(~flags, axis=0), 2)
+    saturation = 40000.0  # DN: the peak saturates from its 6th group on
+    sci, dq = rate.copy(), np.zeros((80, 80), np.uint32)
+    dq[ramps[0].max(axis=0) > saturation] |= 2
+    dq[20, 20] |= 1
+    sci[20, 20] = np.nan
+    dq[60, 30] |= 1
+    assert dq[40, 40] == 2 and np.sum(dq == 2) >= 1
+    path = write_level2(
+        tmp_path / "sat_cal.fits", sci, np.sqrt(np.abs(rate) / 30.0 + 4.0), dq,
+        overrides={"NGROUPS": ngroups, "FILTER": "F480M", "S_CHGMIG": "COMPLETE"},
+    )  # fmt: skip
+    used = pipeline_groups(read_exposure(path))
+    for y, x in ((19, 20), (21, 20), (20, 19), (20, 21), (60, 31), (41, 40), (40, 39)):
+        assert used[y, x] == expected[y, x] < ngroups, (y, x)
+    np.testing.assert_array_equal(used, expected)
+
+
 def test_the_model_behind_the_pipeline_keeps_what_it_learnt():
     config = BaseModelConfig(filters=("F480M",), shape=(8, 8))
     base = BaseModel.create(config, linear=True)

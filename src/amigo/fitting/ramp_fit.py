@@ -308,7 +308,7 @@ class RampDetector:
             if isinstance(ramp, Level2Input):
                 pattern, variance = base.dark_offset_terms(
                     ramp.dark_reference, ramp.data.data, ramp.ngroups, ramp.group_time_s,
-                    ramp.nframes,
+                    ramp.nframes, ramp.groups_used,
                 )  # fmt: skip
                 if pattern is not None:
                     self.patterns[name] = pattern

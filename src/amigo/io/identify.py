@@ -78,7 +78,8 @@ def _summarise_exposure(path: Path) -> FileSummary:
         values = np.where(exposure.usable, exposure.data, -np.inf)
         if values.ndim == 3:
             values = np.where(exposure.usable.all(axis=0), exposure.data.mean(axis=0), -np.inf)
-        peak = _format_peak(float(values.max()), meta.bunit)
+        # the exposure's unit: read_exposure turns MJy/sr back into DN/s
+        peak = _format_peak(float(values.max()), exposure.meta.bunit)
     verdict = "ok" if not meta.notes else "ok (" + "; ".join(meta.notes) + ")"
     return FileSummary(
         path=path,

@@ -195,6 +195,8 @@ class Exposure:
     data
         ``uncal``: (nints, ngroups, 80, 80) float64 raw counts in DN (BZERO applied).
         ``rateints``/``calints``: (nints, 80, 80) float64 DN/s. ``rate``/``cal``: (80, 80).
+        A level-2 file in MJy/sr is divided by its PHOTMJSR here (``meta.bunit`` then says
+        DN/s; ``meta.sci_header`` keeps the file's BUNIT and PHOTMJSR as written).
     err
         1-sigma errors of ``data`` (level 2 only), same shape, or ``None``.
     dq

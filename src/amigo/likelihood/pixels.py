@@ -4,7 +4,9 @@ Images. A level-2 product (``_cal``: one image; ``_calints`` / ``_rateints``: on
 integration) is reduced to one 80 x 80 image in DN/s with per-pixel 1-sigma errors and a
 mask of the pixels the likelihood may use. Pixels are excluded when they are reference
 pixels (the 4 bottom rows of SUB80), flagged ``DO_NOT_USE`` in DQ, non-finite, or have a
-non-positive error (all handled by :func:`amigo.io.jwst.read_exposure`'s ``usable``).
+non-positive error (:func:`amigo.io.jwst.read_exposure`'s ``usable``); values flagged
+``SATURATED`` too (:meth:`ImageData.from_exposure`: their slopes come from an unstated
+number of groups).
 Per-integration products are averaged over their usable integrations (plain mean; the
 error of the mean is ``sqrt(sum err_i^2) / n``): the forward model of a level-2 image is
 static, so the mean carries all the information of a Gaussian likelihood with the
@@ -35,6 +37,7 @@ from jaxtyping import Array, Bool, Float
 from amigo import niriss
 from amigo.errors import InputError, TooFewPixels
 from amigo.io.jwst import DQ_SATURATED, Exposure
+from amigo.model.detector.pipeline_slope import charge_loss_groups
 
 if TYPE_CHECKING:
     from amigo.io.calslope import CalSlope
@@ -349,3 +352,30 @@ class SlopeNoise:
         """Normalised Gaussian log-likelihood of the slopes."""
         z = self.zscores(model, data)
         return -0.5 * (jnp.sum(z**2) + self.log_det + self.n_values * LOG_2PI)
+
+
+def pipeline_groups(exposure: Exposure) -> np.ndarray | None:
+    """(ny, nx) the leading groups of each pixel the pipeline's ramp fit used, for a
+    level-2 image its charge-migration step ran on (``S_CHGMIG``); ``None`` otherwise.
+
+    The step's rule (:func:`~amigo.model.detector.pipeline_slope.charge_loss_groups`)
+    applied to the rates the file holds, whatever the pixels' flags (the step reads the
+    ramps, not the pixel DQ, and a flagged pixel cuts its neighbours as well): each
+    pixel's mean over the integrations of its finite values; a pixel without one that
+    the pipeline flagged SATURATED passed the threshold in its first group; any other
+    (dead, or without a value for another reason) counts as dark.
+    """
+    meta = exposure.meta
+    if not meta.charge_migration_flagged:
+        return None
+    data = exposure.data if exposure.data.ndim == 3 else exposure.data[None]
+    finite = np.isfinite(data)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rate = np.where(finite, data, 0.0).sum(axis=0) / finite.sum(axis=0)
+    if exposure.dq is not None:
+        dq = exposure.dq if exposure.dq.ndim == 3 else exposure.dq[None]
+        saturated = np.any((dq & DQ_SATURATED) != 0, axis=0)
+        rate = np.where(~finite.any(axis=0) & saturated, np.inf, rate)
+    return charge_loss_groups(
+        rate, meta.ngroups, meta.group_time_s, meta.frame_time_s, meta.nframes
+    )

@@ -41,10 +41,10 @@ from amigo import niriss
 from amigo.errors import InputError
 from amigo.io.calslope import CalSlope, read_calslope
 from amigo.io.jwst import Exposure, is_level2, read_exposure
-from amigo.likelihood.pixels import ImageData, SlopeNoise, auto_structure
+from amigo.likelihood.pixels import ImageData, SlopeNoise, auto_structure, pipeline_groups
 from amigo.likelihood.stripes import decorrelate
 from amigo.model.base import BaseModel, PupilCache
-from amigo.model.detector.pipeline_slope import charge_loss_groups, pipeline_group_slope
+from amigo.model.detector.pipeline_slope import pipeline_group_slope
 
 TRAINING_ROLES = ("calibrator", "flat", "validation")
 
@@ -167,11 +167,6 @@ class SlopeData(eqx.Module):
         used = image.mask.copy()
         if not used.any():
             raise InputError(meta.path, "no usable pixel")
-        groups_used = None
-        if meta.charge_migration_flagged:
-            groups_used = charge_loss_groups(
-                image.data, meta.ngroups, meta.group_time_s, meta.frame_time_s, meta.nframes
-            )
         return cls.from_rate_image(
             image.data,
             image.error,
@@ -184,7 +179,7 @@ class SlopeData(eqx.Module):
             role=role,
             dtype=dtype,
             dark_reference=meta.dark_reference,
-            groups_used=groups_used,
+            groups_used=pipeline_groups(exposure),
         )
 
     @classmethod

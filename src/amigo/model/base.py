@@ -536,11 +536,13 @@ class BaseModel(eqx.Module):
         ngroups: int,
         group_time_s: float,
         nframes: int = 1,
+        groups_used: np.ndarray | None = None,
     ) -> tuple[np.ndarray | None, np.ndarray]:
         """``(pattern, variance)`` of this model's read offsets in a level-2 image of
         ``rate_dn_s`` taken with ``ngroups`` reads behind the dark reference
         ``reference``, both (ny, nx), from the pipeline's response to each read at the
-        image's own rate (:func:`~amigo.model.detector.dark_residual.level2_offset_response`).
+        image's own rate (:func:`~amigo.model.detector.dark_residual.level2_offset_response`;
+        over the groups it fitted, ``groups_used`` per pixel, ``None`` for all).
 
         ``pattern`` (DN/s): what the offsets the model holds add to the image; ``None``
         where they do not apply (another reference, none held). ``variance`` ((DN/s)^2):
@@ -558,7 +560,7 @@ class BaseModel(eqx.Module):
         if read.group_offsets_dn is None and prior <= 0:
             return None, zeros
         response = level2_offset_response(
-            rate_dn_s, ngroups, group_time_s, self.read.gain_e_per_dn, nframes
+            rate_dn_s, ngroups, group_time_s, self.read.gain_e_per_dn, nframes, groups_used
         )
         pattern = None
         if read.group_offsets_dn is not None:

@@ -473,16 +473,11 @@ def _read_fit_exposure(path: Path, role: str, level: str, superbias=None) -> Rea
             image = ImageData.from_exposure(exposure)
         except TooFewPixels as error:
             return ReadExposure(None, meta, problem=error.problem)
-        groups_used = None
-        if meta.charge_migration_flagged:
-            from amigo.model.detector.pipeline_slope import charge_loss_groups
+        from amigo.likelihood.pixels import pipeline_groups
 
-            groups_used = charge_loss_groups(
-                image.data, meta.ngroups, meta.group_time_s, meta.frame_time_s, meta.nframes
-            )
         ramp = Level2Input(
             image, meta.ngroups, meta.nframes, meta.group_time_s, meta.dark_reference,
-            groups_used,
+            pipeline_groups(exposure),
         )  # fmt: skip
     problem = star_problem(image)
     if problem is not None:

@@ -85,7 +85,9 @@ def solve_dark_residual(
             pipeline_group_slope(differences, d.group_time_s, gain, d.nframes, d.groups_used),
             np.float64,
         )
-        jacobian = offset_jacobian(differences, groups, d.group_time_s, gain, d.nframes)
+        jacobian = offset_jacobian(
+            differences, groups, d.group_time_s, gain, d.nframes, d.groups_used
+        )
         white = np.asarray(d.whitening, np.float64)[:, 0, 0].reshape(d.shape)
         with np.errstate(divide="ignore"):
             variance = np.where(white > 0, 1.0 / white**2, np.inf) + (model_error * estimate) ** 2

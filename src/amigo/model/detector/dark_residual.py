@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike, Float, Int
 
 from amigo import programs
 from amigo.model.detector.pipeline_slope import pipeline_group_slope
@@ -55,30 +55,35 @@ def offset_jacobian(
     group_time: float,
     gain: float,
     nframes: int = 1,
+    groups_used: Int[ArrayLike, "ny nx"] | None = None,
 ) -> Float[Array, "G ny nx"]:
     """``d est / d f(g)`` for ``g < n_offsets``: how the pipeline's slope of each pixel
     (DN per group, :func:`pipeline_group_slope`) moves with an offset of its group read
     ``g`` (DN), at the ramp whose group differences are ``differences_dn``.
 
     The weights the pipeline picks from each pixel's S/N are those of this ramp; reads
-    past the ramp's end have no effect (zero rows).
+    past the ramp's end, or past the groups the pipeline fitted (``groups_used``, per
+    pixel; ``None``: all), have no effect (zero rows).
     """
     ngroups = differences_dn.shape[0] + 1
     # The group differences of a unit offset of each read, one row per read. An argument
     # of the compiled program, not a constant in it: XLA would spend seconds folding the
     # estimator's cumulative products over a constant.
     unit = np.diff(np.eye(ngroups)[: min(n_offsets, ngroups)], axis=1)
+    used = None if groups_used is None else jnp.asarray(groups_used, jnp.int32)
     columns = _responses(jnp.asarray(differences_dn), jnp.asarray(unit, differences_dn.dtype),
-                         group_time, gain, nframes)  # fmt: skip
+                         group_time, gain, nframes, used)  # fmt: skip
     return jnp.pad(columns, ((0, max(n_offsets - ngroups, 0)), (0, 0), (0, 0)))
 
 
 @programs.jit
-def _responses(differences, unit_differences, group_time: float, gain: float, nframes: int):
+def _responses(
+    differences, unit_differences, group_time: float, gain: float, nframes: int, groups_used
+):
     """The estimator's response (G, ny, nx) to each row of ``unit_differences`` (G, m)."""
 
     def slope(d):
-        return pipeline_group_slope(d, group_time, gain, nframes)
+        return pipeline_group_slope(d, group_time, gain, nframes, groups_used)
 
     def response(row):
         tangent = jnp.broadcast_to(row[:, None, None], differences.shape)
@@ -184,13 +189,17 @@ def level2_offset_response(
     group_time: float,
     gain: float,
     nframes: int = 1,
+    groups_used: Int[ArrayLike, "ny nx"] | None = None,
 ) -> np.ndarray:
     """(ngroups, ny, nx) response of the pipeline's slope (DN per group) to an offset of
     each read (DN) for a level-2 image of ``rate_dn_s`` (:func:`offset_jacobian` on the
-    ramp of the image's own rate, negative rates counting as none)."""
+    ramp of the image's own rate, negative rates counting as none, over the groups the
+    pipeline fitted: ``groups_used``, ``None`` for all)."""
     per_group = np.clip(np.nan_to_num(np.asarray(rate_dn_s, np.float64)), 0.0, None) * group_time
     differences = np.broadcast_to(per_group, (ngroups - 1, *per_group.shape))
-    jacobian = offset_jacobian(jnp.asarray(differences), ngroups, group_time, gain, nframes)
+    jacobian = offset_jacobian(
+        jnp.asarray(differences), ngroups, group_time, gain, nframes, groups_used
+    )
     return np.asarray(jacobian, np.float64)
 
 

@@ -413,16 +413,19 @@ def charge_loss_groups(
     """Per pixel, how many leading groups the charge-migration step left to the ramp fit.
 
     Emulates the step on the ramp a pixel of count rate ``rate_dn_s`` (DN/s, the level-2
-    image's; 0 or non-finite where unknown) would have recorded: group ``k`` (from 0) holds
+    image's; NaN where unknown, counted as dark; ``+inf`` for a pixel over the threshold
+    from its first group, e.g. saturated throughout) would have recorded: group ``k`` (from 0) holds
     ``rate * (k * TGROUP + (NFRAMES + 1) * TFRAME / 2)`` DN (the mean time since the reset
     of its NFRAMES frames; for NISRAPID ``(k + 1) * TGROUP``), the first group above
     ``threshold_dn`` and every later one are flagged, in the pixel and its four neighbours.
     Returns ``ngroups`` where nothing is flagged, never fewer than 2 (a pixel with a slope
-    in the file had at least two groups). The level-2 rate is the fit of the leading groups
+    in the file had at least two groups; with the jwst step's default
+    ``suppress_one_group`` a one-group pixel has no value to fit). The level-2 rate is the
+    fit of the leading groups
     and the flat field is left out (within a few per cent of 1), so a pixel whose ramp
     crosses the threshold within that much of a group boundary may be one group off.
     """
-    rate = np.where(np.isfinite(rate_dn_s), np.asarray(rate_dn_s, np.float64), 0.0)
+    rate = np.nan_to_num(np.asarray(rate_dn_s, np.float64), nan=0.0, posinf=np.inf, neginf=0.0)
     if ngroups < 3:
         return np.full(rate.shape, ngroups, dtype=np.int32)
     k = np.arange(ngroups)[:, None, None]
