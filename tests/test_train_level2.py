@@ -96,15 +96,22 @@ def eqx_set_nonlinearity(base: BaseModel, value: float) -> BaseModel:
     )
 
 
-def test_the_model_image_is_stcal_s_fit_of_the_model_ramp(bent_model):
-    base, data, source = bent_model
+def _model_image_and_ramp(base, data, source):
+    """The level-2 model image of ``data`` ((ny, nx) DN per group), the model ramp's
+    group differences and the ramp itself (from 0), in float64."""
     cache = base.pupil_cache()
     with jax.enable_x64(True):
         level2 = np.asarray(point_source_slopes(base, cache, source, data), np.float64)[0]
         ramp_kind = dataclasses.replace(data, level2=False)
         differences = np.asarray(point_source_slopes(base, cache, source, ramp_kind), np.float64)
+    ramp = np.concatenate([np.zeros((1, *differences.shape[1:])), np.cumsum(differences, axis=0)])
+    return level2, differences, ramp
+
+
+def test_the_model_image_is_stcal_s_fit_of_the_model_ramp(bent_model):
+    base, data, source = bent_model
+    level2, differences, ramp = _model_image_and_ramp(base, data, source)
     assert differences.shape == (7, 80, 80)
-    ramp = np.concatenate([np.zeros((1, 80, 80)), np.cumsum(differences, axis=0)])
     gain = base.read.gain_e_per_dn
     rate, _ = _stcal(
         ramp[None],
@@ -153,12 +160,7 @@ def test_a_newer_pipelines_charge_migration_is_followed(tmp_path, bent_model):
 
     # the model image: stcal's fit of the model ramp over those groups
     base, _, source = bent_model
-    cache = base.pupil_cache()
-    with jax.enable_x64(True):
-        level2 = np.asarray(point_source_slopes(base, cache, source, data), np.float64)[0]
-        ramp_kind = dataclasses.replace(data, level2=False)
-        differences = np.asarray(point_source_slopes(base, cache, source, ramp_kind), np.float64)
-    ramp = np.concatenate([np.zeros((1, 80, 80)), np.cumsum(differences, axis=0)])
+    level2, differences, ramp = _model_image_and_ramp(base, data, source)
     flags = np.arange(8)[:, None, None] >= expected[None]
     stcal_rate, _ = _stcal(
         ramp[None], flags[None], tgroup=TGROUP, tframe=TGROUP, nframes=1, groupgap=0,
