@@ -134,7 +134,7 @@ def test_the_model_image_is_stcal_s_fit_of_the_model_ramp(bent_model):
     assert np.all(differences[-1][bright] < (1 - 5e-4) * differences[0][bright])
 
 
-def test_a_newer_pipelines_charge_migration_is_followed(tmp_path, bent_model):
+def test_a_newer_pipelines_charge_migration_is_followed(tmp_path, bent_model, capsys):
     """A level-2 file the charge-migration step ran on (``S_CHGMIG = 'COMPLETE'``, jwst
     >= 1.14) had its groups above 25,000 DN left out of the ramp fit: the model's ramp is
     fitted over the same groups, in training (SlopeData) and in fits (Level2Input); a
@@ -155,8 +155,22 @@ def test_a_newer_pipelines_charge_migration_is_followed(tmp_path, bent_model):
     data = SlopeData.read(new, "calibrator")
     np.testing.assert_array_equal(np.asarray(data.groups_used), expected)
     assert _read_fit_exposure(old, "science", "level2").ramp.groups_used is None
+    capsys.readouterr()
     fitted = _read_fit_exposure(new, "science", "level2").ramp
     np.testing.assert_array_equal(fitted.groups_used, expected)
+    n_cut = int(np.sum((expected < 8) & fitted.data.mask))
+    message = f"new_cal.fits: the pipeline's charge-migration step cut the ramps of {n_cut} pixels (to 3-7 of 8 groups)"
+    assert message in capsys.readouterr().err
+    # fit_summary.json's record of it (the detector's record of the exposure)
+    from types import SimpleNamespace
+
+    from amigo.pipeline._fit import _detector_record
+
+    detector = SimpleNamespace(
+        inputs={"new": fitted}, detector_amplitudes={}, migration_amplitudes={},
+        pattern_amplitudes={}, added_sigma_dn_s={},
+    )  # fmt: skip
+    assert _detector_record(detector, "new") == {"charge_loss_pixels": n_cut}
 
     # the model image: stcal's fit of the model ramp over those groups
     base, _, source = bent_model

@@ -473,11 +473,22 @@ def _read_fit_exposure(path: Path, role: str, level: str, superbias=None) -> Rea
             image = ImageData.from_exposure(exposure)
         except TooFewPixels as error:
             return ReadExposure(None, meta, problem=error.problem)
-        from amigo.likelihood.pixels import pipeline_groups
+        import numpy as np
 
+        from amigo.likelihood.pixels import pipeline_groups
+        from amigo.progress import step
+
+        groups_used = pipeline_groups(exposure)
+        if groups_used is not None and np.any(cut := groups_used[image.mask] < meta.ngroups):
+            kept = groups_used[image.mask][cut]
+            step(
+                f"{path.name}: the pipeline's charge-migration step cut the ramps of "
+                f"{int(cut.sum())} pixels (to {kept.min()}-{kept.max()} of {meta.ngroups} "
+                "groups): their model ramps are fitted over the same groups"
+            )
         ramp = Level2Input(
             image, meta.ngroups, meta.nframes, meta.group_time_s, meta.dark_reference,
-            pipeline_groups(exposure),
+            groups_used,
         )  # fmt: skip
     problem = star_problem(image)
     if problem is not None:
@@ -736,10 +747,18 @@ def _detector_record(detector, name: str) -> dict:
     offsets the model does not know; for calslope exposures under the full detector,
     ``migration_amplitude`` (and ``_err``), the amplitude of the network's charge
     migration measured in the exposure's filter, and ``migration_applied``, whether the
-    fit rescaled the network by it; ``{}`` where nothing applies."""
+    fit rescaled the network by it; for level-2 images the pipeline's charge-migration
+    step ran on, ``charge_loss_pixels``, the usable pixels whose ramps it cut short (their
+    model ramps are fitted over the same groups); ``{}`` where nothing applies."""
     if detector is None:
         return {}
-    record = {}
+    import numpy as np
+
+    record: dict[str, Any] = {}
+    ramp = detector.inputs.get(name)
+    if getattr(ramp, "groups_used", None) is not None:
+        cut = (ramp.groups_used < ramp.ngroups) & ramp.data.mask
+        record["charge_loss_pixels"] = int(np.sum(cut))
     if name in detector.detector_amplitudes:
         amplitude, error = detector.detector_amplitudes[name]
         record["detector_amplitude"] = _json_number(amplitude, 4)
