@@ -61,9 +61,10 @@ EXPOSURE = {"F480M": "03102", "F430M": "03103", "F380M": "03104"}
 ABDOR_C: dict[str, Any] = {"sep_mas": 328.85, "pa_deg": 280.5, "dmag": {"F380M": 4.313, "F430M": 4.354, "F480M": 4.381}}  # fmt: skip
 
 #: AMICAL's documented recipe (tutorial): cleaning, extraction, CANDID-style analysis.
-AMICAL_CLEAN = {"isz": 69, "r1": 31, "dr": 2, "apod": True, "window": 32, "clip": False}
-AMICAL_EXTRACT = {"peakmethod": "fft", "maskname": "g7"}
-AMICAL_CANDID = {"rmin": 20, "rmax": 450, "step": 50}
+# Keyword arguments of three AMICAL calls (Any: they spread into typed signatures).
+AMICAL_CLEAN: dict[str, Any] = {"isz": 69, "r1": 31, "dr": 2, "apod": True, "window": 32, "clip": False}  # fmt: skip
+AMICAL_EXTRACT: dict[str, Any] = {"peakmethod": "fft", "maskname": "g7"}
+AMICAL_CANDID: dict[str, Any] = {"rmin": 20, "rmax": 450, "step": 50}
 #: The simulated cases: (separation mas, position angle deg, delta-mag); None = no companion.
 CASES = [(None, None, None)] + [
     (sep, pa, dm)

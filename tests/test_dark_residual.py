@@ -304,6 +304,11 @@ def test_a_fit_adds_the_unknown_offsets_to_level2_images_only(small_level2):
     assert detector.added_sigma_dn_s["behind"] == pytest.approx(behind, rel=1e-4)
     assert detector.added_sigma_dn_s["other"] == pytest.approx(1.6 * np.sqrt(0.1) / TGROUP)
     assert detector.inputs["none"] is inputs["none"] and "none" not in detector.added_sigma_dn_s
+    # Ramps the pipeline's charge-migration step cut to their first 3 reads: the slope of
+    # reads 0-2 (weights (-1, 0, 1) / 2) carries their offsets, the prior's behind another file.
+    cut = Level2Input(image, 5, 1, TGROUP, "dark_B.fits", np.full((80, 80), 3))
+    detector = RampDetector(model, {"cut": cut})
+    assert detector.added_sigma_dn_s["cut"] == pytest.approx(1.6 * np.sqrt(0.5) / TGROUP)
 
 
 def test_the_dark_reference_is_the_one_the_pipeline_subtracted(tmp_path):

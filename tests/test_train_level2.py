@@ -134,9 +134,9 @@ def test_the_model_image_is_stcal_s_fit_of_the_model_ramp(bent_model):
     assert np.all(differences[-1][bright] < (1 - 5e-4) * differences[0][bright])
 
 
-def test_a_newer_pipelines_charge_migration_is_followed(tmp_path, bent_model, capsys):
+def test_a_newer_pipelines_charge_migration_is_followed(tmp_path, bent_model):
     """A level-2 file the charge-migration step ran on (``S_CHGMIG = 'COMPLETE'``, jwst
-    >= 1.14) had its groups above 25,000 DN left out of the ramp fit: the model's ramp is
+    >= 1.12) had its groups above 25,000 DN left out of the ramp fit: the model's ramp is
     fitted over the same groups, in training (SlopeData) and in fits (Level2Input); a
     file without the keyword (COM 1093's CAL_VER 1.5.3) over all of them."""
     from amigo.model.detector.pipeline_slope import charge_loss_groups
@@ -155,16 +155,17 @@ def test_a_newer_pipelines_charge_migration_is_followed(tmp_path, bent_model, ca
     data = SlopeData.read(new, "calibrator")
     np.testing.assert_array_equal(np.asarray(data.groups_used), expected)
     assert _read_fit_exposure(old, "science", "level2").ramp.groups_used is None
-    capsys.readouterr()
     fitted = _read_fit_exposure(new, "science", "level2").ramp
     np.testing.assert_array_equal(fitted.groups_used, expected)
-    n_cut = int(np.sum((expected < 8) & fitted.data.mask))
-    message = f"new_cal.fits: the pipeline's charge-migration step cut the ramps of {n_cut} pixels (to 3-7 of 8 groups)"
-    assert message in capsys.readouterr().err
-    # fit_summary.json's record of it (the detector's record of the exposure)
+    # what amigo fit says of it: a line on the terminal, and fit_summary.json's record
     from types import SimpleNamespace
 
-    from amigo.pipeline._fit import _detector_record
+    from amigo.pipeline._fit import _charge_loss_note, _detector_record
+
+    n_cut = int(np.sum((expected < 8) & fitted.data.mask))
+    assert _charge_loss_note(fitted).startswith(
+        f"the pipeline's charge-migration step cut the ramps of {n_cut} pixels (to 3-7 of 8 groups)"
+    )
 
     detector = SimpleNamespace(
         inputs={"new": fitted}, detector_amplitudes={}, migration_amplitudes={},
@@ -187,6 +188,36 @@ def test_a_newer_pipelines_charge_migration_is_followed(tmp_path, bent_model, ca
     linear = differences.mean(axis=0) / TGROUP
     correction = fitted.correction(differences, linear)
     np.testing.assert_allclose((correction + linear)[bright], level2[bright] / TGROUP, rtol=1e-5)
+
+
+def test_the_steps_threshold_follows_the_pipeline_version_and_a_cut_of_nothing_is_none(tmp_path):
+    """The step's default threshold was 30,000 DN in jwst 1.12.0-1.12.1 and is 25,000 DN
+    since (its spec in each version); a file on which its rule cuts nothing (a faint
+    star, or 2 groups) is fitted as a file without the step (``None``: one program)."""
+    from amigo.io.jwst import read_exposure
+    from amigo.likelihood.pixels import charge_loss_threshold_dn, pipeline_groups
+    from amigo.model.detector.pipeline_slope import charge_loss_groups
+
+    assert charge_loss_threshold_dn("1.12.0") == charge_loss_threshold_dn("1.12.1") == 30000.0
+    for version in ("1.12.2", "1.14.0", "1.20.2", "2.0", "", "unknown"):
+        assert charge_loss_threshold_dn(version) == 25000.0
+    rate, err = _image(np.random.default_rng(4))
+    rate = rate * 5.0
+    step = {"NGROUPS": 8, "FILTER": "F480M", "S_CHGMIG": "COMPLETE"}
+    for version, threshold in (("1.12.1", 30000.0), ("1.16.0", 25000.0)):
+        path = write_level2(
+            tmp_path / f"v{version}_cal.fits", rate, err, overrides={**step, "CAL_VER": version}
+        )
+        expected = charge_loss_groups(rate, 8, TGROUP, TGROUP, threshold_dn=threshold)
+        np.testing.assert_array_equal(pipeline_groups(read_exposure(path)), expected)
+    assert not np.array_equal(
+        charge_loss_groups(rate, 8, TGROUP, TGROUP, threshold_dn=30000.0),
+        charge_loss_groups(rate, 8, TGROUP, TGROUP),
+    )
+    faint = write_level2(tmp_path / "faint_cal.fits", rate / 10.0, err, overrides=step)
+    short = write_level2(tmp_path / "short_cal.fits", rate, err, overrides={**step, "NGROUPS": 2})
+    assert pipeline_groups(read_exposure(faint)) is None
+    assert pipeline_groups(read_exposure(short)) is None
 
 
 def test_saturated_and_flagged_pixels_cut_their_neighbours_as_the_step_does(tmp_path):

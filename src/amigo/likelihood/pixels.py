@@ -25,6 +25,7 @@ inside a fit whitening is one batched mat-vec.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -37,7 +38,11 @@ from jaxtyping import Array, Bool, Float
 from amigo import niriss
 from amigo.errors import InputError, TooFewPixels
 from amigo.io.jwst import DQ_SATURATED, Exposure
-from amigo.model.detector.pipeline_slope import charge_loss_groups
+from amigo.model.detector.pipeline_slope import (
+    CHARGE_LOSS_THRESHOLD_1_12_DN,
+    CHARGE_LOSS_THRESHOLD_DN,
+    charge_loss_groups,
+)
 
 if TYPE_CHECKING:
     from amigo.io.calslope import CalSlope
@@ -361,12 +366,15 @@ def pipeline_groups(exposure: Exposure) -> np.ndarray | None:
     The step's rule (:func:`~amigo.model.detector.pipeline_slope.charge_loss_groups`)
     applied to the rates the file holds, whatever the pixels' flags (the step reads the
     ramps, not the pixel DQ, and a flagged pixel cuts its neighbours as well): each
-    pixel's mean over the integrations of its finite values; a pixel without one that
-    the pipeline flagged SATURATED passed the threshold in its first group; any other
-    (dead, or without a value for another reason) counts as dark.
+    pixel's mean over the integrations of its finite values (one cut for all of a
+    ``_calints``'s integrations, where the step cut each on its own); a pixel without
+    one that the pipeline flagged SATURATED passed the threshold in its first group; any
+    other (dead, or without a value for another reason) counts as dark. The threshold is
+    the step's default in the file's CAL_VER (:func:`charge_loss_threshold_dn`). ``None``
+    also where the rule cuts nothing (1 or 2 groups, or a faint star).
     """
     meta = exposure.meta
-    if not meta.charge_migration_flagged:
+    if not meta.charge_migration_flagged or meta.ngroups < 3:
         return None
     data = exposure.data if exposure.data.ndim == 3 else exposure.data[None]
     finite = np.isfinite(data)
@@ -376,6 +384,22 @@ def pipeline_groups(exposure: Exposure) -> np.ndarray | None:
         dq = exposure.dq if exposure.dq.ndim == 3 else exposure.dq[None]
         saturated = np.any((dq & DQ_SATURATED) != 0, axis=0)
         rate = np.where(~finite.any(axis=0) & saturated, np.inf, rate)
-    return charge_loss_groups(
-        rate, meta.ngroups, meta.group_time_s, meta.frame_time_s, meta.nframes
-    )
+    used = charge_loss_groups(
+        rate, meta.ngroups, meta.group_time_s, meta.frame_time_s, meta.nframes,
+        charge_loss_threshold_dn(str(meta.primary_header.get("CAL_VER", ""))),
+    )  # fmt: skip
+    # Nothing cut: the model as for a file without the step (one compiled program for both).
+    return used if np.any(used < meta.ngroups) else None
+
+
+def charge_loss_threshold_dn(cal_ver: str) -> float:
+    """The charge-migration step's default threshold (DN) in the pipeline version
+    ``cal_ver`` (the level-2 file's CAL_VER, e.g. ``"1.14.0"``): 30,000 DN in jwst 1.12.0
+    and 1.12.1, 25,000 DN after (and for a version that does not parse)."""
+    parts = re.match(r"\s*(\d+)\.(\d+)(?:\.(\d+))?", cal_ver)
+    if parts is None:
+        return CHARGE_LOSS_THRESHOLD_DN
+    version = tuple(int(x or 0) for x in parts.groups())
+    if (1, 12, 0) <= version < (1, 12, 2):
+        return CHARGE_LOSS_THRESHOLD_1_12_DN
+    return CHARGE_LOSS_THRESHOLD_DN

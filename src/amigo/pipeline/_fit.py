@@ -207,6 +207,9 @@ def fit(
         from amigo.fitting.ramp_fit import RampDetector
 
         detector_model = RampDetector(fit_model.base, ramps)
+        for name, ramp in ramps.items():
+            if (message := _charge_loss_note(ramp)) is not None:
+                step(f"{name}: {message}")
     settings = {
         "amigo_version": __version__,
         "level": level,
@@ -473,22 +476,11 @@ def _read_fit_exposure(path: Path, role: str, level: str, superbias=None) -> Rea
             image = ImageData.from_exposure(exposure)
         except TooFewPixels as error:
             return ReadExposure(None, meta, problem=error.problem)
-        import numpy as np
-
         from amigo.likelihood.pixels import pipeline_groups
-        from amigo.progress import step
 
-        groups_used = pipeline_groups(exposure)
-        if groups_used is not None and np.any(cut := groups_used[image.mask] < meta.ngroups):
-            kept = groups_used[image.mask][cut]
-            step(
-                f"{path.name}: the pipeline's charge-migration step cut the ramps of "
-                f"{int(cut.sum())} pixels (to {kept.min()}-{kept.max()} of {meta.ngroups} "
-                "groups): their model ramps are fitted over the same groups"
-            )
         ramp = Level2Input(
             image, meta.ngroups, meta.nframes, meta.group_time_s, meta.dark_reference,
-            groups_used,
+            pipeline_groups(exposure),
         )  # fmt: skip
     problem = star_problem(image)
     if problem is not None:
@@ -733,6 +725,22 @@ def _check_orientations(items) -> None:
                 f"exposures of {metas[0].target} in {metas[0].filter} have roll angles "
                 f"{spread:.2f} deg apart; fit each roll separately",
             )
+
+
+def _charge_loss_note(ramp) -> str | None:
+    """What the pipeline's charge-migration step did to a level-2 image's ramps, for the
+    terminal (``None`` where it cut none, or the input is not a level-2 image)."""
+    used = getattr(ramp, "groups_used", None)
+    if used is None:
+        return None
+    kept = used[ramp.data.mask & (used < ramp.ngroups)]
+    if kept.size == 0:
+        return None
+    span = f"{kept.min()}" if kept.min() == kept.max() else f"{kept.min()}-{kept.max()}"
+    return (
+        f"the pipeline's charge-migration step cut the ramps of {kept.size} pixels (to "
+        f"{span} of {ramp.ngroups} groups): their model ramps are fitted over the same groups"
+    )
 
 
 def _detector_record(detector, name: str) -> dict:

@@ -393,13 +393,17 @@ def pipeline_group_slope(
 
 
 #: The JWST pipeline's ``charge_migration`` step: its ``signal_threshold`` default (DN),
-#: jwst's ``ChargeMigrationStep`` spec. A group whose value (superbias-subtracted,
-#: linearised, dark-subtracted DN) exceeds it is flagged CHARGELOSS and DO_NOT_USE, with
-#: every later group of the integration, in the pixel and its four edge neighbours; the
-#: ramp fit then uses the unflagged leading groups. Integrations of 1 or 2 groups are not
-#: flagged. The step records itself as ``S_CHGMIG = 'COMPLETE'`` (absent before jwst
-#: 1.14; COM 1093's CAL_VER 1.5.3 files do not have it).
+#: jwst's ``ChargeMigrationStep`` spec from jwst 1.12.2 on. A group whose value
+#: (superbias-subtracted, linearised, dark-subtracted DN) exceeds it is flagged CHARGELOSS
+#: and DO_NOT_USE, with every later group of the integration, in the pixel and its four
+#: edge neighbours (the neighbours' rule of jwst 1.14 on; before, a neighbour was flagged
+#: only at the groups where the pixel carried no other flag, e.g. not once it saturated);
+#: the ramp fit then uses the unflagged leading groups. Integrations of 1 or 2 groups are
+#: not flagged. The step records itself as ``S_CHGMIG = 'COMPLETE'`` (from jwst 1.12.0,
+#: when ``undersampling_correction`` was renamed; COM 1093's CAL_VER 1.5.3 files predate it).
 CHARGE_LOSS_THRESHOLD_DN: float = 25000.0
+#: The step's default in jwst 1.12.0 and 1.12.1 (DN).
+CHARGE_LOSS_THRESHOLD_1_12_DN: float = 30000.0
 
 
 def charge_loss_groups(
