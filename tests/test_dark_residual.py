@@ -304,6 +304,13 @@ def test_a_fit_adds_the_unknown_offsets_to_level2_images_only(small_level2):
     assert detector.added_sigma_dn_s["behind"] == pytest.approx(behind, rel=1e-4)
     assert detector.added_sigma_dn_s["other"] == pytest.approx(1.6 * np.sqrt(0.1) / TGROUP)
     assert detector.inputs["none"] is inputs["none"] and "none" not in detector.added_sigma_dn_s
+    # what amigo fit says of an image behind another dark (one line), and of the others
+    from amigo.pipeline._fit import _dark_reference_note
+
+    note = _dark_reference_note(model, inputs["other"])
+    assert note is not None and "dark_B.fits" in note and "behind dark_A.fits" in note
+    assert _dark_reference_note(model, inputs["behind"]) is None
+    assert _dark_reference_note(model, inputs["none"]) is None
     # Ramps the pipeline's charge-migration step cut to their first 3 reads: the slope of
     # reads 0-2 (weights (-1, 0, 1) / 2) carries their offsets, the prior's behind another file.
     cut = Level2Input(image, 5, 1, TGROUP, "dark_B.fits", np.full((80, 80), 3))

@@ -208,8 +208,9 @@ def fit(
 
         detector_model = RampDetector(fit_model.base, ramps)
         for name, ramp in ramps.items():
-            if (message := _charge_loss_note(ramp)) is not None:
-                step(f"{name}: {message}")
+            for note in (_charge_loss_note(ramp), _dark_reference_note(fit_model.base, ramp)):
+                if note is not None:
+                    step(f"{name}: {note}")
     settings = {
         "amigo_version": __version__,
         "level": level,
@@ -740,6 +741,22 @@ def _charge_loss_note(ramp) -> str | None:
     return (
         f"the pipeline's charge-migration step cut the ramps of {kept.size} pixels (to "
         f"{span} of {ramp.ngroups} groups): their model ramps are fitted over the same groups"
+    )
+
+
+def _dark_reference_note(base, ramp) -> str | None:
+    """For a level-2 image behind another dark reference file than the one the base
+    model's read offsets were measured behind, what the fit does instead (``None``
+    otherwise)."""
+    reference = getattr(ramp, "dark_reference", "")
+    config = base.config
+    if not reference or config.dark_residual_groups == 0 or reference == config.dark_reference:
+        return None
+    return (
+        f"processed with the dark reference {reference}; the base model's read offsets "
+        f"were measured behind {config.dark_reference}: fitted without them, with their "
+        "prior's noise added ('amigo train --steps 0 --init MODEL' on calibrators behind "
+        "this dark measures them; docs/detector.md)"
     )
 
 
