@@ -164,7 +164,8 @@ def test_a_newer_pipelines_charge_migration_is_followed(tmp_path, bent_model):
 
     n_cut = int(np.sum((expected < 8) & fitted.data.mask))
     assert _charge_loss_note(fitted).startswith(
-        f"the pipeline's charge-migration step cut the ramps of {n_cut} pixels (to 3-7 of 8 groups)"
+        f"the pipeline's charge-migration step cut the ramps of {n_cut} pixels (to 3-7 of 8 "
+        "groups; threshold 25,000 DN, the step's default in jwst (version unknown))"
     )
 
     detector = SimpleNamespace(
@@ -209,7 +210,7 @@ def test_the_steps_threshold_follows_the_pipeline_version_and_a_cut_of_nothing_i
             tmp_path / f"v{version}_cal.fits", rate, err, overrides={**step, "CAL_VER": version}
         )
         expected = charge_loss_groups(rate, 8, TGROUP, TGROUP, threshold_dn=threshold)
-        np.testing.assert_array_equal(pipeline_groups(read_exposure(path)), expected)
+        np.testing.assert_array_equal(pipeline_groups(read_exposure(path)).groups, expected)
     assert not np.array_equal(
         charge_loss_groups(rate, 8, TGROUP, TGROUP, threshold_dn=30000.0),
         charge_loss_groups(rate, 8, TGROUP, TGROUP),
@@ -218,6 +219,49 @@ def test_the_steps_threshold_follows_the_pipeline_version_and_a_cut_of_nothing_i
     short = write_level2(tmp_path / "short_cal.fits", rate, err, overrides={**step, "NGROUPS": 2})
     assert pipeline_groups(read_exposure(faint)) is None
     assert pipeline_groups(read_exposure(short)) is None
+
+
+def test_the_threshold_a_files_poisson_variance_shows(tmp_path):
+    """The step's threshold may come from a CRDS parameter file, which the level-2 file
+    does not record; its VAR_POISSON does (the ramp fit's photon variance is
+    ``R / (g TGROUP (n - 1))`` over the ``n`` groups it fitted, stcal). A file cut at
+    30,000 DN where its version's default is 25,000 is cut as its VAR_POISSON says, with
+    5 % scatter on it; one cut at the default keeps the default."""
+    from amigo.io.jwst import read_exposure
+    from amigo.likelihood.pixels import pipeline_groups
+    from amigo.model.detector.pipeline_slope import charge_loss_groups
+
+    rng = np.random.default_rng(7)
+    rate, err = _image(rng)
+    rate = rate * 5.0
+    nints, ngroups = 20, 8
+    step = {"NGROUPS": ngroups, "NINTS": nints, "FILTER": "F480M", "S_CHGMIG": "COMPLETE"}
+    for true_threshold in (30000.0, 25000.0):
+        n = charge_loss_groups(rate, ngroups, TGROUP, TGROUP, threshold_dn=true_threshold)
+        assert not np.array_equal(
+            n,
+            charge_loss_groups(
+                rate, ngroups, TGROUP, TGROUP, 1, 3e4 if true_threshold < 3e4 else 2.5e4
+            ),
+        )
+        variance = np.clip(rate, 1.0, None) / (niriss.GAIN_E_PER_DN * TGROUP * (n - 1) * nints)
+        variance *= 1.0 + 0.05 * rng.standard_normal(variance.shape)
+        path = write_level2(
+            tmp_path / f"t{true_threshold:.0f}_cal.fits", rate, err,
+            overrides={**step, "CAL_VER": "1.16.0"},
+        )  # fmt: skip
+        with fits.open(path, mode="update") as hdul:
+            hdul.append(fits.ImageHDU(variance.astype(np.float32), name="VAR_POISSON"))
+        groups = pipeline_groups(read_exposure(path))
+        np.testing.assert_array_equal(groups.groups, n)
+        if true_threshold == 25000.0:
+            assert groups.threshold_dn == 25000.0 and "default" in groups.source
+        else:
+            assert groups.source == "the file's VAR_POISSON"
+            cut_the_same = charge_loss_groups(
+                rate, ngroups, TGROUP, TGROUP, threshold_dn=groups.threshold_dn
+            )
+            np.testing.assert_array_equal(cut_the_same, n)
 
 
 def test_saturated_and_flagged_pixels_cut_their_neighbours_as_the_step_does(tmp_path):
@@ -250,7 +294,7 @@ def test_saturated_and_flagged_pixels_cut_their_neighbours_as_the_step_does(tmp_
         tmp_path / "sat_cal.fits", sci, np.sqrt(np.abs(rate) / 30.0 + 4.0), dq,
         overrides={"NGROUPS": ngroups, "FILTER": "F480M", "S_CHGMIG": "COMPLETE"},
     )  # fmt: skip
-    used = pipeline_groups(read_exposure(path))
+    used = pipeline_groups(read_exposure(path)).groups
     for y, x in ((19, 20), (21, 20), (20, 19), (20, 21), (60, 31), (41, 40), (40, 39)):
         assert used[y, x] == expected[y, x] < ngroups, (y, x)
     np.testing.assert_array_equal(used, expected)

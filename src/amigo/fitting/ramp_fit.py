@@ -182,6 +182,9 @@ class Level2Input:
         (ny, nx) the leading groups of each pixel the pipeline fitted, where its
         charge-migration step flagged the later ones
         (:func:`~amigo.model.detector.pipeline_slope.charge_loss_groups`); ``None``: all.
+    groups_rule
+        How ``groups_used`` was found (the step's threshold and where it comes from:
+        :func:`amigo.likelihood.pixels.pipeline_groups`), for the terminal.
     """
 
     data: ImageData
@@ -190,6 +193,7 @@ class Level2Input:
     group_time_s: float
     dark_reference: str = ""
     groups_used: np.ndarray | None = None
+    groups_rule: str = ""
 
     @property
     def first_group(self) -> bool:

@@ -205,6 +205,9 @@ class Exposure:
         bool, shape of ``data`` without the ramp axes for uncal ((80, 80)) and the shape of
         ``data`` for level 2: False on reference rows, DO_NOT_USE pixels and non-finite
         values (and non-positive errors).
+    var_poisson
+        Level 2: the VAR_POISSON extension ((DN/s)^2, shape of ``data``), the variance of
+        the photons the pipeline's ramp fit counted, or ``None`` where absent.
     """
 
     meta: ExposureMeta
@@ -212,6 +215,7 @@ class Exposure:
     err: np.ndarray | None
     dq: np.ndarray | None
     usable: np.ndarray
+    var_poisson: np.ndarray | None = None
 
 
 # ------------------------------------------------------------------------------ helpers
@@ -358,6 +362,21 @@ def _array_like(
     if array.shape != tuple(shape) and array.shape != tuple(shape[-2:]):
         raise InputError(path, f"{name} has shape {array.shape}, SCI has {tuple(shape)}")
     return array
+
+
+def _optional_array(
+    path: Path, hdul: fits.HDUList, name: str, shape: tuple[int, ...]
+) -> np.ndarray | None:
+    """Extension ``name`` as :func:`_array_like` reads it, or ``None`` where it is absent
+    or unreadable: information a fit can do without (a damaged one is not a reason to
+    refuse the file)."""
+    hdu = _ext(hdul, name)
+    if hdu is None:
+        return None
+    try:
+        return _array_like(path, hdu, name, shape)
+    except InputError:
+        return None
 
 
 def _ext(hdul: fits.HDUList, name: str) -> fits.ImageHDU | None:
@@ -600,6 +619,7 @@ def _read_exposure(path: Path, hdul: fits.HDUList, need_slopes: bool) -> Exposur
 
     err_hdu, dq_hdu = _ext(hdul, "ERR"), _ext(hdul, "DQ")
     err = None if err_hdu is None else _array_like(path, err_hdu, "ERR", data.shape)
+    var_poisson = _optional_array(path, hdul, "VAR_POISSON", data.shape)
     dq = None if dq_hdu is None else _array_like(path, dq_hdu, "DQ", data.shape, np.uint32)
     flagged = np.zeros(data.shape, dtype=bool)
     if dq is not None:
@@ -620,8 +640,9 @@ def _read_exposure(path: Path, hdul: fits.HDUList, need_slopes: bool) -> Exposur
         factor = photometric_conversion(path, meta)
         data = data / factor
         err = None if err is None else err / factor
+        var_poisson = None if var_poisson is None else var_poisson / factor**2
         meta = dataclasses.replace(meta, bunit="DN/s")
-    return Exposure(meta=meta, data=data, err=err, dq=dq, usable=usable)
+    return Exposure(meta, data, err, dq, usable, var_poisson)
 
 
 def photometric_conversion(path: Path, meta: ExposureMeta) -> float:

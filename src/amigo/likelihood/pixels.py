@@ -359,9 +359,30 @@ class SlopeNoise:
         return -0.5 * (jnp.sum(z**2) + self.log_det + self.n_values * LOG_2PI)
 
 
-def pipeline_groups(exposure: Exposure) -> np.ndarray | None:
-    """(ny, nx) the leading groups of each pixel the pipeline's ramp fit used, for a
-    level-2 image its charge-migration step ran on (``S_CHGMIG``); ``None`` otherwise.
+@dataclass(frozen=True)
+class PipelineGroups:
+    """What the pipeline's charge-migration step left to the ramp fit of a level-2 image
+    (:func:`pipeline_groups`).
+
+    Attributes
+    ----------
+    groups
+        (ny, nx) int, the leading groups of each pixel the ramp fit used.
+    threshold_dn
+        The step's threshold the cut follows (DN).
+    source
+        Where the threshold comes from: the step's default in the file's pipeline version,
+        or the file's VAR_POISSON (:func:`threshold_from_poisson_variance`).
+    """
+
+    groups: np.ndarray
+    threshold_dn: float
+    source: str
+
+
+def pipeline_groups(exposure: Exposure) -> PipelineGroups | None:
+    """The leading groups of each pixel the pipeline's ramp fit used, for a level-2 image
+    its charge-migration step ran on (``S_CHGMIG``); ``None`` otherwise.
 
     The step's rule (:func:`~amigo.model.detector.pipeline_slope.charge_loss_groups`)
     applied to the rates the file holds, whatever the pixels' flags (the step reads the
@@ -370,8 +391,9 @@ def pipeline_groups(exposure: Exposure) -> np.ndarray | None:
     ``_calints``'s integrations, where the step cut each on its own); a pixel without
     one that the pipeline flagged SATURATED passed the threshold in its first group; any
     other (dead, or without a value for another reason) counts as dark. The threshold is
-    the step's default in the file's CAL_VER (:func:`charge_loss_threshold_dn`). ``None``
-    also where the rule cuts nothing (1 or 2 groups, or a faint star).
+    the one the file's VAR_POISSON shows, where it shows one clearly, else the step's
+    default in the file's CAL_VER (:func:`charge_loss_threshold_dn`). ``None`` also where
+    the rule cuts nothing (1 or 2 groups, or a faint star).
     """
     meta = exposure.meta
     if not meta.charge_migration_flagged or meta.ngroups < 3:
@@ -384,12 +406,85 @@ def pipeline_groups(exposure: Exposure) -> np.ndarray | None:
         dq = exposure.dq if exposure.dq.ndim == 3 else exposure.dq[None]
         saturated = np.any((dq & DQ_SATURATED) != 0, axis=0)
         rate = np.where(~finite.any(axis=0) & saturated, np.inf, rate)
+    cal_ver = str(meta.primary_header.get("CAL_VER", "")).strip()
+    threshold = charge_loss_threshold_dn(cal_ver)
+    source = f"the step's default in jwst {cal_ver or '(version unknown)'}"
+    measured = threshold_from_poisson_variance(exposure, rate, threshold)
+    if measured is not None:
+        threshold, source = measured, "the file's VAR_POISSON"
     used = charge_loss_groups(
-        rate, meta.ngroups, meta.group_time_s, meta.frame_time_s, meta.nframes,
-        charge_loss_threshold_dn(str(meta.primary_header.get("CAL_VER", ""))),
-    )  # fmt: skip
+        rate, meta.ngroups, meta.group_time_s, meta.frame_time_s, meta.nframes, threshold
+    )
     # Nothing cut: the model as for a file without the step (one compiled program for both).
-    return used if np.any(used < meta.ngroups) else None
+    return PipelineGroups(used, threshold, source) if np.any(used < meta.ngroups) else None
+
+
+#: Thresholds (DN) a file's VAR_POISSON is held against: the step's parameter can be set
+#: by a CRDS parameter file and is not recorded in the level-2 file.
+THRESHOLD_GRID_DN = np.arange(10000.0, 65001.0, 250.0)
+#: Relative scatter of the groups a pixel's VAR_POISSON implies (its gain and flat against
+#: the nominal, the pipeline's median rate against its fitted slope): 2-4 % measured on
+#: the COM 1093 images' brightest pixels.
+IMPLIED_GROUPS_SCATTER = 0.05
+#: How much better (sum of squared, clipped residuals in units of that scatter) another
+#: threshold must explain VAR_POISSON than the default for the cut to follow it.
+THRESHOLD_EVIDENCE = 25.0
+
+
+def threshold_from_poisson_variance(
+    exposure: Exposure, rate_dn_s: np.ndarray, default_dn: float
+) -> float | None:
+    """The charge-migration threshold (DN) a level-2 image's VAR_POISSON shows, where it
+    shows another than ``default_dn`` clearly; ``None`` otherwise (no VAR_POISSON, no
+    pixel bright enough to tell, or no clear preference).
+
+    The ramp fit's Poisson variance of a pixel is ``R / (g TGROUP (n - 1))`` per
+    integration (stcal, :mod:`amigo.model.detector.pipeline_slope`) over the ``n`` groups
+    it fitted, so ``rate / (g TGROUP VAR_POISSON)`` (divided by NINTS for an exposure's
+    average) is ``n - 1``. Each threshold of :data:`THRESHOLD_GRID_DN` predicts ``n`` per
+    pixel through the step's rule; the one whose prediction fits the pixels that could be
+    cut best (squared residuals in units of :data:`IMPLIED_GROUPS_SCATTER`, clipped at 4
+    of them against outliers) is taken if it beats ``default_dn`` by
+    :data:`THRESHOLD_EVIDENCE`.
+    """
+    meta = exposure.meta
+    if exposure.var_poisson is None:
+        return None
+    data = exposure.data if exposure.data.ndim == 3 else exposure.data[None]
+    var = exposure.var_poisson if exposure.var_poisson.ndim == 3 else exposure.var_poisson[None]
+    per_average = meta.nints if exposure.data.ndim == 2 else 1
+    with np.errstate(invalid="ignore", divide="ignore"):
+        implied = data / (niriss.GAIN_E_PER_DN * meta.group_time_s * per_average * var)
+        implied = np.where(np.isfinite(implied) & (implied > 0), implied, np.nan)
+        counted = np.sum(np.isfinite(implied), axis=0)
+        implied_mean = np.where(counted > 0, np.nansum(implied, axis=0) / counted, np.nan)
+    last = meta.group_time_s * (meta.ngroups - 1) + (meta.nframes + 1) * meta.frame_time_s / 2
+    level = np.where(np.isfinite(rate_dn_s), rate_dn_s, 0.0) * last
+    usable = exposure.usable if exposure.usable.ndim == 2 else exposure.usable.any(axis=0)
+    telling = usable & np.isfinite(implied_mean) & (level > THRESHOLD_GRID_DN[0])
+    if not telling.any():
+        return None
+    m = implied_mean[telling]
+    sigma = IMPLIED_GROUPS_SCATTER * m + 0.2
+
+    def misfit(threshold: float) -> float:
+        used = charge_loss_groups(
+            rate_dn_s, meta.ngroups, meta.group_time_s, meta.frame_time_s, meta.nframes,
+            threshold,
+        )  # fmt: skip
+        z = (m - (used[telling] - 1)) / sigma
+        return float(np.sum(np.minimum(z * z, 16.0)))
+
+    scores = np.array([misfit(t) for t in THRESHOLD_GRID_DN])
+    best = int(np.argmin(scores))
+    if misfit(default_dn) - scores[best] <= THRESHOLD_EVIDENCE:
+        return None
+    # The middle of the run of thresholds that fit as well as the first best one (they
+    # cut the same pixels the same way): the data cannot tell them apart.
+    last_tied = best
+    while last_tied + 1 < scores.size and scores[last_tied + 1] == scores[best]:
+        last_tied += 1
+    return float(np.mean(THRESHOLD_GRID_DN[best : last_tied + 1]))
 
 
 def charge_loss_threshold_dn(cal_ver: str) -> float:

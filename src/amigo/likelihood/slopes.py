@@ -164,6 +164,7 @@ class SlopeData(eqx.Module):
         if meta.ngroups < 2:
             raise InputError(meta.path, f"NGROUPS {meta.ngroups}: at least 2 groups needed")
         image = ImageData.from_exposure(exposure)  # leaves out SATURATED values
+        groups = pipeline_groups(exposure)
         used = image.mask.copy()
         if not used.any():
             raise InputError(meta.path, "no usable pixel")
@@ -179,7 +180,7 @@ class SlopeData(eqx.Module):
             role=role,
             dtype=dtype,
             dark_reference=meta.dark_reference,
-            groups_used=pipeline_groups(exposure),
+            groups_used=None if groups is None else groups.groups,
         )
 
     @classmethod

@@ -479,9 +479,11 @@ def _read_fit_exposure(path: Path, role: str, level: str, superbias=None) -> Rea
             return ReadExposure(None, meta, problem=error.problem)
         from amigo.likelihood.pixels import pipeline_groups
 
+        groups = pipeline_groups(exposure)
         ramp = Level2Input(
             image, meta.ngroups, meta.nframes, meta.group_time_s, meta.dark_reference,
-            pipeline_groups(exposure),
+            None if groups is None else groups.groups,
+            "" if groups is None else f"threshold {groups.threshold_dn:,.0f} DN, {groups.source}",
         )  # fmt: skip
     problem = star_problem(image)
     if problem is not None:
@@ -740,7 +742,8 @@ def _charge_loss_note(ramp) -> str | None:
     span = f"{kept.min()}" if kept.min() == kept.max() else f"{kept.min()}-{kept.max()}"
     return (
         f"the pipeline's charge-migration step cut the ramps of {kept.size} pixels (to "
-        f"{span} of {ramp.ngroups} groups): their model ramps are fitted over the same groups"
+        f"{span} of {ramp.ngroups} groups; {ramp.groups_rule}): their model ramps are "
+        "fitted over the same groups"
     )
 
 
