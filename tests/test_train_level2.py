@@ -300,6 +300,45 @@ def test_saturated_and_flagged_pixels_cut_their_neighbours_as_the_step_does(tmp_
     np.testing.assert_array_equal(used, expected)
 
 
+def test_the_flat_behind_a_model_and_behind_an_image(tmp_path):
+    """A level-2 model's residual sensitivity stands behind the flat its calibrators were
+    divided by: training records each calibrator's R_FLAT, and ``amigo fit`` names an
+    image divided by another flat of that filter (one line; nothing where the model
+    records no flat, as the shipped COM 1093 model, trained before the record existed)."""
+    from types import SimpleNamespace
+
+    from amigo.pipeline._fit import FitModel, _flat_reference_note, _flat_references
+
+    rate, err = _image(np.random.default_rng(5))
+    flat = {"FILTER": "F480M", "S_FLAT": "COMPLETE", "R_FLAT": "crds://jwst_niriss_flat_0277.fits"}
+    path = write_level2(tmp_path / "flat_cal.fits", rate, err, overrides=flat)
+    data = SlopeData.read(path, "calibrator")
+    assert data.flat_reference == "jwst_niriss_flat_0277.fits"
+    assert data.layout().flat_reference == ""  # not part of a compiled program's key
+    unflat = write_level2(
+        tmp_path / "unflat_cal.fits", rate, err, overrides={**flat, "S_FLAT": "SKIPPED"}
+    )
+    assert SlopeData.read(unflat, "calibrator").flat_reference == ""
+    from amigo.training.data import TrainingData
+
+    described = TrainingData(cal=[data], flats=[], val=[]).describe()
+    assert described["calibration"][0]["flat_reference"] == "jwst_niriss_flat_0277.fits"
+
+    record = {"data": described}
+    refs = _flat_references(record)
+    assert refs == {"F480M": ("jwst_niriss_flat_0277.fits",)}
+    model = FitModel(lambda f: None, object(), "full", "m", refs)
+    newer = SimpleNamespace(filter="F480M", flat_reference="jwst_niriss_flat_0301.fits")
+    note = _flat_reference_note(model, newer)
+    assert note is not None and "0301" in note and "behind jwst_niriss_flat_0277.fits" in note
+    same = SimpleNamespace(filter="F480M", flat_reference="jwst_niriss_flat_0277.fits")
+    other_filter = SimpleNamespace(filter="F430M", flat_reference="jwst_niriss_flat_0301.fits")
+    assert _flat_reference_note(model, same) is None
+    assert _flat_reference_note(model, other_filter) is None
+    unrecorded = FitModel(lambda f: None, object(), "full", "m", _flat_references({}))
+    assert _flat_reference_note(unrecorded, newer) is None
+
+
 def test_the_model_behind_the_pipeline_keeps_what_it_learnt():
     config = BaseModelConfig(filters=("F480M",), shape=(8, 8))
     base = BaseModel.create(config, linear=True)

@@ -171,6 +171,15 @@ class ExposureMeta:
         return str(self.primary_header.get("R_DARK", "")).strip().removeprefix("crds://")
 
     @property
+    def flat_reference(self) -> str:
+        """The flat-field reference file the pipeline divided by (``R_FLAT`` without its
+        ``crds://`` prefix; empty where the header names none or says the flat-field step
+        did not run: ``S_FLAT`` other than COMPLETE)."""
+        if str(self.primary_header.get("S_FLAT", "")).strip().upper() != "COMPLETE":
+            return ""
+        return str(self.primary_header.get("R_FLAT", "")).strip().removeprefix("crds://")
+
+    @property
     def charge_migration_flagged(self) -> bool:
         """Whether the pipeline's charge-migration step ran on this level-2 image
         (``S_CHGMIG = 'COMPLETE'``): groups above its threshold were left out of the ramp

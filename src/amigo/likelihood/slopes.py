@@ -69,6 +69,9 @@ class SlopeData(eqx.Module):
     dark_reference
         Static: the dark reference file the pipeline subtracted (level-2 images; see
         :mod:`amigo.model.detector.dark_residual`), empty otherwise.
+    flat_reference
+        Static: the flat-field reference file the pipeline divided by (level-2 images),
+        empty otherwise: the residual sensitivity a model learns stands behind it.
     stripes
         Level-2 images: (nx, ny, ny) symmetric whitener of each column for the image's
         1/f stripes (:func:`amigo.likelihood.stripes.column_whiteners`), applied after
@@ -91,6 +94,7 @@ class SlopeData(eqx.Module):
     nframes: int = eqx.field(static=True, default=1)
     group_time_s: float = eqx.field(static=True, default=0.0)
     dark_reference: str = eqx.field(static=True, default="")
+    flat_reference: str = eqx.field(static=True, default="")
     stripes: Float[Array, "nx ny ny"] | None = None
     groups_used: Int[Array, "ny nx"] | None = None
 
@@ -180,6 +184,7 @@ class SlopeData(eqx.Module):
             role=role,
             dtype=dtype,
             dark_reference=meta.dark_reference,
+            flat_reference=meta.flat_reference,
             groups_used=None if groups is None else groups.groups,
         )
 
@@ -199,11 +204,13 @@ class SlopeData(eqx.Module):
         dtype: DTypeLike = jnp.float32,
         dark_reference: str = "",
         groups_used: np.ndarray | None = None,
+        flat_reference: str = "",
     ) -> SlopeData:
         """A level-2 exposure from its (ny, nx) rate and error (DN/s) and the pixels to
         use: one value per pixel, ``rate * TGROUP`` (DN per group), whitened by
-        ``1 / (error * TGROUP)``; ``dark_reference`` names the pipeline's dark file,
-        ``groups_used`` the groups its ramp fit used per pixel (``None``: all)."""
+        ``1 / (error * TGROUP)``; ``dark_reference`` and ``flat_reference`` name the
+        pipeline's dark and flat files, ``groups_used`` the groups its ramp fit used per
+        pixel (``None``: all)."""
         used = np.asarray(used, bool)
         t = float(group_time_s)
         ny, nx = used.shape
@@ -223,6 +230,7 @@ class SlopeData(eqx.Module):
             nframes=int(nframes),
             group_time_s=t,
             dark_reference=dark_reference,
+            flat_reference=flat_reference,
             groups_used=None if groups_used is None else jnp.asarray(groups_used, jnp.int32),
         )
 
@@ -264,9 +272,11 @@ class SlopeData(eqx.Module):
 
     def layout(self) -> SlopeData:
         """The same arrays without the description the likelihood does not read (name,
-        role, value count, dark reference): what a compiled program is keyed on, so that
+        role, value count, dark and flat references): what a compiled program is keyed on, so that
         exposures of one filter and number of groups share it."""
-        return dataclasses.replace(self, name="", role="calibrator", n_values=0, dark_reference="")
+        return dataclasses.replace(
+            self, name="", role="calibrator", n_values=0, dark_reference="", flat_reference=""
+        )
 
 
 def _stem(path) -> str:

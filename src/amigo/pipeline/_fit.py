@@ -211,6 +211,9 @@ def fit(
             for note in (_charge_loss_note(ramp), _dark_reference_note(fit_model.base, ramp)):
                 if note is not None:
                     step(f"{name}: {note}")
+        for fit_exposure, meta in read:
+            if (note := _flat_reference_note(fit_model, meta)) is not None:
+                step(f"{fit_exposure.name}: {note}")
     settings = {
         "amigo_version": __version__,
         "level": level,
@@ -339,12 +342,16 @@ class FitModel:
     source
         The model file's name and content fingerprint, or ``"nominal"``: part of the
         identity of a fit (a re-run keeps products of the same model).
+    flat_references
+        Filter -> the flat-field reference files behind the level-2 images the base model
+        learnt its residual sensitivity from (its record; empty where it records none).
     """
 
     instrument: Callable[[str], Any]
     base: Any
     detector: str
     source: str = "nominal"
+    flat_references: dict[str, tuple[str, ...]] = field(default_factory=dict)
 
 
 def _fit_model(model: Path | None, detector: str | None, level: str) -> FitModel:
@@ -411,6 +418,33 @@ def _fit_model(model: Path | None, detector: str | None, level: str) -> FitModel
         ramp,
         mode,
         source,
+        _flat_references(record),
+    )
+
+
+def _flat_references(record: dict) -> dict[str, tuple[str, ...]]:
+    """Filter -> flat references of a base model's level-2 calibration files (its
+    metadata's ``data`` record, :meth:`amigo.training.data.TrainingData.describe`)."""
+    found: dict[str, set[str]] = defaultdict(set)
+    data = record.get("data")
+    for item in data.get("calibration", []) if isinstance(data, dict) else []:
+        if isinstance(item, dict) and item.get("flat_reference") and item.get("filter"):
+            found[str(item["filter"])].add(str(item["flat_reference"]))
+    return {name: tuple(sorted(refs)) for name, refs in found.items()}
+
+
+def _flat_reference_note(fit_model: FitModel, meta) -> str | None:
+    """For a level-2 image flat-fielded with another reference file than the base model's
+    calibrators of its filter, what that means (``None`` otherwise, or where the model
+    records none)."""
+    known = fit_model.flat_references.get(meta.filter, ())
+    reference = meta.flat_reference
+    if fit_model.base is None or not known or not reference or reference in known:
+        return None
+    return (
+        f"flat-fielded with {reference}; the base model's residual pixel sensitivity was "
+        f"learnt behind {', '.join(known)}: applied as learnt (another flat costs pixel "
+        "fidelity, not the calibrated observables: the base model's README)"
     )
 
 

@@ -145,6 +145,7 @@ class TrainingData:
             if d.level2:
                 described["level"] = "level2"
                 described["dark_reference"] = d.dark_reference
+                described["flat_reference"] = d.flat_reference
             return {**described, "values": d.n_values}
 
         return {
