@@ -131,16 +131,25 @@ def test_a_photometrically_calibrated_image_is_read_back_in_dn_per_s(tmp_path):
     rng = np.random.default_rng(5)
     rate = rng.uniform(0.0, 3e4, (80, 80))
     err = np.sqrt(rate / 30.0 + 4.0)
-    plain = jwst.read_exposure(write_level2(tmp_path / "a_cal.fits", rate, err))
+    step = {"S_CHGMIG": "COMPLETE"}  # VAR_POISSON is read (pixels.pipeline_groups uses it)
+    first = write_level2(tmp_path / "a_cal.fits", rate, err, overrides=step)
     conversion = 0.8573  # (MJy/sr) per (DN/s), the size of NIRISS's
-    path = write_level2(tmp_path / "b_cal.fits", rate * conversion, err * conversion)
+    path = write_level2(
+        tmp_path / "b_cal.fits", rate * conversion, err * conversion, overrides=step
+    )
+    for name, scale in ((first, 1.0), (path, conversion**2)):
+        with fits.open(name, mode="update") as hdul:
+            hdul.append(fits.ImageHDU((rate / 30.0 * scale).astype(np.float32), name="VAR_POISSON"))
     with fits.open(path, mode="update") as hdul:
         hdul["SCI"].header["BUNIT"] = "MJy/sr"
         hdul["SCI"].header["PHOTMJSR"] = conversion
+    plain = jwst.read_exposure(first)
     calibrated = jwst.read_exposure(path)
     assert calibrated.meta.bunit == "DN/s" and calibrated.meta.in_dn_per_s
     np.testing.assert_allclose(calibrated.data, plain.data, rtol=2e-7)
     np.testing.assert_allclose(calibrated.err, plain.err, rtol=2e-7)
+    np.testing.assert_allclose(calibrated.var_poisson, plain.var_poisson, rtol=4e-7)
+    assert plain.var_poisson is not None
     np.testing.assert_array_equal(calibrated.usable, plain.usable)
     with fits.open(path) as hdul:  # the input is not touched
         assert hdul["SCI"].header["BUNIT"] == "MJy/sr"

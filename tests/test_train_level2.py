@@ -217,8 +217,9 @@ def test_the_steps_threshold_follows_the_pipeline_version_and_a_cut_of_nothing_i
     )
     faint = write_level2(tmp_path / "faint_cal.fits", rate / 10.0, err, overrides=step)
     short = write_level2(tmp_path / "short_cal.fits", rate, err, overrides={**step, "NGROUPS": 2})
-    assert pipeline_groups(read_exposure(faint)) is None
-    assert pipeline_groups(read_exposure(short)) is None
+    nothing = pipeline_groups(read_exposure(faint))
+    assert nothing.groups is None and nothing.threshold_dn == 25000.0
+    assert pipeline_groups(read_exposure(short)) is None  # the step leaves 2 groups alone
 
 
 def test_the_threshold_a_files_poisson_variance_shows(tmp_path):
@@ -337,6 +338,25 @@ def test_the_flat_behind_a_model_and_behind_an_image(tmp_path):
     assert _flat_reference_note(model, other_filter) is None
     unrecorded = FitModel(lambda f: None, object(), "full", "m", _flat_references({}))
     assert _flat_reference_note(unrecorded, newer) is None
+    # a _rateints image (divided by no flat) against a model learnt behind one, and back
+    none = SimpleNamespace(filter="F480M", flat_reference="")
+    assert "divided by no flat" in _flat_reference_note(model, none)
+    unflat_data = SlopeData.read(unflat, "calibrator")
+    described = TrainingData(cal=[unflat_data], flats=[], val=[]).describe()
+    assert described["calibration"][0]["flat_reference"] == "(none)"
+    behind_none = FitModel(
+        lambda f: None, object(), "full", "m", _flat_references({"data": described})
+    )
+    assert "learnt behind no flat" in _flat_reference_note(behind_none, same)
+    assert _flat_reference_note(behind_none, none) is None
+    # a checkpoint written before the flats were recorded still resumes; another flat not
+    from amigo.training.data import same_data
+
+    current = TrainingData(cal=[data], flats=[], val=[]).describe()
+    before = {k: [{f: v for f, v in d.items() if f != "flat_reference"} for d in items]
+              for k, items in current.items()}  # fmt: skip
+    assert same_data(before, current) and same_data(current, current)
+    assert not same_data(described, current)
 
 
 def test_the_model_behind_the_pipeline_keeps_what_it_learnt():

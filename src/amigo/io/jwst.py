@@ -215,8 +215,9 @@ class Exposure:
         ``data`` for level 2: False on reference rows, DO_NOT_USE pixels and non-finite
         values (and non-positive errors).
     var_poisson
-        Level 2: the VAR_POISSON extension ((DN/s)^2, shape of ``data``), the variance of
-        the photons the pipeline's ramp fit counted, or ``None`` where absent.
+        Level 2 with ``meta.charge_migration_flagged``: the VAR_POISSON extension ((DN/s)^2,
+        shape of ``data``), the variance of the photons the pipeline's ramp fit counted;
+        ``None`` otherwise or where absent.
     """
 
     meta: ExposureMeta
@@ -376,16 +377,17 @@ def _array_like(
 def _optional_array(
     path: Path, hdul: fits.HDUList, name: str, shape: tuple[int, ...]
 ) -> np.ndarray | None:
-    """Extension ``name`` as :func:`_array_like` reads it, or ``None`` where it is absent
-    or unreadable: information a fit can do without (a damaged one is not a reason to
-    refuse the file)."""
+    """Extension ``name`` of exactly the SCI ``shape``, or ``None`` where it is absent,
+    unreadable or of another shape: information a fit can do without (a damaged one is
+    not a reason to refuse the file)."""
     hdu = _ext(hdul, name)
     if hdu is None:
         return None
     try:
-        return _array_like(path, hdu, name, shape)
+        array = _array_like(path, hdu, name, shape)
     except InputError:
         return None
+    return array if array.shape == tuple(shape) else None
 
 
 def _ext(hdul: fits.HDUList, name: str) -> fits.ImageHDU | None:
@@ -628,7 +630,10 @@ def _read_exposure(path: Path, hdul: fits.HDUList, need_slopes: bool) -> Exposur
 
     err_hdu, dq_hdu = _ext(hdul, "ERR"), _ext(hdul, "DQ")
     err = None if err_hdu is None else _array_like(path, err_hdu, "ERR", data.shape)
-    var_poisson = _optional_array(path, hdul, "VAR_POISSON", data.shape)
+    # Read only where it is used (pixels.pipeline_groups): a cube's worth of memory.
+    var_poisson = None
+    if meta.charge_migration_flagged:
+        var_poisson = _optional_array(path, hdul, "VAR_POISSON", data.shape)
     dq = None if dq_hdu is None else _array_like(path, dq_hdu, "DQ", data.shape, np.uint32)
     flagged = np.zeros(data.shape, dtype=bool)
     if dq is not None:

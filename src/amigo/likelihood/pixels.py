@@ -37,7 +37,7 @@ from jaxtyping import Array, Bool, Float
 
 from amigo import niriss
 from amigo.errors import InputError, TooFewPixels
-from amigo.io.jwst import DQ_SATURATED, Exposure
+from amigo.io.jwst import DQ_JUMP_DET, DQ_SATURATED, Exposure
 from amigo.model.detector.pipeline_slope import (
     CHARGE_LOSS_THRESHOLD_1_12_DN,
     CHARGE_LOSS_THRESHOLD_DN,
@@ -367,22 +367,39 @@ class PipelineGroups:
     Attributes
     ----------
     groups
-        (ny, nx) int, the leading groups of each pixel the ramp fit used.
+        (ny, nx) int, the leading groups of each pixel the ramp fit used; ``None`` where
+        the step cut no ramp (the image is fitted as one without the step).
     threshold_dn
-        The step's threshold the cut follows (DN).
+        The step's threshold the cut follows (DN); a lower bound where ``at_least``.
     source
         Where the threshold comes from: the step's default in the file's pipeline version,
         or the file's VAR_POISSON (:func:`threshold_from_poisson_variance`).
+    at_least
+        VAR_POISSON shows only that the threshold lies above every ramp the image holds.
     """
 
-    groups: np.ndarray
+    groups: np.ndarray | None
     threshold_dn: float
     source: str
+    at_least: bool = False
+
+    @property
+    def from_variance(self) -> bool:
+        return self.source == VARIANCE_SOURCE
+
+    def describe(self) -> str:
+        """E.g. ``"threshold 25,000 DN, the step's default in jwst 1.16.0"``."""
+        bound = "at least " if self.at_least else ""
+        return f"threshold {bound}{self.threshold_dn:,.0f} DN, {self.source}"
+
+
+VARIANCE_SOURCE = "the file's VAR_POISSON"
 
 
 def pipeline_groups(exposure: Exposure) -> PipelineGroups | None:
     """The leading groups of each pixel the pipeline's ramp fit used, for a level-2 image
-    its charge-migration step ran on (``S_CHGMIG``); ``None`` otherwise.
+    its charge-migration step ran on (``S_CHGMIG``); ``None`` for other images and ramps
+    of 1 or 2 groups (which the step leaves alone).
 
     The step's rule (:func:`~amigo.model.detector.pipeline_slope.charge_loss_groups`)
     applied to the rates the file holds, whatever the pixels' flags (the step reads the
@@ -391,9 +408,8 @@ def pipeline_groups(exposure: Exposure) -> PipelineGroups | None:
     ``_calints``'s integrations, where the step cut each on its own); a pixel without
     one that the pipeline flagged SATURATED passed the threshold in its first group; any
     other (dead, or without a value for another reason) counts as dark. The threshold is
-    the one the file's VAR_POISSON shows, where it shows one clearly, else the step's
-    default in the file's CAL_VER (:func:`charge_loss_threshold_dn`). ``None`` also where
-    the rule cuts nothing (1 or 2 groups, or a faint star).
+    the one the file's VAR_POISSON shows, where it shows another clearly, else the step's
+    default in the file's CAL_VER (:func:`charge_loss_threshold_dn`).
     """
     meta = exposure.meta
     if not meta.charge_migration_flagged or meta.ngroups < 3:
@@ -408,15 +424,17 @@ def pipeline_groups(exposure: Exposure) -> PipelineGroups | None:
         rate = np.where(~finite.any(axis=0) & saturated, np.inf, rate)
     cal_ver = str(meta.primary_header.get("CAL_VER", "")).strip()
     threshold = charge_loss_threshold_dn(cal_ver)
-    source = f"the step's default in jwst {cal_ver or '(version unknown)'}"
+    source, at_least = f"the step's default in jwst {cal_ver or '(version unknown)'}", False
     measured = threshold_from_poisson_variance(exposure, rate, threshold)
     if measured is not None:
-        threshold, source = measured, "the file's VAR_POISSON"
+        threshold, at_least = measured
+        source = VARIANCE_SOURCE
     used = charge_loss_groups(
         rate, meta.ngroups, meta.group_time_s, meta.frame_time_s, meta.nframes, threshold
     )
     # Nothing cut: the model as for a file without the step (one compiled program for both).
-    return PipelineGroups(used, threshold, source) if np.any(used < meta.ngroups) else None
+    cut = used if np.any(used < meta.ngroups) else None
+    return PipelineGroups(cut, threshold, source, at_least)
 
 
 #: Thresholds (DN) a file's VAR_POISSON is held against: the step's parameter can be set
@@ -429,32 +447,39 @@ IMPLIED_GROUPS_SCATTER = 0.05
 #: How much better (sum of squared, clipped residuals in units of that scatter) another
 #: threshold must explain VAR_POISSON than the default for the cut to follow it.
 THRESHOLD_EVIDENCE = 25.0
+#: A threshold found within this fraction of the default is the default: the flat the
+#: level-2 rates are divided by (a few per cent) moves the levels the rule compares by as
+#: much, so VAR_POISSON cannot tell them apart.
+THRESHOLD_RESOLUTION = 0.05
 
 
 def threshold_from_poisson_variance(
     exposure: Exposure, rate_dn_s: np.ndarray, default_dn: float
-) -> float | None:
-    """The charge-migration threshold (DN) a level-2 image's VAR_POISSON shows, where it
-    shows another than ``default_dn`` clearly; ``None`` otherwise (no VAR_POISSON, no
-    pixel bright enough to tell, or no clear preference).
+) -> tuple[float, bool] | None:
+    """The charge-migration threshold (DN) a level-2 image's VAR_POISSON shows, with
+    whether it is only a lower bound, where it shows another than ``default_dn`` clearly;
+    ``None`` otherwise (no VAR_POISSON, no pixel bright enough to tell, no clear
+    preference, or one within :data:`THRESHOLD_RESOLUTION` of the default).
 
     The ramp fit's Poisson variance of a pixel is ``R / (g TGROUP (n - 1))`` per
     integration (stcal, :mod:`amigo.model.detector.pipeline_slope`) over the ``n`` groups
-    it fitted, so ``rate / (g TGROUP VAR_POISSON)`` (divided by NINTS for an exposure's
-    average) is ``n - 1``. Each threshold of :data:`THRESHOLD_GRID_DN` predicts ``n`` per
-    pixel through the step's rule; the one whose prediction fits the pixels that could be
-    cut best (squared residuals in units of :data:`IMPLIED_GROUPS_SCATTER`, clipped at 4
-    of them against outliers) is taken if it beats ``default_dn`` by
-    :data:`THRESHOLD_EVIDENCE`.
+    it fitted, so ``rate / (g TGROUP VAR_POISSON)`` (divided by the integrations averaged
+    for an exposure's image) is ``n - 1``. Each threshold of :data:`THRESHOLD_GRID_DN`
+    predicts ``n`` per pixel through the step's rule; the one whose prediction fits the
+    pixels that could be cut best (squared residuals in units of
+    :data:`IMPLIED_GROUPS_SCATTER`, clipped at 4 of them against outliers; pixels with a
+    jump left out: a jump shortens a segment) is taken if it beats ``default_dn`` by
+    :data:`THRESHOLD_EVIDENCE`. Where the thresholds that fit best reach the top of the
+    grid, VAR_POISSON shows only a lower bound (the lowest of them).
     """
     meta = exposure.meta
     if exposure.var_poisson is None:
         return None
     data = exposure.data if exposure.data.ndim == 3 else exposure.data[None]
     var = exposure.var_poisson if exposure.var_poisson.ndim == 3 else exposure.var_poisson[None]
-    per_average = meta.nints if exposure.data.ndim == 2 else 1
+    averaged = _integrations_averaged(meta) if exposure.data.ndim == 2 else 1
     with np.errstate(invalid="ignore", divide="ignore"):
-        implied = data / (niriss.GAIN_E_PER_DN * meta.group_time_s * per_average * var)
+        implied = data / (niriss.GAIN_E_PER_DN * meta.group_time_s * averaged * var)
         implied = np.where(np.isfinite(implied) & (implied > 0), implied, np.nan)
         counted = np.sum(np.isfinite(implied), axis=0)
         implied_mean = np.where(counted > 0, np.nansum(implied, axis=0) / counted, np.nan)
@@ -462,6 +487,9 @@ def threshold_from_poisson_variance(
     level = np.where(np.isfinite(rate_dn_s), rate_dn_s, 0.0) * last
     usable = exposure.usable if exposure.usable.ndim == 2 else exposure.usable.any(axis=0)
     telling = usable & np.isfinite(implied_mean) & (level > THRESHOLD_GRID_DN[0])
+    if exposure.dq is not None:
+        dq = exposure.dq if exposure.dq.ndim == 3 else exposure.dq[None]
+        telling &= ~np.any((dq & DQ_JUMP_DET) != 0, axis=0)
     if not telling.any():
         return None
     m = implied_mean[telling]
@@ -479,12 +507,27 @@ def threshold_from_poisson_variance(
     best = int(np.argmin(scores))
     if misfit(default_dn) - scores[best] <= THRESHOLD_EVIDENCE:
         return None
-    # The middle of the run of thresholds that fit as well as the first best one (they
-    # cut the same pixels the same way): the data cannot tell them apart.
+    # The run of thresholds that fit as well as the first best one (they cut the scored
+    # pixels the same way): the data cannot tell them apart; its middle, or its lowest
+    # where it reaches the top of the grid (then only a lower bound is known).
     last_tied = best
     while last_tied + 1 < scores.size and scores[last_tied + 1] == scores[best]:
         last_tied += 1
-    return float(np.mean(THRESHOLD_GRID_DN[best : last_tied + 1]))
+    if last_tied == scores.size - 1:
+        return float(THRESHOLD_GRID_DN[best]), True
+    found = float(np.mean(THRESHOLD_GRID_DN[best : last_tied + 1]))
+    if abs(found - default_dn) <= THRESHOLD_RESOLUTION * default_dn:
+        return None
+    return found, False
+
+
+def _integrations_averaged(meta) -> int:
+    """How many integrations a level-2 exposure image averages: NINTS, or the segment's
+    ``INTEND - INTSTART + 1`` where the file holds part of the exposure."""
+    start, end = (meta.primary_header.get(k) for k in ("INTSTART", "INTEND"))
+    if isinstance(start, int) and isinstance(end, int) and 1 <= start <= end:
+        return end - start + 1
+    return int(meta.nints)
 
 
 def charge_loss_threshold_dn(cal_ver: str) -> float:

@@ -428,23 +428,27 @@ def _flat_references(record: dict) -> dict[str, tuple[str, ...]]:
     found: dict[str, set[str]] = defaultdict(set)
     data = record.get("data")
     for item in data.get("calibration", []) if isinstance(data, dict) else []:
-        if isinstance(item, dict) and item.get("flat_reference") and item.get("filter"):
+        if isinstance(item, dict) and "flat_reference" in item and item.get("filter"):
             found[str(item["filter"])].add(str(item["flat_reference"]))
     return {name: tuple(sorted(refs)) for name, refs in found.items()}
 
 
 def _flat_reference_note(fit_model: FitModel, meta) -> str | None:
-    """For a level-2 image flat-fielded with another reference file than the base model's
-    calibrators of its filter, what that means (``None`` otherwise, or where the model
-    records none)."""
+    """For a level-2 image divided by another flat than the base model's calibrators of
+    its filter (or by none where they were divided by one, or the reverse), what that
+    means (``None`` otherwise, or where the model records no flat)."""
+    from amigo.training.data import NO_FLAT
+
     known = fit_model.flat_references.get(meta.filter, ())
-    reference = meta.flat_reference
-    if fit_model.base is None or not known or not reference or reference in known:
+    reference = meta.flat_reference or NO_FLAT
+    if fit_model.base is None or not known or reference in known:
         return None
+    divided = "divided by no flat" if reference == NO_FLAT else f"flat-fielded with {reference}"
+    behind = ", ".join("no flat" if k == NO_FLAT else k for k in known)
     return (
-        f"flat-fielded with {reference}; the base model's residual pixel sensitivity was "
-        f"learnt behind {', '.join(known)}: applied as learnt (another flat costs pixel "
-        "fidelity, not the calibrated observables: the base model's README)"
+        f"{divided}; the base model's residual pixel sensitivity was learnt behind "
+        f"{behind}: applied as learnt (another flat costs pixel fidelity, not the calibrated "
+        "observables, the base model's README; no flat against one costs the whole flat)"
     )
 
 
@@ -517,7 +521,7 @@ def _read_fit_exposure(path: Path, role: str, level: str, superbias=None) -> Rea
         ramp = Level2Input(
             image, meta.ngroups, meta.nframes, meta.group_time_s, meta.dark_reference,
             None if groups is None else groups.groups,
-            "" if groups is None else f"threshold {groups.threshold_dn:,.0f} DN, {groups.source}",
+            "" if groups is None else groups.describe(),
         )  # fmt: skip
     problem = star_problem(image)
     if problem is not None:
@@ -766,9 +770,18 @@ def _check_orientations(items) -> None:
 
 def _charge_loss_note(ramp) -> str | None:
     """What the pipeline's charge-migration step did to a level-2 image's ramps, for the
-    terminal (``None`` where it cut none, or the input is not a level-2 image)."""
+    terminal (``None`` where it cut none by its default threshold, or the input is not a
+    level-2 image)."""
+    from amigo.likelihood.pixels import VARIANCE_SOURCE
+
     used = getattr(ramp, "groups_used", None)
+    rule = getattr(ramp, "groups_rule", "")
     if used is None:
+        if VARIANCE_SOURCE in rule:  # the header says it ran; VAR_POISSON says: no cut
+            return (
+                f"the header says the pipeline's charge-migration step ran, but it cut no "
+                f"ramp ({rule}): fitted over all groups"
+            )
         return None
     kept = used[ramp.data.mask & (used < ramp.ngroups)]
     if kept.size == 0:

@@ -86,6 +86,29 @@ class TrainSettings:
         return int(np.searchsorted(np.cumsum(self.stages()), step, side="right"))
 
 
+#: What a training's ``data`` record says of a level-2 image the pipeline divided by no
+#: flat (``flat_reference``).
+NO_FLAT = "(none)"
+
+
+def same_data(stored: dict[str, Any], current: dict[str, Any]) -> bool:
+    """Whether a checkpoint's ``data`` record describes the data of ``current``
+    (:meth:`TrainingData.describe`); a record written before the flat references were
+    recorded matches on everything else."""
+    if stored.keys() != current.keys():
+        return False
+    for key, items in current.items():
+        old = stored[key]
+        if len(old) != len(items):
+            return False
+        for before, now in zip(old, items, strict=True):
+            if "flat_reference" not in before:
+                now = {k: v for k, v in now.items() if k != "flat_reference"}
+            if before != now:
+                return False
+    return True
+
+
 @dataclass
 class TrainingData:
     """Calibration, flat-field and validation exposures (:class:`SlopeData`)."""
@@ -145,7 +168,9 @@ class TrainingData:
             if d.level2:
                 described["level"] = "level2"
                 described["dark_reference"] = d.dark_reference
-                described["flat_reference"] = d.flat_reference
+                # NO_FLAT where the pipeline divided by none (a _rateints image): the
+                # residual sensitivity a model learns then holds the whole flat.
+                described["flat_reference"] = d.flat_reference or NO_FLAT
             return {**described, "values": d.n_values}
 
         return {

@@ -108,7 +108,14 @@ from amigo.model.detector.reset import Superbias
 from amigo.model.optics.model import strong_types
 from amigo.progress import step as report_step
 from amigo.solvers.natural_gradient import FisherMomentum
-from amigo.training.data import CHECKPOINT_FORMAT, History, TrainingData, TrainSettings, TrainState
+from amigo.training.data import (
+    CHECKPOINT_FORMAT,
+    History,
+    TrainingData,
+    TrainSettings,
+    TrainState,
+    same_data,
+)
 from amigo.training.exposure import FIT_ITERATIONS, solve_dark_residual
 from amigo.training.fisher import (
     compiled_model,
@@ -722,7 +729,7 @@ class Trainer:
         data and settings (:class:`InputError` otherwise)."""
         with open_npz(path, "checkpoint") as data:
             record = read_record(path, data, CHECKPOINT_FORMAT)
-            if record["data"] != self.data.describe():
+            if not same_data(record["data"], self.data.describe()):
                 raise InputError(path, "checkpoint was written for other training data")
             if _tuples_to_lists(asdict(self.settings)) != record["settings"]:
                 raise InputError(path, "checkpoint was written with other training settings")
