@@ -359,6 +359,10 @@ class SlopeNoise:
         return -0.5 * (jnp.sum(z**2) + self.log_det + self.n_values * LOG_2PI)
 
 
+#: :attr:`PipelineGroups.source` where the threshold was read from the file's VAR_POISSON.
+VARIANCE_SOURCE = "the file's VAR_POISSON"
+
+
 @dataclass(frozen=True)
 class PipelineGroups:
     """What the pipeline's charge-migration step left to the ramp fit of a level-2 image
@@ -383,17 +387,10 @@ class PipelineGroups:
     source: str
     at_least: bool = False
 
-    @property
-    def from_variance(self) -> bool:
-        return self.source == VARIANCE_SOURCE
-
     def describe(self) -> str:
         """E.g. ``"threshold 25,000 DN, the step's default in jwst 1.16.0"``."""
         bound = "at least " if self.at_least else ""
         return f"threshold {bound}{self.threshold_dn:,.0f} DN, {self.source}"
-
-
-VARIANCE_SOURCE = "the file's VAR_POISSON"
 
 
 def pipeline_groups(exposure: Exposure) -> PipelineGroups | None:
