@@ -104,3 +104,23 @@ def test_inputs_never_modified(tmp_path):
     before = path.read_bytes()
     assert run("info", path).returncode == 0
     assert path.read_bytes() == before
+
+
+def test_info_says_how_the_archive_processed_a_level2_file(tmp_path):
+    """A file in MJy/sr is summarised in DN/s (its PHOTMJSR undone), and one the
+    pipeline's charge-migration step ran on says so: what ``amigo fit`` will do with it."""
+    from astropy.io import fits
+
+    from jwst_files import write_level2
+
+    yy, xx = np.mgrid[:80, :80]
+    rate = 10.0 + 1e4 * np.exp(-((xx - 40.0) ** 2 + (yy - 40.0) ** 2) / 8.0)
+    path = write_level2(tmp_path / "mjy_cal.fits", rate * 0.5, overrides={"S_CHGMIG": "COMPLETE"})
+    with fits.open(path, mode="update") as hdul:
+        hdul["SCI"].header["BUNIT"] = "MJy/sr"
+        hdul["SCI"].header["PHOTMJSR"] = 0.5
+    result = run("info", path)
+    assert result.returncode == 0, result.stderr
+    assert "10,010 DN/s" in result.stdout
+    assert "MJy/sr, read in DN/s through PHOTMJSR" in result.stdout
+    assert "charge-migration step ran (S_CHGMIG)" in result.stdout

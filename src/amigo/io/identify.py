@@ -80,7 +80,12 @@ def _summarise_exposure(path: Path) -> FileSummary:
             values = np.where(exposure.usable.all(axis=0), exposure.data.mean(axis=0), -np.inf)
         # the exposure's unit: read_exposure turns MJy/sr back into DN/s
         peak = _format_peak(float(values.max()), exposure.meta.bunit)
-    verdict = "ok" if not meta.notes else "ok (" + "; ".join(meta.notes) + ")"
+    notes = list(meta.notes)
+    if meta.in_mjy_per_sr:
+        notes.append("MJy/sr, read in DN/s through PHOTMJSR")
+    if meta.charge_migration_flagged:
+        notes.append("the pipeline's charge-migration step ran (S_CHGMIG)")
+    verdict = "ok" if not notes else "ok (" + "; ".join(notes) + ")"
     return FileSummary(
         path=path,
         kind=meta.kind,
