@@ -162,6 +162,15 @@ def test_failures_are_reported_per_filter_and_runs_resume(inputs, tmp_path, monk
     assert {k: uninterrupted[k] for k in first} == first
     assert len(uninterrupted) == 4
 
+    # 2b. a new reading of the same inputs (READING_REVISION raised): nothing is kept
+    import amigo.pipeline._fit as fit_module
+
+    revision = fit_module.READING_REVISION
+    monkeypatch.setattr(fit_module, "READING_REVISION", revision + 1)
+    assert amigo_status(_args(inputs, out, flagged=True)) == 3
+    assert "products up to date" not in capsys.readouterr().err
+    monkeypatch.setattr(fit_module, "READING_REVISION", revision)
+
     # 3. killed after its first filter, then run again: the same bytes. Without the
     # flagged calibrator the fit of each filter is the same (same exposures fitted).
     resumed = tmp_path / "resumed"

@@ -223,6 +223,7 @@ def fit(
         "config": repr(config),
         "superbias": [fingerprint(p) for p in superbias_paths],
         "first_group": reset is not None,
+        "reading": READING_REVISION,
     }
 
     out.mkdir(parents=True, exist_ok=True)
@@ -450,6 +451,15 @@ def _flat_reference_note(fit_model: FitModel, meta) -> str | None:
         f"{behind}: applied as learnt (another flat costs pixel fidelity, not the calibrated "
         "observables, the base model's README; no flat against one costs the whole flat)"
     )
+
+
+#: Revision of how a fit reads its inputs into a likelihood, part of every fit's key
+#: (:func:`amigo.pipeline.outcome.fit_key`): the package's version does not change with
+#: every commit, so products a previous reading made for the same files and options
+#: would otherwise be kept. 2: level-2 files as the archive writes them today (the
+#: charge-migration step's cut, MJy/sr, SATURATED values left out). Raise it whenever
+#: the same inputs would be fitted differently.
+READING_REVISION = 2
 
 
 @dataclass(frozen=True)
