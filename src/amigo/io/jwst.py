@@ -128,16 +128,21 @@ class ExposureMeta:
         return self.kind in RAMP_KINDS
 
     @property
+    def _unit(self) -> str:
+        """BUNIT as the unit tests compare it: upper case, without spaces."""
+        return self.bunit.strip().upper().replace(" ", "")
+
+    @property
     def in_dn_per_s(self) -> bool:
         """Whether BUNIT is a count rate in DN/s (level-2 images before the pipeline's
         photometric calibration; :func:`read_exposure` undoes that calibration, MJy/sr,
         with the file's PHOTMJSR)."""
-        return self.bunit.strip().upper().replace(" ", "") in ("DN/S", "DNS-1", "DN.S**-1")
+        return self._unit in ("DN/S", "DNS-1", "DN.S**-1")
 
     @property
     def in_mjy_per_sr(self) -> bool:
         """Whether BUNIT is a surface brightness in MJy/sr (the pipeline's photom step)."""
-        return self.bunit.strip().upper().replace(" ", "") in ("MJY/SR", "MJYSR-1", "MJY.SR**-1")
+        return self._unit in ("MJY/SR", "MJYSR-1", "MJY.SR**-1")
 
     @property
     def slope_time_s(self) -> float:

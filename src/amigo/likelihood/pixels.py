@@ -42,6 +42,7 @@ from amigo.model.detector.pipeline_slope import (
     CHARGE_LOSS_THRESHOLD_1_12_DN,
     CHARGE_LOSS_THRESHOLD_DN,
     charge_loss_groups,
+    group_times_s,
 )
 
 if TYPE_CHECKING:
@@ -411,12 +412,12 @@ def pipeline_groups(exposure: Exposure) -> PipelineGroups | None:
     meta = exposure.meta
     if not meta.charge_migration_flagged or meta.ngroups < 3:
         return None
-    data = exposure.data if exposure.data.ndim == 3 else exposure.data[None]
+    data = _by_integration(exposure.data)
     finite = np.isfinite(data)
     with np.errstate(invalid="ignore", divide="ignore"):
         rate = np.where(finite, data, 0.0).sum(axis=0) / finite.sum(axis=0)
     if exposure.dq is not None:
-        dq = exposure.dq if exposure.dq.ndim == 3 else exposure.dq[None]
+        dq = _by_integration(exposure.dq)
         saturated = np.any((dq & DQ_SATURATED) != 0, axis=0)
         rate = np.where(~finite.any(axis=0) & saturated, np.inf, rate)
     cal_ver = str(meta.primary_header.get("CAL_VER", "")).strip()
@@ -472,20 +473,19 @@ def threshold_from_poisson_variance(
     meta = exposure.meta
     if exposure.var_poisson is None:
         return None
-    data = exposure.data if exposure.data.ndim == 3 else exposure.data[None]
-    var = exposure.var_poisson if exposure.var_poisson.ndim == 3 else exposure.var_poisson[None]
+    data, var = _by_integration(exposure.data), _by_integration(exposure.var_poisson)
     averaged = _integrations_averaged(meta) if exposure.data.ndim == 2 else 1
     with np.errstate(invalid="ignore", divide="ignore"):
         implied = data / (niriss.GAIN_E_PER_DN * meta.group_time_s * averaged * var)
         implied = np.where(np.isfinite(implied) & (implied > 0), implied, np.nan)
         counted = np.sum(np.isfinite(implied), axis=0)
         implied_mean = np.where(counted > 0, np.nansum(implied, axis=0) / counted, np.nan)
-    last = meta.group_time_s * (meta.ngroups - 1) + (meta.nframes + 1) * meta.frame_time_s / 2
-    level = np.where(np.isfinite(rate_dn_s), rate_dn_s, 0.0) * last
+    times = group_times_s(meta.ngroups, meta.group_time_s, meta.frame_time_s, meta.nframes)
+    level = np.where(np.isfinite(rate_dn_s), rate_dn_s, 0.0) * times[-1]  # the last group's
     usable = exposure.usable if exposure.usable.ndim == 2 else exposure.usable.any(axis=0)
     telling = usable & np.isfinite(implied_mean) & (level > THRESHOLD_GRID_DN[0])
     if exposure.dq is not None:
-        dq = exposure.dq if exposure.dq.ndim == 3 else exposure.dq[None]
+        dq = _by_integration(exposure.dq)
         telling &= ~np.any((dq & DQ_JUMP_DET) != 0, axis=0)
     if not telling.any():
         return None
@@ -516,6 +516,12 @@ def threshold_from_poisson_variance(
     if abs(found - default_dn) <= THRESHOLD_RESOLUTION * default_dn:
         return None
     return found, False
+
+
+def _by_integration(array: np.ndarray) -> np.ndarray:
+    """A level-2 array with its integrations first: (nints, ny, nx) as it is, (ny, nx)
+    (``_cal``, one image) as (1, ny, nx)."""
+    return array if array.ndim == 3 else array[None]
 
 
 def _integrations_averaged(meta) -> int:

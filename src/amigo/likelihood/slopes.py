@@ -169,13 +169,12 @@ class SlopeData(eqx.Module):
             raise InputError(meta.path, f"NGROUPS {meta.ngroups}: at least 2 groups needed")
         image = ImageData.from_exposure(exposure)  # leaves out SATURATED values
         groups = pipeline_groups(exposure)
-        used = image.mask.copy()
-        if not used.any():
+        if not image.mask.any():
             raise InputError(meta.path, "no usable pixel")
         return cls.from_rate_image(
             image.data,
             image.error,
-            used,
+            image.mask,
             ngroups=int(meta.ngroups),
             group_time_s=float(meta.group_time_s),
             nframes=int(meta.nframes),

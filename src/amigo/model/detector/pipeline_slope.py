@@ -406,6 +406,16 @@ CHARGE_LOSS_THRESHOLD_DN: float = 25000.0
 CHARGE_LOSS_THRESHOLD_1_12_DN: float = 30000.0
 
 
+def group_times_s(
+    ngroups: int, group_time: float, frame_time: float, nframes: int = 1
+) -> np.ndarray:
+    """(ngroups,) each group's mean time since the reset (s): group ``k`` (from 0) is
+    ``k * TGROUP + (NFRAMES + 1) * TFRAME / 2``, the mean of its NFRAMES frames' read
+    times (for NISRAPID ``(k + 1) * TGROUP``). A linear ramp of rate ``r`` holds ``r``
+    times these (DN, the superbias subtracted)."""
+    return np.arange(ngroups) * group_time + (nframes + 1) * frame_time / 2.0
+
+
 def charge_loss_groups(
     rate_dn_s: Float[np.ndarray, "ny nx"],
     ngroups: int,
@@ -418,22 +428,20 @@ def charge_loss_groups(
 
     Emulates the step on the ramp a pixel of count rate ``rate_dn_s`` (DN/s, the level-2
     image's; NaN where unknown, counted as dark; ``+inf`` for a pixel over the threshold
-    from its first group, e.g. saturated throughout) would have recorded: group ``k`` (from 0) holds
-    ``rate * (k * TGROUP + (NFRAMES + 1) * TFRAME / 2)`` DN (the mean time since the reset
-    of its NFRAMES frames; for NISRAPID ``(k + 1) * TGROUP``), the first group above
-    ``threshold_dn`` and every later one are flagged, in the pixel and its four neighbours.
-    Returns ``ngroups`` where nothing is flagged, never fewer than 2 (a pixel with a slope
-    in the file had at least two groups; with the jwst step's default
-    ``suppress_one_group`` a one-group pixel has no value to fit). The level-2 rate is the
-    fit of the leading groups
-    and the flat field is left out (within a few per cent of 1), so a pixel whose ramp
-    crosses the threshold within that much of a group boundary may be one group off.
+    from its first group, e.g. saturated throughout) would have recorded, group by group
+    the rate times :func:`group_times_s`: the first group above ``threshold_dn`` and every
+    later one are flagged, in the pixel and its four neighbours. Returns ``ngroups``
+    where nothing is flagged, never fewer than 2 (a pixel with a slope in the file had at
+    least two groups; with the jwst step's default ``suppress_one_group`` a one-group
+    pixel has no value to fit). The level-2 rate is the fit of the leading groups and the
+    flat field is left out (within a few per cent of 1), so a pixel whose ramp crosses
+    the threshold within that much of a group boundary may be one group off.
     """
     rate = np.nan_to_num(np.asarray(rate_dn_s, np.float64), nan=0.0, posinf=np.inf, neginf=0.0)
     if ngroups < 3:
         return np.full(rate.shape, ngroups, dtype=np.int32)
-    k = np.arange(ngroups)[:, None, None]
-    level = rate[None] * (k * group_time + (nframes + 1) * frame_time / 2.0)
+    times = group_times_s(ngroups, group_time, frame_time, nframes)
+    level = rate[None] * times[:, None, None]
     # the rate's levels rise with k: the groups below the threshold are a prefix
     below = np.sum(level <= threshold_dn, axis=0)
     used = below.copy()
