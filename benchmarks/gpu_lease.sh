@@ -1,21 +1,35 @@
 #!/usr/bin/env bash
-# One lease of a lent GPU machine, planned to end inside its 10-minute call: where a warm
-# `amigo fit` spends its time on a GPU, and how many Jacobian columns a step should push.
+# One lease of a lent GPU machine, planned to end inside its 10-minute call.
 #
 # Run from the repository root on the device machine (docs/performance.md, "On a GPU"):
-#   bash benchmarks/gpu_lease.sh DATA_DIR
+#   bash benchmarks/gpu_lease.sh DATA_DIR [PLAN]
 # DATA_DIR holds the real COM 1093 level-2 files of AB Dor (obs 12) and HD 37093 (obs 15);
 # the machine has no network, so amigo runs from ./src with the packages its image lacks
 # installed from wheels in ./.whl (astropy, pyerfa, astropy-iers-data, svo-filters, and
-# py-spy for the sampled profile). Everything it measures lands in $OUT:
+# py-spy for the sampled profile). Everything it measures lands in $OUT.
+#
+# PLAN batches (the default): where a warm `amigo fit` spends its time on a GPU, and how
+# many Jacobian columns a step should push:
 #   lease.log       every step's output, each stderr line stamped with seconds since start
 #   batch.txt       benchmarks/jacobian_batch.py's table (batches 8, 256, 64 in that order; F480M)
 #   fit_warm.spy    py-spy's samples (--idle: waiting counted) of a warm fit, fresh process
 #   detect_warm.spy the same for a warm `amigo detect` of that fit's products
+# PLAN profile: two measurements side by side, each its own process (the machine has 16
+# CPU cores for XLA's compiler and one GPU; the training takes a fifth of its memory, the
+# commands JAX's default share). Both read their files under $AMIGO_SHARED (data/jwst/
+# com1093 and com1093-calibrators, copied into a carried folder), as on this machine:
+#   train.log       benchmarks/train.py on the calibrators (AMIGO_SHARED must hold
+#                   data/jwst/com1093-calibrators): seconds per epoch and per step
+#   profile.log     benchmarks/profile_fit.py --platform any --runs both: the stages of a
+#                   cold and a warm `amigo fit` + `amigo detect` of the three filters, with
+#                   the latent bases of $SEED (if set) already in the cold cache, and the
+#                   results against $REFERENCE (if set: an output folder of the same
+#                   commands elsewhere, its fit_summary.json and detect/companions.json)
 # Each step has its own time limit, so that a slow one leaves the next their share, and
 # none runs past $DEADLINE seconds (575: the call's limit is 600).
 set -u
-DATA=${1:?usage: gpu_lease.sh DATA_DIR}
+DATA=${1:?usage: gpu_lease.sh DATA_DIR [batches|profile]}
+PLAN=${2:-batches}
 OUT=${OUT:-$(mktemp -d)}
 PY=${PY:-python3}
 LOG=$OUT/lease.log
@@ -30,8 +44,9 @@ stamp() {
 }
 
 step() {
-    # step LIMIT_S NAME COMMAND...: run it with a limit, stamped, into the log.
-    local limit=$1 name=$2
+    # step LIMIT_S NAME COMMAND...: run it with a limit, stamped, into the log ($STEPLOG if
+    # set: steps run side by side each write their own).
+    local limit=$1 name=$2 log=${STEPLOG:-$LOG}
     shift 2
     # No step runs past the lease's deadline: a late one is cut, never the reply.
     local left=$((DEADLINE - ($(date +%s) - START) - 15))
@@ -43,7 +58,7 @@ step() {
     echo "=== $name (limit ${limit} s)" | stamp | tee -a "$LOG"
     local t0=$SECONDS
     # SIGINT first: py-spy writes its samples on it; anything left is killed 10 s later.
-    timeout -s INT -k 10 "$limit" "$@" 2>&1 | stamp >>"$LOG"
+    timeout -s INT -k 10 "$limit" "$@" 2>&1 | stamp >>"$log"
     echo "=== $name: exit ${PIPESTATUS[0]} after $((SECONDS - t0)) s" | stamp | tee -a "$LOG"
 }
 
@@ -62,6 +77,20 @@ TIMEV=()
 nvidia-smi --query-gpu=name,memory.total,driver_version,clocks.sm,clocks.mem \
     --format=csv >>"$LOG" 2>&1
 $PY -c "import jax; print('JAX', jax.__version__, jax.devices())" 2>&1 | stamp | tee -a "$LOG"
+
+if [ "$PLAN" = profile ]; then
+    # The training on a fifth of the GPU's memory, beside the commands at JAX's default
+    # (three quarters): both preallocate, and together they stay under the card's size.
+    STEPLOG=$OUT/train.log XLA_PYTHON_CLIENT_MEM_FRACTION=0.2 step "${TRAIN_LIMIT:-400}" \
+        "training epochs" $PY benchmarks/train.py --files "${TRAIN_FILES:-12}" \
+        --epochs "${TRAIN_EPOCHS:-6}" &
+    STEPLOG=$OUT/profile.log step "${PROFILE_LIMIT:-560}" "cold and warm fit + detect" \
+        $PY benchmarks/profile_fit.py --platform any --runs both \
+        ${SEED:+--seed-cache "$SEED"} ${REFERENCE:+--reference "$REFERENCE"}
+    wait
+    echo "lease script done after $(($(date +%s) - START)) s" | tee -a "$LOG"
+    exit 0
+fi
 
 SCI=$DATA/jw01093012001_03102_00001_nis_cal.fits
 CAL=$DATA/jw01093015001_03102_00001_nis_cal.fits

@@ -9,7 +9,7 @@ process's peak memory (resident set).
 
     python benchmarks/profile_fit.py [--filters F480M F430M F380M] [--out DIR] [--no-detect]
                                      [--no-hmc] [--runs cold|warm|both] [--wavelengths N]
-                                     [--reference DIR]
+                                     [--reference DIR] [--seed-cache DIR] [--platform cpu|any]
 
 ``--wavelengths N`` fits with the shipped real-data model sampling each filter at ``N``
 wavelengths instead of its own number (:meth:`amigo.model.base.BaseModel.with_config`:
@@ -33,6 +33,7 @@ import os
 import platform
 import re
 import resource
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -216,6 +217,13 @@ def main() -> None:
         default=None,
         help="fit with the shipped real-data model at this many wavelengths per filter",
     )
+    parser.add_argument(
+        "--seed-cache",
+        type=Path,
+        default=None,
+        help="copy the latent bases (basis_*.npz) of this cache folder into the cold run's "
+        "empty one: a cold run without the bases' construction (a lent machine's short time)",
+    )
     parser.add_argument("--child", type=Path, default=None, help=argparse.SUPPRESS)
     parser.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -229,6 +237,11 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as scratch:
         out = args.out or Path(scratch) / "out"
         cache = Path(scratch) / "cache"
+        if args.seed_cache is not None:
+            cache.mkdir()
+            for basis in sorted(args.seed_cache.glob("basis_*.npz")):
+                shutil.copy2(basis, cache / basis.name)
+                print(f"seeded the cache with {basis.name}", flush=True)
         fit = ["fit", "--sci", *map(str, sci), "--cal", *map(str, cal), "--out", str(out)]
         if args.wavelengths is not None:
             fit += ["--model", str(model_with_wavelengths(args.wavelengths, Path(scratch)))]

@@ -63,12 +63,15 @@ def main() -> None:
     settings = TrainSettings(steps=steps, n_batches=args.batches, init="shipped level-2 model")
     trainer = Trainer(data, settings, None, initial=initial)
     setup_s = time.perf_counter() - start
+    print(f"setup {setup_s:.1f} s on {jax.devices()[0].platform}", flush=True)
     epochs = []
     while trainer.step < steps:
         start = time.perf_counter()
         trainer.epoch()
         jax.block_until_ready(trainer.state)
         epochs.append(time.perf_counter() - start)
+        # Each epoch as it ends: a run cut short (a lent machine's time limit) still tells.
+        print(f"epoch {len(epochs)}: {epochs[-1]:.1f} s", flush=True)
 
     later = sorted(epochs[1:])
     median = later[len(later) // 2] if later else float("nan")

@@ -128,3 +128,18 @@ def test_the_trainer_measures_and_whitens_the_stripes(striped, tmp_path):
     off = Trainer(training, TrainSettings(steps=1, n_batches=1, stripes=False), config, cache)
     off.measure_stripes()
     assert off.stripes == {} and off.data.cal[0].stripes is None
+
+
+def test_progress_line_leaves_out_losses_without_data(capsys):
+    """A training without flat-field files has no flat loss (NaN): the progress line
+    says nothing of it rather than 'flat nan'; a validation loss is shown when there is one."""
+    from amigo.training.trainer import _Reporter
+
+    reporter = _Reporter(total=8, done=0, enabled=True)
+    reporter.update(4, 1, {"cal": 0.667, "flat": float("nan"), "val": 1.399})
+    reporter.update(8, 1, {"cal": 0.5, "flat": 0.25, "val": float("nan")})
+    lines = capsys.readouterr().err.splitlines()
+    assert lines == [
+        "train: step 4: stage 1 loss 0.667 val 1.399 (chi2/2 per value)",
+        "train: step 8: stage 1 loss 0.5 flat 0.25 (chi2/2 per value)",
+    ]

@@ -779,10 +779,11 @@ class _Reporter:
             self.task = self.progress.add_task("", total=total, completed=done)
 
     def update(self, step: int, stage: int, losses: dict[str, float]) -> None:
-        text = (
-            f"stage {stage} loss {losses['cal']:.4g} flat {losses['flat']:.4g} "
-            f"val {losses['val']:.4g} (chi2/2 per value)"
-        )
+        # A loss with no data behind it (no flat-field or validation files) is NaN: left
+        # out rather than printed as "flat nan".
+        parts = [f"stage {stage} loss {losses['cal']:.4g}"]
+        parts += [f"{k} {losses[k]:.4g}" for k in ("flat", "val") if np.isfinite(losses[k])]
+        text = " ".join(parts) + " (chi2/2 per value)"
         if self.progress is not None:
             self.progress.update(self.task, completed=step, description=text)
         elif self.enabled:
