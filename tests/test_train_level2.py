@@ -25,6 +25,7 @@ from amigo.errors import InputError
 from amigo.likelihood.slopes import PointSourceParams, SlopeData, point_source_slopes
 from amigo.model.base import BaseModel, BaseModelConfig, load_base_model, read_metadata
 from amigo.model.detector.pipeline_slope import MODEL_READ_NOISE_CDS_DN
+from amigo.model.optics import cast
 from jwst_files import write_level2
 from test_cli_train import _write, amigo_here, run_amigo
 from test_pipeline_slope import _stcal
@@ -437,3 +438,40 @@ def test_amigo_train_on_real_level2_calibrators(tmp_path, capsys):
     assert mixed.returncode == 2, mixed.stderr
     error = mixed.stderr.strip().splitlines()[-1]  # (after a note on memory maps, if any)
     assert "cannot be mixed" in error and "ramp_calslope.fits" in error, mixed.stderr
+
+
+def test_with_the_network_the_model_image_is_still_stcal_s_fit_of_the_model_ramp(bent_model):
+    """The same check with the charge-migration network on (issue 22 asks for both): the
+    network moves charge between pixels group by group, so the ramps bend in ways no
+    single non-linearity coefficient makes; the pipeline's estimator must still be
+    stcal's fit of whatever ramp the model produces."""
+    linear_base, data, source = bent_model
+    config = linear_base.config
+    base = BaseModel.create(config, key=jax.random.PRNGKey(3), network_init_scale=1.0)
+    base = eqx_set_nonlinearity(base, -2e-6)
+    assert not base.linear
+    with jax.enable_x64(True):  # the network's weights in the float64 of the comparison
+        base = cast(base, jnp.float64)
+    level2, differences, ramp = _model_image_and_ramp(base, data, source)
+    _, linear_differences, _ = _model_image_and_ramp(linear_base, data, source)
+    bright = differences.mean(axis=0) > 20.0
+    assert bright.sum() > 50
+    # The network does change the ramps, by far more than the agreement asked below.
+    change = np.abs(differences - linear_differences)[:, bright] / differences[:, bright]
+    assert change.max() > 1e-3
+    rate, _ = _stcal(
+        ramp[None],
+        np.zeros((1, *ramp.shape), bool),
+        tgroup=TGROUP,
+        tframe=TGROUP,
+        nframes=1,
+        groupgap=0,
+        read_noise=np.full((80, 80), MODEL_READ_NOISE_CDS_DN),
+        gain=np.full((80, 80), base.read.gain_e_per_dn),
+    )
+    np.testing.assert_allclose(level2[bright] / TGROUP, rate["slope"][bright], rtol=2e-5)
+    print(
+        f"network's largest change of a group difference {change.max():.2e}; model image "
+        f"against stcal: max relative difference "
+        f"{np.max(np.abs(level2[bright] / TGROUP / rate['slope'][bright] - 1)):.2e}"
+    )
