@@ -1,5 +1,6 @@
-"""Numerical failures are results, not crashes, and an interrupted fit resumes to the
-products of an uninterrupted one (issue 26, docs/reliability.md) (slow: real fits of two
+"""Numerical failures are results, not crashes, an interrupted fit resumes to the
+products of an uninterrupted one, and a fit that did not converge is written, flagged and
+named per exposure (issues 26 and 22, docs/reliability.md) (slow: real fits of two
 filters of small simulated level-2 images).
 
 One sequence of runs on the same inputs, each building on the last:
@@ -13,11 +14,14 @@ One sequence of runs on the same inputs, each building on the last:
 2. the same command again: F480M is kept (its products are complete and record the same
    inputs), F430M is fitted;
 3. a fit of the same exposures killed (SIGKILL) after its first filter and run again:
-   its products are byte for byte those of runs 1 and 2.
+   its products are byte for byte those of runs 1 and 2;
+4. one filter stopped after one solver iteration: written, flagged
+   (``CONVERGD = F``), each unconverged exposure named.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import signal
@@ -194,6 +198,36 @@ def test_failures_are_reported_per_filter_and_runs_resume(inputs, tmp_path, monk
     assert amigo_status(_args(inputs, resumed, flagged=False)) == 0
     assert "F430M: products up to date" in capsys.readouterr().err
     assert _products(resumed) == uninterrupted
+
+    # 4. a fit stopped before it converged (its Levenberg-Marquardt solver given one
+    # iteration): products written and flagged, and each exposure that did not converge
+    # named on the terminal and in fit_summary.json
+    from amigo.fitting.filter_fit import FitConfig
+
+    def one_iteration(fit, config=None, *args, **kwargs):
+        config = FitConfig() if config is None else config
+        newton = dataclasses.replace(config.newton, max_iterations=1)
+        return real(fit, dataclasses.replace(config, newton=newton), *args, **kwargs)
+
+    monkeypatch.setattr(FilterFit, "fit", one_iteration)
+    stopped = tmp_path / "stopped"
+    args = ["fit", "--sci", str(inputs["sci_F480M"]), "--cal", str(inputs["cal_F480M"])]
+    args += ["--out", str(stopped), "--model", str(inputs["model"])]
+    args += ["--knots", "27", "--knot-spacing", "0.5"]
+    assert amigo_status(args) == 0  # written: a flagged product is still a product
+    err = capsys.readouterr().err
+    summary = json.loads((stopped / "fit_summary.json").read_text())
+    assert summary["filters"]["F480M"]["status"] == "unconverged"
+    assert "the fit did not converge in F480M" in err
+    unconverged = [e for e in summary["exposures"] if not e["converged"]]
+    assert unconverged and all(e["status"] == "unconverged" for e in unconverged)
+    for e in unconverged:
+        named = f"F480M: {e['file']} ({e['role']}) did not converge (iterations: {e['iterations']}"
+        assert named in err
+    from astropy.io import fits
+
+    with fits.open(stopped / "STAR-sci_F480M_calvis.fits") as hdul:
+        assert hdul[0].header["CONVERGD"] is False
 
 
 def _text(path: Path) -> str:

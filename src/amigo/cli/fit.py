@@ -111,7 +111,8 @@ def model_options(command: FC) -> FC:
     "--max-iterations",
     type=int,
     default=None,
-    help="Upper bound on optimiser iterations per filter.",
+    help="Natural-gradient steps before the Levenberg-Marquardt finish (an optional first "
+    "stage; none by default).",
 )
 @click.option(
     "--polish",

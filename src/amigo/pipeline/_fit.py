@@ -276,7 +276,7 @@ def fit(
             filters_summary,
         )
     step(f"wrote {out / 'fit_summary.json'}")
-    _report(filters_summary)
+    _report(filters_summary, summary_exposures)
     return FitResult(
         out=out,
         summary=summary,
@@ -724,14 +724,24 @@ def _unfitted_record(
     }
 
 
-def _report(filters: dict[str, dict]) -> None:
-    """Warnings for the filters whose products are flagged or missing."""
+def _report(filters: dict[str, dict], exposures: list[dict]) -> None:
+    """Warnings for the filters whose products are flagged or missing, and one line for
+    each exposure whose fit did not converge (``exposures``: fit_summary.json's records)."""
+    for record in exposures:
+        if record.get("status") == "unconverged" and not record.get("converged"):
+            decrement = record.get("newton_decrement")
+            reached = "" if decrement is None else f", Newton decrement {decrement:.2g}"
+            warn(
+                f"{record['filter']}: {record['file']} ({record['role']}) did not converge "
+                f"(iterations: {record.get('iterations')}{reached})"
+            )
     unconverged = [name for name, f in filters.items() if f["status"] == "unconverged"]
     if unconverged:
         warn(
             f"the fit did not converge in {', '.join(unconverged)}; its products are "
             "written and flagged (CONVERGD = F in the calvis header, 'converged': false per "
-            "exposure in fit_summary.json): raise --max-iterations or check the residuals"
+            "exposure in fit_summary.json): check the residual images (plots/) before "
+            "using them"
         )
     failed = [name for name, f in filters.items() if f["status"] == "failed"]
     if failed:
