@@ -1,8 +1,9 @@
 """What dithered level-2 calibrator images can tell about the optics `amigo train` fits
-(prints a table; issue 22's recovery test was planned on this).
+(prints a table; docs/detector.md, "What dithered level-2 images identify").
 
     python benchmarks/train_identifiability.py [--dither 0.15] [--exposures 8]
         [--shape 40] [--pupil 64] [--wavelengths 3] [--flux 4e5] [--photons-per-dn 1000]
+        [--hold centres sizes defocus geometry]
 
 Builds a level-2 model (``BaseModel.create(...).for_level2()``, F430M, no network) with
 an aberrated truth, and the Fisher information of the parameters training updates as
@@ -11,7 +12,7 @@ centres and sizes, the detector's jitter and geometry, the intra-pixel response)
 ``--exposures`` point-source images at dither offsets of up to ``--dither`` arcsec, each
 pixel's variance ``4 + model / photons_per_dn`` (DN per group squared). For each Zernike
 mode it prints the standard error with every physical parameter free (what training
-can learn), with only the Zernikes free, and with everything else fixed; and how many
+can learn; ``--hold`` fixes some of them), with only the Zernikes free, and with everything else fixed; and how many
 of the Fisher matrix's eigenvalues (in its unit-free correlation form) are below 1e-6:
 directions the images barely see. Not a test: nothing is asserted.
 """
@@ -57,6 +58,14 @@ def main() -> None:
     parser.add_argument("--flux", type=float, default=4e5, help="electrons per group")
     parser.add_argument("--photons-per-dn", type=float, default=1000.0)
     parser.add_argument("--aberration", type=float, default=40.0, help="truth, nm rms")
+    parser.add_argument(
+        "--hold",
+        nargs="*",
+        default=[],
+        choices=["centres", "sizes", "defocus", "geometry"],
+        help="parameters held at the truth in the first column (hole centres, hole sizes, "
+        "the Fresnel defocus, the detector's rotation, anisotropy, skew and scale)",
+    )
     args = parser.parse_args()
 
     import equinox as eqx
@@ -113,8 +122,29 @@ def main() -> None:
         f, _ = fisher_matrix(base, source, data, cache, mask)
         fisher += np.asarray(f, np.float64)
 
-    pistons = zernikes[:, 0]
-    free = standard_errors(fisher, pistons)[zernikes].mean(axis=0)
+    held_leaves = {
+        "centres": [index.hole_centres_m],
+        "sizes": [index.hole_sizes_m],
+        "defocus": [index.defocus_nm["F430M"]],
+        "geometry": [
+            index.detector.rotation_deg,
+            index.detector.anisotropy,
+            index.detector.skew_deg,
+            index.detector.scale,
+        ],
+    }
+    held = {
+        where[int(i)]
+        for name in args.hold
+        for leaf in held_leaves[name]
+        for i in np.ravel(np.asarray(leaf))
+        if int(i) in where
+    }
+    kept = np.array([k for k in range(columns.size) if k not in held])
+    position = {k: j for j, k in enumerate(kept)}
+    reduced = fisher[np.ix_(kept, kept)]
+    errors = standard_errors(reduced, np.vectorize(position.get)(zernikes[:, 0]))
+    free = errors[np.vectorize(position.get)(zernikes)].mean(axis=0)
     block = zernikes.ravel()
     alone = standard_errors(
         fisher[np.ix_(block, block)], np.arange(0, block.size, zernikes.shape[1])
@@ -129,7 +159,10 @@ def main() -> None:
         f"in Noll 1-4 per hole; {columns.size} physical parameters; "
         f"{time.perf_counter() - start:.0f} s"
     )
-    print("| Noll mode | every physical parameter free | Zernikes alone free | all else fixed |")
+    first = "every physical parameter free"
+    if args.hold:
+        first = f"free but {', '.join(args.hold)}"
+    print(f"| Noll mode | {first} | Zernikes alone free | all else fixed |")
     print("|---|---|---|---|")
     for j in range(zernikes.shape[1]):
         print(f"| {j + 1} | {free[j]:.2f} nm | {alone[j]:.2f} nm | {fixed[j]:.3f} nm |")
