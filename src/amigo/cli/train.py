@@ -161,6 +161,24 @@ _FILES = click.Path(dir_okay=False, path_type=Path)
     help="Level-2 training: marginalise each image's 1/f column stripes (measured after "
     "the warm-up), as amigo fit does.",
 )
+@click.option(
+    "--drift-modes",
+    "drift_modes",
+    default=0,
+    show_default=True,
+    type=click.IntRange(min=0, max=66),
+    help="Each exposure's own small wavefront drift: per-hole Noll Zernikes 1..N (3: "
+    "piston, tip, tilt), learnt beside the static optics; 0: none (not yet measured on "
+    "real calibrators, docs/detector.md).",
+)
+@click.option(
+    "--drift-prior",
+    "drift_prior",
+    default=5.0,
+    show_default=True,
+    type=click.FloatRange(min=0, min_open=True),
+    help="Width (rms nm) of the Gaussian prior on each drift coefficient around zero.",
+)
 @click.option("--float64", "float64", is_flag=True, help="Train in float64 (default float32).")
 @click.option(
     "--provenance",
@@ -190,6 +208,8 @@ def command(
     sensitivity_prior: float,
     dark_prior: float | None,
     stripes: bool,
+    drift_modes: int,
+    drift_prior: float,
     float64: bool,
     provenance_file: Path | None,
 ) -> None:
@@ -232,6 +252,8 @@ def command(
             sensitivity_prior=sensitivity_prior,
             dark_prior=dark_prior,
             stripes=stripes,
+            drift_modes=drift_modes,
+            drift_prior=drift_prior,
             float64=float64,
             provenance=provenance,
         )

@@ -299,10 +299,40 @@ class PointSourceParams(eqx.Module):
         (2,) offset (x, y) in the optical frame from the centre of the field.
     flux_e
         Photo-electrons per integration (the whole ramp) entering the model.
+    drift_nm
+        ``None``, or (7, k): this exposure's wavefront drift, rms nm added to the model's
+        per-hole Noll Zernikes 1..k of its filter (the telescope's wavefront moves
+        between exposures; training learns the static part shared by all of them).
+    drift_prior_nm
+        Width of the Gaussian prior on each drift coefficient around zero ("small");
+        :meth:`prior_residuals` are its whitened residuals.
     """
 
     position_arcsec: Float[Array, " 2"]
     flux_e: Float[Array, ""]
+    drift_nm: Float[Array, "7 k"] | None = None
+    drift_prior_nm: float = eqx.field(static=True, default=0.0)
+
+    def with_drift(self, modes: int, prior_nm: float) -> PointSourceParams:
+        """The same source with a zero drift of the first ``modes`` Zernikes per hole
+        under a prior of ``prior_nm`` (``modes`` 0: none)."""
+        if modes <= 0:
+            return PointSourceParams(self.position_arcsec, self.flux_e)
+        if prior_nm <= 0:
+            raise ValueError("a wavefront drift needs a prior width > 0 nm")
+        drift = jnp.zeros((niriss.N_HOLES, modes), self.flux_e.dtype)
+        return PointSourceParams(self.position_arcsec, self.flux_e, drift, float(prior_nm))
+
+    def prior_residuals(self) -> Array:
+        """Whitened residuals of the drift's prior, (7 k,) (empty without a drift): their
+        squares' half sum is the prior's term of the loss."""
+        if self.drift_nm is None:
+            return jnp.zeros((0,), self.flux_e.dtype)
+        return (self.drift_nm / self.drift_prior_nm).ravel()
+
+    def n_free(self) -> int:
+        """The parameters a fit of this exposure spends: position (2), flux, drift."""
+        return 3 + (0 if self.drift_nm is None else int(self.drift_nm.size))
 
 
 class FlatParams(eqx.Module):
@@ -324,6 +354,10 @@ def point_source_slopes(
 ) -> Array:
     """Model slopes of a point source for the exposure ``data`` (its filter and groups);
     for a level-2 image, (1, ny, nx): the pipeline's slope of the model ramp."""
+    if params.drift_nm is not None:
+        modes = params.drift_nm.shape[1]
+        zernikes = base.zernikes_nm[data.filter].at[:, :modes].add(params.drift_nm)
+        base = eqx.tree_at(lambda m: m.zernikes_nm[data.filter], base, zernikes)
     unit = base.illuminance(data.filter, params.position_arcsec, cache)
     slopes = predict_slopes(base, params.flux_e * unit, data.ngroups)
     if data.level2:

@@ -60,6 +60,8 @@ def train(
     sensitivity_prior: float = 0.01,
     dark_prior: float | None = None,
     stripes: bool = True,
+    drift_modes: int = 0,
+    drift_prior: float = 5.0,
     float64: bool = False,
     provenance: dict[str, Any] | None = None,
 ) -> TrainResult:
@@ -126,6 +128,8 @@ def train(
             init=None if init_path is None else str(init_path),
             sensitivity_prior=sensitivity_prior,
             stripes=stripes,
+            drift_modes=drift_modes,
+            drift_prior_nm=drift_prior,
             **({} if dark_prior is None else {"dark_prior_dn": dark_prior}),
         )
         model, metadata = train_model(

@@ -51,6 +51,12 @@ class TrainSettings:
     ``stripes``: level-2 training: marginalise each image's 1/f column stripes, measured
     after the warm-up and again when the network comes on after the network-off stage
     (:meth:`~amigo.training.trainer.Trainer.measure_stripes`).
+
+    ``drift_modes``, ``drift_prior_nm``: each calibration and validation exposure's own
+    small wavefront drift, the per-hole Noll Zernikes 1..``drift_modes`` (0: none) under
+    a Gaussian prior of ``drift_prior_nm`` around zero
+    (:class:`~amigo.likelihood.slopes.PointSourceParams`): the static optics learn what
+    the exposures share, not one exposure's wavefront of the moment.
     """
 
     steps: int = 200
@@ -70,6 +76,8 @@ class TrainSettings:
     sensitivity_prior: float = 0.01
     dark_prior_dn: float = DEFAULT_PRIOR_DN
     stripes: bool = True
+    drift_modes: int = 0
+    drift_prior_nm: float = 5.0
 
     def stages(self) -> list[int]:
         if self.init is not None:

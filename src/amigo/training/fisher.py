@@ -45,14 +45,23 @@ def per_layout(function):
     return call
 
 
+def _prior_residuals(params: Any) -> Any:
+    """The whitened residuals of an exposure's priors (a point source's wavefront drift;
+    none otherwise): part of its loss and of its Fisher matrix alike."""
+    if isinstance(params, PointSourceParams):
+        return params.prior_residuals()
+    return jnp.zeros((0,))
+
+
 @per_layout
 def loss_and_grad(base: BaseModel, params: Any, data: SlopeData, cache: PupilCache):
-    """``(chi2 / 2, (d/dbase, d/dparams))`` of one exposure (compiled once per filter and
-    number of groups)."""
+    """``(chi2 / 2, (d/dbase, d/dparams))`` of one exposure, the drift's prior included
+    (compiled once per filter and number of groups)."""
 
     def loss(bp):
         b, p = bp
-        return 0.5 * jnp.sum(whitened_residuals(model_slopes(b, cache, p, data), data) ** 2)
+        chi2 = jnp.sum(whitened_residuals(model_slopes(b, cache, p, data), data) ** 2)
+        return 0.5 * (chi2 + jnp.sum(_prior_residuals(p) ** 2))
 
     return eqx.filter_value_and_grad(loss)((base, params))
 
@@ -70,7 +79,8 @@ def _fisher(base: BaseModel, params: Any, data: SlopeData, cache: PupilCache, ma
 
     def residuals(v):
         b, p = eqx.combine(unravel(v), static)
-        return whitened_residuals(model_slopes(b, cache, p, data), data).ravel()
+        pixels = whitened_residuals(model_slopes(b, cache, p, data), data).ravel()
+        return jnp.concatenate([pixels, _prior_residuals(p).astype(pixels.dtype)])
 
     jac = jax.jacfwd(residuals)(vector)  # (n_values, n_params)
     return jac.T @ jac
@@ -93,6 +103,17 @@ def fisher_matrix(
     matrix = np.asarray(_fisher(linear, params, data, cache, mask), dtype=np.float64)
     n_base = ravel_pytree(split(base, mask))[0].size
     return matrix[:n_base, :n_base], np.diagonal(matrix)[n_base:]
+
+
+def exposure_fisher_block(
+    base: BaseModel, params: Any, data: SlopeData, cache: PupilCache
+) -> np.ndarray:
+    """The whole Fisher matrix of one exposure's own parameters (its priors included),
+    in the order of ``ravel_pytree(params)``, with the instrument fixed (float64)."""
+    nothing = jax.tree.map(lambda _: False, base.with_linear_detector())
+    return np.asarray(
+        _fisher(base.with_linear_detector(), params, data, cache, nothing), dtype=np.float64
+    )
 
 
 def fisher_diagonal(

@@ -87,6 +87,7 @@ from amigo._version import __version__, source_commit
 from amigo.errors import InputError
 from amigo.likelihood.slopes import (
     FitStatistics,
+    PointSourceParams,
     SlopeData,
     fit_statistics,
     initial_flat,
@@ -120,6 +121,7 @@ from amigo.training.exposure import FIT_ITERATIONS, solve_dark_residual
 from amigo.training.fisher import (
     compiled_model,
     dark_fisher,
+    exposure_fisher_block,
     fisher_diagonal,
     fisher_matrix,
     loss_and_grad,
@@ -208,9 +210,14 @@ class Trainer:
 
     def _initial_state(self, base: BaseModel) -> TrainState:
         s = self.settings
-        cal = tuple(initial_point_source(base, d) for d in self.data.cal)
+
+        # Each exposure's position, flux and (drift_modes > 0) a small wavefront drift.
+        def source(d: SlopeData) -> PointSourceParams:
+            return initial_point_source(base, d).with_drift(s.drift_modes, s.drift_prior_nm)
+
+        cal = tuple(source(d) for d in self.data.cal)
         flats = tuple(initial_flat(base, d) for d in self.data.flats)
-        val = tuple(initial_point_source(base, d) for d in self.data.val)
+        val = tuple(source(d) for d in self.data.val)
         network = self._fresh_network(base, 1) if base.linear else base.ramp.network
         return TrainState(
             base=base,
@@ -262,6 +269,10 @@ class Trainer:
                 fisher = fisher_diagonal(base, p, d, cache, nothing)[1]
                 for _ in range(iterations):
                     _, (_, grad) = loss_and_grad(base, p, d, cache)
+                    if isinstance(p, PointSourceParams) and p.drift_nm is not None:
+                        # Position and flux only: a drift's diagonal Newton step ignores
+                        # how each hole's tilt trades with the position.
+                        grad = eqx.tree_at(lambda q: q.drift_nm, grad, 0 * grad.drift_nm)
                     p = jax.tree.map(lambda x, g, f: x - g / jnp.maximum(f, 1e-30), p, grad, fisher)
                 params[i] = p
                 fishers.append(fisher)
@@ -394,6 +405,10 @@ class Trainer:
         for q, d in zip(state.cal_params, self.data.cal, strict=True):
             dark = jax.tree.map(jnp.add, dark, dark_fisher(base, q, d, cache))
         dark = jax.tree.map(lambda f: jnp.where(f > 0, f, jnp.inf), dark)
+        self._drift_steps = {
+            "cal": self._block_inverses(state.cal_params, self.data.cal),
+            "val": self._block_inverses(state.val_params, self.data.val),
+        }
         self.fisher = {
             "physical": jnp.asarray(inverse, vector.dtype),
             "pixel": pixel,
@@ -402,6 +417,57 @@ class Trainer:
             "val": tuple(val_fisher),
             "flat": tuple(flat_fisher),
         }
+
+    def _block_inverses(self, params: Sequence[Any], datasets: Sequence[SlopeData]) -> list[Any]:
+        """For each exposure with a wavefront drift, the inverse of its own parameters'
+        damped Fisher block (``None`` for the others): its drift trades with its position,
+        which a diagonal step would ignore."""
+        out: list[Any] = []
+        for p, d in zip(params, datasets, strict=True):
+            if not (isinstance(p, PointSourceParams) and p.drift_nm is not None):
+                out.append(None)
+                continue
+            block = exposure_fisher_block(self.state.base, p, d, self.cache)
+            damped = block + self.settings.damping * np.diag(np.diag(block))
+            out.append(np.linalg.pinv(damped, hermitian=True))
+        return out
+
+    def _drift_step(
+        self,
+        kind: str,
+        params: tuple[Any, ...],
+        moved: tuple[Any, ...],
+        grads: Sequence[Any],
+        which: Any,
+    ) -> tuple[Any, ...]:
+        """``moved`` (the diagonal steps from ``params``) with the exposures ``which``
+        that have a drift stepped instead from ``params`` on their whole block
+        (:meth:`_block_inverses`), within a trust region: 1 nm of drift, 2 mas of
+        position, 2 % of flux per step."""
+        if not hasattr(self, "_drift_steps"):
+            self._drift_steps = {
+                "cal": self._block_inverses(self.state.cal_params, self.data.cal),
+                "val": self._block_inverses(self.state.val_params, self.data.val),
+            }
+        inverses = self._drift_steps[kind]
+        out = list(moved)
+        for i in which:
+            if inverses[i] is None:
+                continue
+            vector, unravel = ravel_pytree(params[i])
+            step = self.settings.exposure_lr * (inverses[i] @ np.asarray(ravel_pytree(grads[i])[0]))
+            p = params[i]
+            limit = ravel_pytree(
+                PointSourceParams(
+                    jnp.full_like(p.position_arcsec, 2e-3),
+                    0.02 * jnp.abs(p.flux_e),
+                    jnp.ones_like(p.drift_nm),
+                    p.drift_prior_nm,
+                )
+            )[0]
+            shrink = min(1.0, float(np.min(np.asarray(limit) / np.maximum(np.abs(step), 1e-30))))
+            out[i] = unravel(vector - jnp.asarray(shrink * step, vector.dtype))
+        return tuple(out)
 
     def _fisher_skeleton(self) -> dict[str, Any]:
         """Arrays shaped like :meth:`compute_fisher`'s (to read a checkpoint into)."""
@@ -457,6 +523,7 @@ class Trainer:
             state.cal_params, tuple(grads), self._precision()["cal"]
         )
         inside = set(batch)
+        moved = self._drift_step("cal", state.cal_params, tuple(moved), grads, batch)
         cal_params = tuple(moved[i] if i in inside else state.cal_params[i] for i in range(n_cal))
         velocity = tuple(
             moved_opt.velocity[i] if i in inside else state.cal_opt.velocity[i]
@@ -501,12 +568,37 @@ class Trainer:
         base = eqx.tree_at(
             lambda m: m.detector.jitter_arcsec, base, jnp.abs(base.detector.jitter_arcsec)
         )
+        base, cal_params = self._drifts_to_static(base, cal_params)
         self.state = eqx.tree_at(
             lambda s: (s.base, s.cal_params, s.cal_opt, s.physical_opt, s.dark_opt, s.adam_state),
             state,
             (base, cal_params, cal_opt, physical_opt, dark_opt, adam_state),
         )
         return loss / max(values, 1)
+
+    def _drifts_to_static(
+        self, base: BaseModel, cal_params: tuple[Any, ...]
+    ) -> tuple[BaseModel, tuple[Any, ...]]:
+        """Move the calibrators' mean wavefront drift of each filter into its static
+        Zernikes. Every image stays the same (static + drift is unchanged for each
+        exposure), and what the exposures share becomes the optics: an exposure's own
+        drift, with its fast per-exposure steps, would otherwise keep the static error
+        that the static optics' slower, trust-region-limited steps should learn."""
+        filters: dict[str, list[int]] = {}
+        for i, (p, d) in enumerate(zip(cal_params, self.data.cal, strict=True)):
+            if isinstance(p, PointSourceParams) and p.drift_nm is not None:
+                filters.setdefault(d.filter, []).append(i)
+        params = list(cal_params)
+        static = dict(base.zernikes_nm)
+        for filter_name, members in filters.items():
+            mean = jnp.mean(jnp.stack([params[i].drift_nm for i in members]), axis=0)
+            modes = mean.shape[1]
+            static[filter_name] = static[filter_name].at[:, :modes].add(mean)
+            for i in members:
+                params[i] = eqx.tree_at(lambda q: q.drift_nm, params[i], params[i].drift_nm - mean)
+        if filters:
+            base = eqx.tree_at(lambda m: m.zernikes_nm, base, static)
+        return base, tuple(params)
 
     def _sensitivity_prior(self, base: BaseModel, grad: BaseModel, fisher: BaseModel):
         """Add the Gaussian prior ``(s - 1)^2 / (2 sigma^2)`` on each pixel's residual
@@ -582,6 +674,9 @@ class Trainer:
             grads.append(gp)
         val_params, val_opt = state.val_opt.update(
             state.val_params, tuple(grads), self._precision()["val"]
+        )
+        val_params = self._drift_step(
+            "val", state.val_params, tuple(val_params), grads, range(len(grads))
         )
         self.state = eqx.tree_at(lambda s: (s.val_params, s.val_opt), state, (val_params, val_opt))
         return loss / max(values, 1)
@@ -696,13 +791,14 @@ class Trainer:
         with the current source parameters."""
         base = self.result() if base is None else base
         out = []
-        sets = (
-            (self.data.cal, self.state.cal_params, 3),
-            (self.data.flats, self.state.flat_params, 1),
-            (self.data.val, self.state.val_params, 3),
-        )
-        for datasets, params, n_free in sets:
+        state = self.state
+        for datasets, params in (
+            (self.data.cal, state.cal_params),
+            (self.data.flats, state.flat_params),
+            (self.data.val, state.val_params),
+        ):
             for p, d in zip(params, datasets, strict=True):
+                n_free = p.n_free() if isinstance(p, PointSourceParams) else 1
                 out.append(fit_statistics(compiled_model(base, p, d, self.cache), d, n_free))
         return out
 
