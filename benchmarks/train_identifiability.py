@@ -25,13 +25,15 @@ import time
 import numpy as np
 
 
-def standard_errors(fisher: np.ndarray, pistons: np.ndarray, rtol: float = 1e-10) -> np.ndarray:
+def standard_errors(fisher: np.ndarray, pistons: np.ndarray, rtol: float = 1e-6) -> np.ndarray:
     """Marginal standard errors from a Fisher matrix, ``inf`` for a parameter with any
     part in a direction the data do not see. The mean of the ``pistons`` (indices) is
     pinned first: the model removes it, so it is an exact null direction, and the
-    pistons' errors are then those relative to their mean. The matrix is inverted in its
+    pistons' errors are then about those relative to their mean (the pin adds
+    ``1 / (n mean diag)`` to each piston's variance, a few per cent). The matrix is inverted in its
     correlation form (unit-free: hole centres in metres beside Zernikes in nm), keeping
-    eigenvalues above ``rtol`` of the largest; a plain pseudo-inverse would instead
+    eigenvalues above ``rtol`` of the largest (the Fisher matrix is float32 arithmetic: below
+    ~1e-6 an eigenvalue is round-off); a plain pseudo-inverse would instead
     invert round-off (a tiny negative eigenvalue gives a negative variance) or drop an
     unseen direction's variance (zero instead of unbounded)."""
     matrix = fisher.copy()
@@ -55,7 +57,7 @@ def main() -> None:
     parser.add_argument("--shape", type=int, default=40, help="image side (pixels)")
     parser.add_argument("--pupil", type=int, default=64, help="pupil grid (pixels)")
     parser.add_argument("--wavelengths", type=int, default=3)
-    parser.add_argument("--flux", type=float, default=4e5, help="electrons per group")
+    parser.add_argument("--flux", type=float, default=4e5, help="electrons per integration")
     parser.add_argument("--photons-per-dn", type=float, default=1000.0)
     parser.add_argument("--aberration", type=float, default=40.0, help="truth, nm rms")
     parser.add_argument(
@@ -98,7 +100,7 @@ def main() -> None:
     blank = np.ones((n, n))
     mask = physical_mask(base, "F430M")
     vector, unravel = ravel_pytree(split(base, physical_mask(base)))
-    index = unravel(jnp.arange(vector.size, dtype=jnp.float32))
+    index = unravel(jnp.arange(vector.size, dtype=vector.dtype))
     columns = np.asarray(ravel_pytree(eqx.filter(index, mask))[0]).astype(int)
     where = {c: k for k, c in enumerate(columns)}
     zernikes = np.vectorize(where.get)(np.asarray(index.zernikes_nm["F430M"]).astype(int))

@@ -413,6 +413,11 @@ def test_amigo_train_on_real_level2_calibrators(tmp_path, capsys):
     assert [s["name"] for s in record["stripes"]] == names
     assert record["stripes"][0]["tau_dn_s"] >= 0 and record["settings"]["stripes"]
     assert record["settings"]["drift_modes"] == 3 and record["settings"]["drift_prior_nm"] == 5
+    # A drift of more Zernikes than the model has is refused in one line, before training.
+    more = ["train", "--cal", *cal, "--out", str(tmp_path / "x.npz"), "--drift-modes", "12"]
+    status, _, stderr = amigo_here(capsys, *more)
+    assert status == 2 and "--drift-modes: 12: the model has 10 Zernikes per hole" in stderr
+    assert not (tmp_path / "x.npz").exists()
     print("stripes", record["stripes"], record["statistics"])
     # The dark residual: solved after the steps, behind the file's dark reference, for
     # its 9 group reads (docs/detector.md); --steps 0 solves it afresh, nothing else.
@@ -500,8 +505,8 @@ def test_training_on_dithered_level2_images_recovers_the_wavefront_and_pixel_res
     """Issue 22's unit check: level-2 calibrators simulated through a model with a known
     wavefront (Noll 1-6 on every hole, 38 nm rms over the holes), a known residual
     sensitivity (1 % per pixel, the prior's width) and each exposure's own piston drift
-    (4 nm rms per hole), 8 dithered images at a bright star's photon noise; training from
-    the nominal model recovers all three.
+    (4 nm rms per hole), 8 dithered images at a bright star's photon noise (4e6
+    electrons per integration); training from the nominal model recovers all three.
 
     Compared is the wavefront over the holes, not the Zernike coefficients one by one:
     with the pupil's defocus method the Fresnel defocus is a quadratic over the pupil,
@@ -595,7 +600,7 @@ def test_training_on_dithered_level2_images_recovers_the_wavefront_and_pixel_res
     )
     assert rms(wavefront) > 30.0 and rms(before) > 0.9 * rms(wavefront)
     assert rms(after) < 0.25 * rms(wavefront)  # measured: 0.13 (0.16 without drifts)
-    assert correlation > 0.7  # measured: 0.84
+    assert correlation > 0.7  # measured: 0.83
     assert np.std(learnt - sensitivity[bright]) < 0.7 * np.std(sensitivity[bright])  # 0.55
     assert losses["cal"] < 0.6 and losses["val"] < 0.6  # at the noise: 0.5 per value
     # Each calibrator's drift, learnt beside the static optics (per-hole piston, tip and
@@ -608,5 +613,5 @@ def test_training_on_dithered_level2_images_recovers_the_wavefront_and_pixel_res
         f"piston drifts: correlation {drift_correlation:.3f}, error "
         f"{rms(learnt_drift - true_drift):.2f} nm (truth {rms(true_drift):.2f} nm)"
     )
-    assert drift_correlation > 0.5  # measured: 0.69 (30 steps, 1 nm per step at most)
+    assert drift_correlation > 0.5  # measured: 0.70 (30 steps, 1 nm per step at most)
     assert rms(learnt_drift - true_drift) < 0.85 * rms(true_drift)  # measured: 0.72

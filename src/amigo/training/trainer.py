@@ -183,6 +183,11 @@ class Trainer:
         if missing:
             raise InputError(where, f"the model configuration has no optics for {missing}")
         base = BaseModel.create(config, linear=True) if initial is None else initial
+        if settings.drift_modes > base.config.n_zernike:
+            raise InputError(
+                "--drift-modes",
+                f"{settings.drift_modes}: the model has {base.config.n_zernike} Zernikes per hole",
+            )
         data.check()
         if data.level2:
             base = base.for_level2()  # the model behind the pipeline
@@ -405,11 +410,10 @@ class Trainer:
         for q, d in zip(state.cal_params, self.data.cal, strict=True):
             dark = jax.tree.map(jnp.add, dark, dark_fisher(base, q, d, cache))
         dark = jax.tree.map(lambda f: jnp.where(f > 0, f, jnp.inf), dark)
-        self._drift_steps = {
-            "cal": self._block_inverses(state.cal_params, self.data.cal),
-            "val": self._block_inverses(state.val_params, self.data.val),
-        }
         self.fisher = {
+            # Each drifting exposure's block (checkpointed: a resumed run steps the same).
+            "drift_cal": self._block_inverses(state.cal_params, self.data.cal),
+            "drift_val": self._block_inverses(state.val_params, self.data.val),
             "physical": jnp.asarray(inverse, vector.dtype),
             "pixel": pixel,
             "dark": dark,
@@ -418,19 +422,27 @@ class Trainer:
             "flat": tuple(flat_fisher),
         }
 
-    def _block_inverses(self, params: Sequence[Any], datasets: Sequence[SlopeData]) -> list[Any]:
+    def _block_inverses(
+        self, params: Sequence[Any], datasets: Sequence[SlopeData]
+    ) -> tuple[jax.Array, ...]:
         """For each exposure with a wavefront drift, the inverse of its own parameters'
-        damped Fisher block (``None`` for the others): its drift trades with its position,
-        which a diagonal step would ignore."""
-        out: list[Any] = []
+        damped Fisher block, as ``(n + 1, n)``: the inverse of its correlation form, then
+        the scales ``sqrt(diag)`` (the inverse is ``C / outer(scale, scale)``; ``(1, 0)``
+        for the others). Its drift trades with its position, which a diagonal step would
+        ignore. The block's diagonal spans ~24 decades (position in arcsec, flux in
+        electrons): a plain pseudo-inverse would drop the flux's direction as round-off,
+        and the unit-free form keeps its precision in float32."""
+        out: list[jax.Array] = []
         for p, d in zip(params, datasets, strict=True):
             if not (isinstance(p, PointSourceParams) and p.drift_nm is not None):
-                out.append(None)
+                out.append(jnp.zeros((1, 0)))
                 continue
             block = exposure_fisher_block(self.state.base, p, d, self.cache)
             damped = block + self.settings.damping * np.diag(np.diag(block))
-            out.append(np.linalg.pinv(damped, hermitian=True))
-        return out
+            scale = np.sqrt(np.diag(damped))  # > 0: the drift's prior is in the block
+            inverse = np.linalg.inv(damped / np.outer(scale, scale))
+            out.append(jnp.asarray(np.vstack([inverse, scale]), p.flux_e.dtype))
+        return tuple(out)
 
     def _drift_step(
         self,
@@ -444,18 +456,16 @@ class Trainer:
         that have a drift stepped instead from ``params`` on their whole block
         (:meth:`_block_inverses`), within a trust region: 1 nm of drift, 2 mas of
         position, 2 % of flux per step."""
-        if not hasattr(self, "_drift_steps"):
-            self._drift_steps = {
-                "cal": self._block_inverses(self.state.cal_params, self.data.cal),
-                "val": self._block_inverses(self.state.val_params, self.data.val),
-            }
-        inverses = self._drift_steps[kind]
+        inverses = self._precision()[f"drift_{kind}"]
         out = list(moved)
         for i in which:
-            if inverses[i] is None:
+            if inverses[i].shape[1] == 0:
                 continue
             vector, unravel = ravel_pytree(params[i])
-            step = self.settings.exposure_lr * (inverses[i] @ np.asarray(ravel_pytree(grads[i])[0]))
+            stored = np.asarray(inverses[i], np.float64)
+            inverse, scale = stored[:-1], stored[-1]
+            gradient = np.asarray(ravel_pytree(grads[i])[0], np.float64)
+            step = self.settings.exposure_lr * (inverse @ (gradient / scale)) / scale
             p = params[i]
             limit = ravel_pytree(
                 PointSourceParams(
@@ -484,6 +494,8 @@ class Trainer:
             "cal": zeros(state.cal_params),
             "val": zeros(state.val_params),
             "flat": zeros(state.flat_params),
+            "drift_cal": _block_skeleton(state.cal_params),
+            "drift_val": _block_skeleton(state.val_params),
         }
 
     # -------------------------------------------------------------- steps
@@ -580,8 +592,8 @@ class Trainer:
         self, base: BaseModel, cal_params: tuple[Any, ...]
     ) -> tuple[BaseModel, tuple[Any, ...]]:
         """Move the calibrators' mean wavefront drift of each filter into its static
-        Zernikes. Every image stays the same (static + drift is unchanged for each
-        exposure), and what the exposures share becomes the optics: an exposure's own
+        Zernikes. Every calibration image stays the same (static + drift is unchanged for
+        each of them; a validation exposure's drift is its own and stays), and what the exposures share becomes the optics: an exposure's own
         drift, with its fast per-exposure steps, would otherwise keep the static error
         that the static optics' slower, trust-region-limited steps should learn."""
         filters: dict[str, list[int]] = {}
@@ -848,6 +860,18 @@ class Trainer:
         self.rng.bit_generator.state = record["rng"]
         self.stripes = record.get("stripes", {})
         self._apply_stripes()
+
+
+def _block_skeleton(params: Sequence[Any]) -> tuple[jax.Array, ...]:
+    """Zeros shaped like :meth:`Trainer._block_inverses` of ``params``."""
+    out = []
+    for p in params:
+        if getattr(p, "drift_nm", None) is None:
+            out.append(jnp.zeros((1, 0)))
+            continue
+        n = ravel_pytree(p)[0].size
+        out.append(jnp.zeros((n + 1, n), p.flux_e.dtype))
+    return tuple(out)
 
 
 def _tuples_to_lists(value: Any) -> Any:
