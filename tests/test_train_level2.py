@@ -109,11 +109,9 @@ def _model_image_and_ramp(base, data, source):
     return level2, differences, ramp
 
 
-def test_the_model_image_is_stcal_s_fit_of_the_model_ramp(bent_model):
-    base, data, source = bent_model
-    level2, differences, ramp = _model_image_and_ramp(base, data, source)
-    assert differences.shape == (7, 80, 80)
-    gain = base.read.gain_e_per_dn
+def _stcal_slope(ramp: np.ndarray, gain: float) -> dict:
+    """stcal's ramp fit of one integration's model ramp ((groups, 80, 80) DN, no flags),
+    at the model's read noise and gain."""
     rate, _ = _stcal(
         ramp[None],
         np.zeros((1, *ramp.shape), bool),
@@ -124,6 +122,14 @@ def test_the_model_image_is_stcal_s_fit_of_the_model_ramp(bent_model):
         read_noise=np.full((80, 80), MODEL_READ_NOISE_CDS_DN),
         gain=np.full((80, 80), gain),
     )
+    return rate
+
+
+def test_the_model_image_is_stcal_s_fit_of_the_model_ramp(bent_model):
+    base, data, source = bent_model
+    level2, differences, ramp = _model_image_and_ramp(base, data, source)
+    assert differences.shape == (7, 80, 80)
+    rate = _stcal_slope(ramp, base.read.gain_e_per_dn)
     bright = differences.mean(axis=0) > 20.0
     assert bright.sum() > 50
     np.testing.assert_allclose(level2[bright] / TGROUP, rate["slope"][bright], rtol=2e-5)
@@ -467,16 +473,7 @@ def test_with_the_network_the_model_image_is_still_stcal_s_fit_of_the_model_ramp
     # The network does change the ramps, by far more than the agreement asked below.
     change = np.abs(differences - linear_differences)[:, bright] / differences[:, bright]
     assert change.max() > 1e-3
-    rate, _ = _stcal(
-        ramp[None],
-        np.zeros((1, *ramp.shape), bool),
-        tgroup=TGROUP,
-        tframe=TGROUP,
-        nframes=1,
-        groupgap=0,
-        read_noise=np.full((80, 80), MODEL_READ_NOISE_CDS_DN),
-        gain=np.full((80, 80), base.read.gain_e_per_dn),
-    )
+    rate = _stcal_slope(ramp, base.read.gain_e_per_dn)
     np.testing.assert_allclose(level2[bright] / TGROUP, rate["slope"][bright], rtol=2e-5)
     print(
         f"network's largest change of a group difference {change.max():.2e}; model image "
