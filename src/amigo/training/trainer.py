@@ -593,9 +593,10 @@ class Trainer:
     ) -> tuple[BaseModel, tuple[Any, ...]]:
         """Move the calibrators' mean wavefront drift of each filter into its static
         Zernikes. Every calibration image stays the same (static + drift is unchanged for
-        each of them; a validation exposure's drift is its own and stays), and what the exposures share becomes the optics: an exposure's own
-        drift, with its fast per-exposure steps, would otherwise keep the static error
-        that the static optics' slower, trust-region-limited steps should learn."""
+        each of them; a validation exposure's drift is its own and stays), and what the
+        exposures share becomes the optics: an exposure's own drift, with its fast
+        per-exposure steps, would otherwise keep the static error that the static
+        optics' slower, trust-region-limited steps should learn."""
         filters: dict[str, list[int]] = {}
         for i, (p, d) in enumerate(zip(cal_params, self.data.cal, strict=True)):
             if isinstance(p, PointSourceParams) and p.drift_nm is not None:
