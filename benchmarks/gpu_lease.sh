@@ -30,6 +30,13 @@
 set -u
 DATA=${1:?usage: gpu_lease.sh DATA_DIR [batches|profile]}
 PLAN=${2:-batches}
+case $PLAN in
+batches | profile) ;;
+*)
+    echo "gpu_lease.sh: unknown plan '$PLAN' (batches or profile)" >&2
+    exit 2
+    ;;
+esac
 OUT=${OUT:-$(mktemp -d)}
 PY=${PY:-python3}
 LOG=$OUT/lease.log
