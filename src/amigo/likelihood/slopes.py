@@ -340,6 +340,14 @@ class FlatParams(eqx.Module):
 
     level_e: Float[Array, ""]
 
+    def prior_residuals(self) -> Array:
+        """No prior (as :meth:`PointSourceParams.prior_residuals` without a drift)."""
+        return jnp.zeros((0,), self.level_e.dtype)
+
+    def n_free(self) -> int:
+        """The parameters a fit of this exposure spends: its level."""
+        return 1
+
 
 def predict_slopes(
     base: BaseModel, illuminance_e: Float[Array, "m m"], ngroups: int

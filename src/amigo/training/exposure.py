@@ -138,5 +138,4 @@ def fit_exposure(
             fisher = fisher_diagonal(base, params, data, cache, nothing)[1]
         _, (_, grad) = loss_and_grad(base, params, data, cache)
         params = jax.tree.map(lambda x, g, f: x - g / jnp.maximum(f, 1e-30), params, grad, fisher)
-    n_free = params.n_free() if isinstance(params, PointSourceParams) else 1
-    return params, fit_statistics(compiled_model(base, params, data, cache), data, n_free)
+    return params, fit_statistics(compiled_model(base, params, data, cache), data, params.n_free())

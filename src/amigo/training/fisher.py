@@ -27,7 +27,7 @@ from amigo.model.base import (
     BaseModel,
     PupilCache,
 )
-from amigo.training.groups import calibrator_pixels, dark_mask, pixel_mask, split
+from amigo.training.groups import calibrator_pixels, dark_mask, false_like, pixel_mask, split
 
 
 def per_layout(function):
@@ -45,14 +45,6 @@ def per_layout(function):
     return call
 
 
-def _prior_residuals(params: Any) -> Any:
-    """The whitened residuals of an exposure's priors (a point source's wavefront drift;
-    none otherwise): part of its loss and of its Fisher matrix alike."""
-    if isinstance(params, PointSourceParams):
-        return params.prior_residuals()
-    return jnp.zeros((0,))
-
-
 @per_layout
 def loss_and_grad(base: BaseModel, params: Any, data: SlopeData, cache: PupilCache):
     """``(chi2 / 2, (d/dbase, d/dparams))`` of one exposure, the drift's prior included
@@ -61,7 +53,8 @@ def loss_and_grad(base: BaseModel, params: Any, data: SlopeData, cache: PupilCac
     def loss(bp):
         b, p = bp
         chi2 = jnp.sum(whitened_residuals(model_slopes(b, cache, p, data), data) ** 2)
-        return 0.5 * (chi2 + jnp.sum(_prior_residuals(p) ** 2))
+        # The exposure's priors (a point source's drift): in its Fisher matrix too.
+        return 0.5 * (chi2 + jnp.sum(p.prior_residuals() ** 2))
 
     return eqx.filter_value_and_grad(loss)((base, params))
 
@@ -80,7 +73,7 @@ def _fisher(base: BaseModel, params: Any, data: SlopeData, cache: PupilCache, ma
     def residuals(v):
         b, p = eqx.combine(unravel(v), static)
         pixels = whitened_residuals(model_slopes(b, cache, p, data), data).ravel()
-        return jnp.concatenate([pixels, _prior_residuals(p).astype(pixels.dtype)])
+        return jnp.concatenate([pixels, p.prior_residuals().astype(pixels.dtype)])
 
     jac = jax.jacfwd(residuals)(vector)  # (n_values, n_params)
     return jac.T @ jac
@@ -110,10 +103,8 @@ def exposure_fisher_block(
 ) -> np.ndarray:
     """The whole Fisher matrix of one exposure's own parameters (its priors included),
     in the order of ``ravel_pytree(params)``, with the instrument fixed (float64)."""
-    nothing = jax.tree.map(lambda _: False, base.with_linear_detector())
-    return np.asarray(
-        _fisher(base.with_linear_detector(), params, data, cache, nothing), dtype=np.float64
-    )
+    linear = base.with_linear_detector()
+    return np.asarray(_fisher(linear, params, data, cache, false_like(linear)), np.float64)
 
 
 def fisher_diagonal(

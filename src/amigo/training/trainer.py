@@ -87,6 +87,7 @@ from amigo._version import __version__, source_commit
 from amigo.errors import InputError
 from amigo.likelihood.slopes import (
     FitStatistics,
+    FlatParams,
     PointSourceParams,
     SlopeData,
     fit_statistics,
@@ -274,7 +275,7 @@ class Trainer:
                 fisher = fisher_diagonal(base, p, d, cache, nothing)[1]
                 for _ in range(iterations):
                     _, (_, grad) = loss_and_grad(base, p, d, cache)
-                    if isinstance(p, PointSourceParams) and p.drift_nm is not None:
+                    if _drifting(p):
                         # Position and flux only: a drift's diagonal Newton step ignores
                         # how each hole's tilt trades with the position.
                         grad = eqx.tree_at(lambda q: q.drift_nm, grad, 0 * grad.drift_nm)
@@ -434,7 +435,7 @@ class Trainer:
         and the unit-free form keeps its precision in float32."""
         out: list[jax.Array] = []
         for p, d in zip(params, datasets, strict=True):
-            if not (isinstance(p, PointSourceParams) and p.drift_nm is not None):
+            if not _drifting(p):
                 out.append(jnp.zeros((1, 0)))
                 continue
             block = exposure_fisher_block(self.state.base, p, d, self.cache)
@@ -599,7 +600,7 @@ class Trainer:
         optics' slower, trust-region-limited steps should learn."""
         filters: dict[str, list[int]] = {}
         for i, (p, d) in enumerate(zip(cal_params, self.data.cal, strict=True)):
-            if isinstance(p, PointSourceParams) and p.drift_nm is not None:
+            if _drifting(p):
                 filters.setdefault(d.filter, []).append(i)
         params = list(cal_params)
         static = dict(base.zernikes_nm)
@@ -805,14 +806,15 @@ class Trainer:
         base = self.result() if base is None else base
         out = []
         state = self.state
-        for datasets, params in (
+        sets: tuple[tuple[Sequence[SlopeData], Sequence[PointSourceParams | FlatParams]], ...] = (
             (self.data.cal, state.cal_params),
             (self.data.flats, state.flat_params),
             (self.data.val, state.val_params),
-        ):
+        )
+        for datasets, params in sets:
             for p, d in zip(params, datasets, strict=True):
-                n_free = p.n_free() if isinstance(p, PointSourceParams) else 1
-                out.append(fit_statistics(compiled_model(base, p, d, self.cache), d, n_free))
+                model = compiled_model(base, p, d, self.cache)
+                out.append(fit_statistics(model, d, p.n_free()))
         return out
 
     # -------------------------------------------------------------- checkpoints
@@ -863,11 +865,17 @@ class Trainer:
         self._apply_stripes()
 
 
+def _drifting(params: Any) -> bool:
+    """Whether an exposure's parameters hold a wavefront drift (a point source trained
+    with ``drift_modes`` > 0; never a flat field)."""
+    return getattr(params, "drift_nm", None) is not None
+
+
 def _block_skeleton(params: Sequence[Any]) -> tuple[jax.Array, ...]:
     """Zeros shaped like :meth:`Trainer._block_inverses` of ``params``."""
     out = []
     for p in params:
-        if getattr(p, "drift_nm", None) is None:
+        if not _drifting(p):
             out.append(jnp.zeros((1, 0)))
             continue
         n = ravel_pytree(p)[0].size
