@@ -29,9 +29,11 @@ says): the emulation of the ``_calints`` it is designed for, stated in the table
 
 The tables: per simulated case and tool, the separation, position-angle and delta-mag
 errors against the truth (and in units of each tool's own errors); the 3-sigma
-contrast limits at 100, 200 and 400 mas (amigo: Absil's and Ruffio's azimuthal means;
-AMICAL: CANDID's curve, the 99th percentile of its Absil map around each separation, and
-the azimuthal mean of the same map, for a like-for-like comparison); and the wall time per
+contrast limits at 100, 200 and 400 mas (amigo: its CSV's Absil and Ruffio curves, and
+the mean of its Absil map over the ring |r - s| < 10 mas; AMICAL: CANDID's curve, the 99th
+percentile of its Absil map around each separation, and the mean of the same map over the
+same ring: both maps on one 10-mas grid within 450 mas, where both tools search, for a
+like-for-like comparison); and the wall time per
 target (a warm second run for amigo, with JAX's compilation cache on disk). Nothing is
 asserted. The full run takes about an hour on a 2-core CPU; ``--quick`` runs two cases.
 """
@@ -65,6 +67,11 @@ ABDOR_C: dict[str, Any] = {"sep_mas": 328.85, "pa_deg": 280.5, "dmag": {"F380M":
 AMICAL_CLEAN: dict[str, Any] = {"isz": 69, "r1": 31, "dr": 2, "apod": True, "window": 32, "clip": False}  # fmt: skip
 AMICAL_EXTRACT: dict[str, Any] = {"peakmethod": "fft", "maskname": "g7"}
 AMICAL_CANDID: dict[str, Any] = {"rmin": 20, "rmax": 450, "step": 50}
+#: Both tools' limits are read on one grid: AMICAL's map (virgil's Absil limits, as
+#: candid_cr_limit computes them) and amigo's (``amigo detect --step-mas --rmax-mas``,
+#: its contrast_maps.fits) are sampled every GRID_STEP_MAS over the same search radius,
+#: and each is averaged over the ring |r - s| < RING_HALF_WIDTH_MAS around s.
+GRID_STEP_MAS, RING_HALF_WIDTH_MAS = 10.0, 10.0
 #: The simulated cases: (separation mas, position angle deg, delta-mag); None = no companion.
 CASES = [(None, None, None)] + [
     (sep, pa, dm)
@@ -169,7 +176,8 @@ def run_amigo(sci: list[Path], cal: list[Path], out: Path, model: Path | None) -
     extra = ["--model", model] if model else []
     fit_s = _amigo("fit", "--sci", *sci, "--cal", *cal, "--out", out / "fit", *extra)
     calvis = sorted((out / "fit").glob("*_calvis.fits"))
-    detect_s = _amigo("detect", *calvis, "--out", out / "detect", "--no-hmc")
+    detect_s = _amigo("detect", *calvis, "--out", out / "detect", "--no-hmc",
+                      "--rmax-mas", AMICAL_CANDID["rmax"], "--step-mas", GRID_STEP_MAS)  # fmt: skip
     doc = json.loads((out / "detect" / "companions.json").read_text())
     rows = list(csv.DictReader((out / "detect" / "contrast_limits.csv").open()))
     filters = doc["filters"]
@@ -180,6 +188,12 @@ def run_amigo(sci: list[Path], cal: list[Path], out: Path, model: Path | None) -
         name: {s: float(np.interp(s, seps, [float(r[column]) for r in curve])) for s in LIMIT_SEPS}
         for name, column in (("absil", "absil_dmag"), ("ruffio", "ruffio_dmag"))
     }  # fmt: skip
+    with fits.open(out / "detect" / "contrast_maps.fits") as hdul:
+        hdu = hdul[f"ABSIL_{which.upper()}"]
+        step, (n_y, n_x) = hdul[0].header["STEPMAS"], hdu.data.shape
+        y, x = np.indices((n_y, n_x))
+        radius = step * np.hypot(x - (n_x - 1) / 2, y - (n_y - 1) / 2)
+        limits["absil ring"] = _ring_means(np.asarray(hdu.data, float), radius)
     best = doc["companions"][0] if doc["companions"] else None
     if best is None:
         return Result(None, None, None, None, {}, {}, limits, fit_s + detect_s)
@@ -254,7 +268,8 @@ def _amical_mean_limits(oifits: list[str], comp: dict | None) -> dict[float, flo
             legacy._binary(0),
         )
     data = legacy._load(oifits, ["cp", "v2"], 0.0, 1.0, 0.0, None, remove)
-    axis = np.arange(-450.0, 451.0, 10.0)
+    rmax = float(AMICAL_CANDID["rmax"])
+    axis = np.arange(-rmax, rmax + 1.0, GRID_STEP_MAS)
     samples = {
         "companion.dra": jnp.asarray(axis),
         "companion.ddec": jnp.asarray(axis),
@@ -265,8 +280,15 @@ def _amical_mean_limits(oifits: list[str], comp: dict | None) -> dict[float, flo
         flux = np.asarray(absil_limits(legacy._binary(0), data, samples, sigma=3.0))
     dmag = np.asarray(flux_to_delta_mag(flux))
     xx, yy = np.meshgrid(axis, axis, indexing="ij")
-    rr = np.hypot(xx, yy)
-    return {s: float(np.nanmean(dmag[np.abs(rr - s) < 10.0])) for s in LIMIT_SEPS}
+    return _ring_means(dmag, np.hypot(xx, yy))
+
+
+def _ring_means(dmag: np.ndarray, radius_mas: np.ndarray) -> dict[float, float]:
+    """Mean limit (mag) over the ring |r - s| < RING_HALF_WIDTH_MAS at each of LIMIT_SEPS
+    (NaN positions, inside an inner working angle, left out)."""
+    return {
+        s: float(np.nanmean(dmag[np.abs(radius_mas - s) < RING_HALF_WIDTH_MAS])) for s in LIMIT_SEPS
+    }
 
 
 # ---------------------------------------------------------------------- tables

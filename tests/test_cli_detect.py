@@ -52,6 +52,36 @@ def within_2_sigma(companion: dict, dra: float, ddec: float, dmag: dict[str, flo
         assert abs(companion["dmag"][f] - value) < 2 * companion["dmag_err"][f]
 
 
+def check_contrast_maps(out: Path, rows: list[dict], companion: dict) -> None:
+    """contrast_maps.fits: its sky axes put the detection map's peak on the companion,
+    and its limit maps' annulus means are the CSV's curves."""
+    from astropy.io import fits
+    from astropy.wcs import WCS
+
+    with fits.open(out / "contrast_maps.fits") as hdul:
+        names = [h.name for h in hdul[1:]]
+        assert names == ["SIGNIFICANCE"] + [
+            f"{m}_{f}" for f in ("F380M", "F480M", "COMBINED") for m in ("ABSIL", "RUFFIO")
+        ]
+        significance = hdul["SIGNIFICANCE"].data
+        wcs = WCS(hdul["SIGNIFICANCE"].header)
+        peak = np.unravel_index(np.nanargmax(significance), significance.shape)
+        dra, ddec = wcs.pixel_to_world_values(peak[1], peak[0])
+        step = hdul[0].header["STEPMAS"]
+        assert abs(dra - companion["dra_mas"]) <= step and abs(ddec - companion["ddec_mas"]) <= step
+        n_y, n_x = significance.shape
+        x, y = wcs.pixel_to_world_values(*np.meshgrid(np.arange(n_x), np.arange(n_y)))
+        radius = np.hypot(x, y)
+        for f in ("F480M", "combined"):
+            absil = hdul[f"ABSIL_{f.upper()}"].data
+            curve = [r for r in rows if r["filter"] == f]
+            # The CSV's annuli are step wide; their centres are its sep_mas.
+            for r in curve[:3]:
+                ring = np.abs(radius - float(r["sep_mas"])) < step / 2
+                ring &= np.isfinite(absil)
+                assert np.mean(absil[ring]) == pytest.approx(float(r["absil_dmag"]), abs=1e-3)
+
+
 @pytest.mark.slow
 @pytest.mark.filterwarnings("ignore::amigo.companions.posterior.PosteriorWarning")
 def test_calvis_end_to_end(tmp_path, capsys):
@@ -86,6 +116,7 @@ def test_calvis_end_to_end(tmp_path, capsys):
         "companions.json",
         "contrast_limits.csv",
         "contrast_limits.png",
+        "contrast_maps.fits",
         "corner_1.png",
         "detection_maps.png",
         "posterior_predictive.png",
@@ -126,6 +157,7 @@ def test_calvis_end_to_end(tmp_path, capsys):
         "photon_limit_dmag",
         "sep_lambda_d",
     }
+    check_contrast_maps(out, rows, companion)
     # The same search again keeps the products (companions.json, written last, records
     # the inputs and options); another option or input is another search.
     before = {p.name: p.read_bytes() for p in out.iterdir()}

@@ -120,7 +120,8 @@ def command(
 ) -> None:
     """Search calibrated observables (calvis or OIFITS FILEs) for companions.
 
-    Writes DIR/companions.json, DIR/contrast_limits.csv and figures (DIR/*.png).
+    Writes DIR/companions.json, DIR/contrast_limits.csv, DIR/contrast_maps.fits and
+    figures (DIR/*.png).
     """
     from amigo.pipeline import detect
 

@@ -1,4 +1,5 @@
-"""Files written by ``amigo detect``: ``companions.json`` and ``contrast_limits.csv``.
+"""Files written by ``amigo detect``: ``companions.json``, ``contrast_limits.csv`` and
+``contrast_maps.fits``.
 
 The keys of ``companions.json`` listed in the project's interfaces are a public contract;
 amigo adds (never removes) keys: per-companion ``dra_err_mas``, ``ddec_err_mas``,
@@ -22,7 +23,7 @@ import numpy as np
 from amigo._version import __version__
 from amigo.companions.limits import COMBINED
 from amigo.companions.search import DetectionResult, Estimate
-from amigo.io.atomic import write_text
+from amigo.io.atomic import atomic_path, write_text
 
 SKY_CONVENTION = (
     "dra_mas positive to the east, ddec_mas to the north; pa_deg east of north "
@@ -227,4 +228,58 @@ def write_contrast_csv(path: str | os.PathLike[str], result: DetectionResult) ->
                 ]
             )
     write_text(path, buffer.getvalue())
+    return Path(path)
+
+
+def _sky_axes(header, step_mas: float, n_x: int, n_y: int) -> None:
+    """A linear WCS of sky offsets: axis 1 dRA (east positive), axis 2 dDec, in mas, the
+    star at the central pixel (FITS pixels count from 1)."""
+    for axis, (kind, n) in enumerate((("DRA", n_x), ("DDEC", n_y)), start=1):
+        header[f"CTYPE{axis}"] = kind
+        header[f"CUNIT{axis}"] = "mas"
+        header[f"CRPIX{axis}"] = (n + 1) / 2.0
+        header[f"CRVAL{axis}"] = 0.0
+        header[f"CDELT{axis}"] = step_mas
+
+
+def write_contrast_maps(path: str | os.PathLike[str], result: DetectionResult) -> Path:
+    """Write ``contrast_maps.fits`` atomically: the maps behind ``contrast_limits.csv``
+    and ``detection_maps.png``, for curves of another shape than its annuli.
+
+    Image extensions, (n_y, n_x) float32 on the search grid, ``[dDec, dRA]`` (dRA east
+    positive, a linear WCS in mas, the star at the centre), NaN inside the inner working
+    angle and beyond the search radius:
+
+    * ``SIGNIFICANCE``: the joint Gaussian-equivalent significance of one companion at
+      each position, on the data as given (before any companion is subtracted);
+    * ``ABSIL_<FILTER>``, ``RUFFIO_<FILTER>``: the 3-sigma limits (delta-mag) of each
+      filter, then of ``COMBINED`` (all filters, a grey companion) with two or more,
+      on the data with the companions found subtracted; their annulus means are the CSV.
+    """
+    from astropy.io import fits
+
+    grid = result.grid
+    n_y, n_x = grid.shape
+    primary = fits.PrimaryHDU()
+    primary.header["ORIGIN"] = "amigo"
+    primary.header["AMIGOVER"] = __version__
+    primary.header["STEPMAS"] = (grid.step_mas, "grid step (mas)")
+    primary.header["RMAXMAS"] = (grid.rmax_mas, "search radius (mas)")
+    primary.header["NCOMP"] = (len(result.companions), "companions found and subtracted")
+    hdus: list[Any] = [primary]
+    detection = result.detection_maps[0]
+    significance = np.where(detection.valid, detection.joint_significance, np.nan)
+    hdus.append(fits.ImageHDU(significance.astype(np.float32), name="SIGNIFICANCE"))
+    hdus[-1].header["IWAMAS"] = (detection.iwa_mas, "inner working angle (mas)")
+    for curve in result.limits:
+        for method, values in (("ABSIL", curve.absil_map_dmag), ("RUFFIO", curve.ruffio_map_dmag)):  # fmt: skip
+            hdu = fits.ImageHDU(values.astype(np.float32), name=f"{method}_{curve.filter_name.upper()}")  # fmt: skip
+            hdu.header["FILTER"] = curve.filter_name
+            hdu.header["NSIGMA"] = (curve.n_sigma, "confidence of the limits (sigma)")
+            hdu.header["BUNIT"] = "mag"
+            hdus.append(hdu)
+    for hdu in hdus[1:]:
+        _sky_axes(hdu.header, grid.step_mas, n_x, n_y)
+    with atomic_path(path) as tmp:
+        fits.HDUList(hdus).writeto(tmp)
     return Path(path)

@@ -62,7 +62,8 @@ def detect(
     ess: int = 400,
 ) -> DetectResult:
     """Search calvis or OIFITS files for companions, as ``amigo detect``: writes
-    ``out/companions.json``, ``out/contrast_limits.csv`` and figures.
+    ``out/companions.json``, ``out/contrast_limits.csv``, ``out/contrast_maps.fits`` and
+    figures.
 
     Keywords (the command's options, defaults in brackets): ``rmax_mas`` (1000), ``threshold``
     (5 sigma), ``step_mas`` (None: lambda_min / 3 B_max), ``max_companions`` (3),
@@ -192,6 +193,7 @@ def _search(
     out.mkdir(parents=True, exist_ok=True)
     # companions.json last: a search interrupted before it is not taken for complete.
     products.write_contrast_csv(out / "contrast_limits.csv", result)
+    products.write_contrast_maps(out / "contrast_maps.fits", result)
     plots.write_all(result, out)
     document = products.write_companions_json(
         out / "companions.json", result, list(files), {"detect_key": key}
@@ -219,7 +221,10 @@ def _search(
     print(f"sigma_scale: {scales}")
     for message in result.warnings:
         print(f"warning: {message}", file=sys.stderr)
-    print(f"wrote {out / 'companions.json'}, {out / 'contrast_limits.csv'} and figures")
+    print(
+        f"wrote {out / 'companions.json'}, {out / 'contrast_limits.csv'}, "
+        f"{out / 'contrast_maps.fits'} and figures"
+    )
     return result, document
 
 
