@@ -108,6 +108,16 @@ def test_marginal_errors_of_blocks_are_those_of_the_whole_matrix():
         marginal_errors(regular, np.arange(14)), np.sqrt(np.diag(np.linalg.inv(regular))), rtol=1e-8
     )
     assert np.isnan(marginal_errors(None, np.arange(3))).all()
+    # The solver's own decompositions of the two parts (a fit's two stages) give the
+    # same errors without decomposing again, the parameter without information NaN.
+    parts = []
+    for rows in (slice(0, 9), slice(10, 16)):
+        part = np.zeros_like(fisher)
+        part[rows, rows] = fisher[rows, rows]
+        parts.append(FisherSolve(part))
+    from_solves = marginal_errors(fisher, np.arange(16), tuple(parts))
+    np.testing.assert_allclose(from_solves, expected, rtol=1e-9)
+    assert np.isnan(from_solves[9])
 
 
 def _small_fit(rng: np.random.Generator, w0: np.ndarray):
@@ -297,6 +307,10 @@ def test_a_given_fisher_matrix_saves_jacobians_and_changes_no_optimum():
     again = minimise(exact, reference.vector, _Settings(), "exact", reference.fisher)
     assert again.converged and exact.jacobians == []
     np.testing.assert_array_equal(again.fisher, reference.fisher)
+    # With the matrix comes the solver's decomposition of it (marginal errors read it).
+    assert reference.solve is not None
+    grad = np.array([0.3, -1.0, 2.0])
+    np.testing.assert_allclose(reference.solve(grad), FisherSolve(reference.fisher)(grad))
 
     stale = _Curve()
     near = reference.vector * np.array([1.05, 0.95, 1.1])

@@ -92,6 +92,7 @@ from amigo.model.image import (
 )
 from amigo.model.optics import cast as cast_floats
 from amigo.progress import step
+from amigo.solvers.levenberg_marquardt import FisherSolve
 
 FIT_ROLES = ("science", "calibrator")
 
@@ -201,6 +202,9 @@ class FilterFitResult:
     last_fisher
         The Levenberg-Marquardt finish's last Fisher matrix (float32 or float64, at or
         near ``params``; ``None`` without that finish): where a refit's chord steps start.
+    fisher_solves
+        The solver's decompositions of the stages' matrices summed in ``fisher``
+        (:attr:`amigo.fitting.newton.NewtonResult.solves`): marginal errors read them.
     """
 
     params: FitParams
@@ -213,6 +217,7 @@ class FilterFitResult:
     fisher: np.ndarray | None = None
     exact_exposures: tuple[int, ...] = ()
     last_fisher: np.ndarray | None = None
+    fisher_solves: tuple[FisherSolve, ...] = ()
 
 
 class FilterFit:
@@ -627,13 +632,14 @@ class FilterFit:
         fisher: np.ndarray | None = None
         last_fisher: np.ndarray | None = None
         exact: tuple[int, ...] = ()
+        solves: tuple[FisherSolve, ...] = ()
         final_loss: float | Array
         if config.newton.max_iterations > 0:
             # The full-Fisher finish decides convergence (see amigo.fitting.newton).
             newton = levenberg_marquardt(self, best, config.newton, label)
             best, converged, fisher = newton.params, newton.converged, newton.fisher
             last_fisher = newton.last_fisher
-            exact = newton.exact_exposures
+            exact, solves = newton.exact_exposures, newton.solves
             iteration += newton.iterations
             # The finish's history (levenberg_marquardt: the calibrators' stage, then all
             # exposures) follows the descent's without its starting point where a descent
@@ -664,6 +670,7 @@ class FilterFit:
             fisher=fisher,
             exact_exposures=exact,
             last_fisher=last_fisher,
+            fisher_solves=solves,
         )
 
     def polish(

@@ -88,7 +88,7 @@ from amigo.model.image import (
 from amigo.model.image import float64 as _float64
 from amigo.model.optics.aperture import HoleWindows, hole_windows
 from amigo.progress import step
-from amigo.solvers.levenberg_marquardt import minimise
+from amigo.solvers.levenberg_marquardt import FisherSolve, minimise
 
 if TYPE_CHECKING:
     from amigo.model.optics import NRMOptics
@@ -217,6 +217,9 @@ class NewtonResult:
     #: The last Fisher matrix of every stage (float32 or float64, at or near ``params``),
     #: summed: what a refit's first chord steps can take (:func:`levenberg_marquardt`).
     last_fisher: np.ndarray | None = None
+    #: The solver's decompositions of the stages' matrices in ``fisher``, for
+    #: :func:`amigo.solvers.levenberg_marquardt.marginal_errors`.
+    solves: tuple[FisherSolve, ...] = ()
 
 
 # ------------------------------------------------------------------------------ layout
@@ -993,6 +996,7 @@ def levenberg_marquardt(
     total: np.ndarray | None = None
     last: np.ndarray | None = None
     exact: list[int] = []
+    solves: list[FisherSolve] = []
     cal_loss = 0.0
     for members, stage_label in stages:
         if len(members) == 0:
@@ -1020,6 +1024,8 @@ def levenberg_marquardt(
         if result.fisher is not None:
             total = result.fisher if total is None else total + result.fisher
             exact.extend(int(e) for e in members)
+            assert result.solve is not None  # minimise returns both or neither
+            solves.append(result.solve)
         del result
     return NewtonResult(
         params=layout.unpack(params, vector),
@@ -1036,6 +1042,7 @@ def levenberg_marquardt(
         loss=float(history[-1]),
         loss_change=float(change),
         last_fisher=np.zeros((layout.size, layout.size)) if last is None else last,
+        solves=tuple(solves),
     )
 
 

@@ -660,6 +660,7 @@ def fit_through_detector(
             fisher=newton.fisher,
             exact_exposures=newton.exact_exposures,
             last_fisher=newton.last_fisher,
+            fisher_solves=newton.solves,
         )
     converged = bool(changes) and changes[-1] < detector.tolerance
     record = DetectorRecord(

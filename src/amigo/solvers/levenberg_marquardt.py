@@ -158,12 +158,35 @@ class FisherSolve:
         step[self.active] = scaled / self.root
         return step
 
+    def variances(self, indices: np.ndarray) -> np.ndarray:
+        """``(F^+)_ii`` of the matrix's entries ``indices`` (all others marginalised), from
+        the decomposition already made; NaN where an entry has no information here."""
+        indices = np.asarray(indices, int)
+        out = np.full(indices.shape, np.nan)
+        if self.active.size == 0:
+            return out
+        position = np.minimum(np.searchsorted(self.active, indices), self.active.size - 1)
+        inside = self.active[position] == indices
+        rows = self.evecs[position[inside]]
+        variance = np.sum(np.where(self.keep, rows**2 / self.evals, 0.0), axis=1)
+        root = self.root[position[inside]]
+        out[inside] = np.where(variance > 0, variance / root**2, np.nan)
+        return out
 
-def marginal_errors(fisher: np.ndarray | None, indices: np.ndarray) -> np.ndarray:
+
+def marginal_errors(
+    fisher: np.ndarray | None, indices: np.ndarray, solves: tuple[FisherSolve, ...] = ()
+) -> np.ndarray:
     """Standard errors ``sqrt((F^+)_ii)`` of the global vector's entries ``indices``
     (all others marginalised), from a fit's Fisher matrix (priors included); exact
     degeneracies are dropped as in the solver (:class:`FisherSolve`). NaN where ``fisher``
     is ``None`` or the parameter has no information.
+
+    ``solves``: the solver's own decompositions of the parts of ``fisher`` that never
+    meet (:attr:`Solution.solve` of each stage whose matrix ``fisher`` sums), read
+    instead of decomposing again; each has its own eigenvalue floor, that of its
+    stage's largest eigenvalue (the same errors to the decompositions' rounding where no
+    eigenvalue lies between the two floors; tests/test_newton.py).
 
     The matrix of a filter's fit sums its groups' matrices, which never meet (the science
     exposures' parameters are not the calibrators'): its blocks are decomposed apart, the
@@ -175,6 +198,12 @@ def marginal_errors(fisher: np.ndarray | None, indices: np.ndarray) -> np.ndarra
     indices = np.asarray(indices, int)
     out = np.full(indices.shape, np.nan)
     if fisher is None:
+        return out
+    if solves:
+        for solve in solves:
+            variance = solve.variances(indices)
+            found = np.isfinite(variance)
+            out[found] = np.sqrt(variance[found])
         return out
     active, root, scaled = _jacobi_scaled(fisher)
     if active.size == 0:
@@ -218,6 +247,9 @@ class Solution:
     last_fall: float = 0.0
     #: The last Fisher matrix used (float32 or float64; at or near the final vector).
     last_fisher: np.ndarray | None = None
+    #: The solver's decomposition of ``fisher`` (with ``fisher``, else ``None``), which
+    #: :func:`marginal_errors` reads rather than decomposing the matrix again.
+    solve: FisherSolve | None = None
 
 
 def minimise(
@@ -396,4 +428,5 @@ def minimise(
         fisher=fisher if (converged and exact) else None,
         last_fall=start_loss - loss,
         last_fisher=fisher,
+        solve=solver if (converged and exact) else None,
     )
