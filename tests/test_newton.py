@@ -292,6 +292,55 @@ class _Settings:
     max_iterations, tolerance, damping, chord_steps, float64_check = 12, 1e-6, 1e-3, 20, True
 
 
+class _Measured(_Curve):
+    """A :class:`_Curve` with a noise model measured by ``refresh``: the first
+    measurement scales the errors by 1.1 (a new likelihood) when ``changes``; it records
+    how many Jacobians had been taken at each measurement."""
+
+    def __init__(self, changes: bool) -> None:
+        super().__init__()
+        self.changes, self.scale, self.measured_after = changes, 1.0, []
+
+    def residuals(self, v):
+        return super().residuals(v) / self.scale
+
+    def jacobian(self, v):
+        return super().jacobian(v) / self.scale
+
+    def refresh(self, v):
+        self.measured_after.append(len(self.jacobians))
+        if self.changes and self.scale == 1.0:
+            self.scale = 1.1
+            return True
+        return False
+
+
+def test_the_noise_model_is_measured_after_the_cold_start():
+    """Not before the first Jacobians (the start's residuals are the model's errors);
+    before the confirmation where the first Jacobians' chord steps converge (then new
+    Jacobians where it changed the likelihood, none where it did not), and before the
+    second Jacobians from farther away; the optimum is the plain fit's."""
+    from amigo.solvers.levenberg_marquardt import minimise
+
+    reference = minimise(_Curve(), np.array([1.0, 1.0, 0.0]), _Settings(), "reference")
+    assert reference.fisher is not None
+    direction = np.array([1.0, -2.0, 0.5])
+    near = reference.vector + direction * np.sqrt(
+        2.5e-6 / (direction @ reference.fisher @ direction)
+    )
+    quiet = _Measured(changes=False)
+    found = minimise(quiet, near, _Settings(), "quiet")
+    assert found.converged and quiet.jacobians == [False] and quiet.measured_after == [1]
+    noisy = _Measured(changes=True)
+    found = minimise(noisy, near, _Settings(), "noisy")
+    assert found.converged and noisy.jacobians == [False, True]
+    assert noisy.measured_after == [1]  # not again at the same point
+    far = _Measured(changes=True)
+    found = minimise(far, np.array([1.0, 1.0, 0.0]), _Settings(), "far")
+    assert found.converged and far.measured_after[0] == 1 and len(far.jacobians) >= 2
+    np.testing.assert_allclose(found.vector, reference.vector, rtol=1e-6)
+
+
 def test_a_given_fisher_matrix_saves_jacobians_and_changes_no_optimum():
     """From the exact matrix at the optimum: converged with no new Jacobians. From an
     approximate one (another point): chord steps, then new Jacobians confirm, and the

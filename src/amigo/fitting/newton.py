@@ -712,8 +712,10 @@ class _Problem:
         plain residuals) and whiten for them from here on; ``True`` when the loss changed.
 
         The solver calls this where it takes new Jacobians, so each Fisher matrix is the
-        likelihood's at its point: the first at the start (where the model's own errors
-        in the halo inflate the estimate), the last near the optimum. The values are
+        likelihood's at its point, except the cold start's first (where the model's own
+        errors in the halo would inflate the estimate: the first measurement is at the
+        next Jacobians, or before a confirmation; :mod:`amigo.solvers.levenberg_marquardt`,
+        "Noise model"), the last near the optimum. The values are
         written to the fit (:attr:`JointFit.stripe_sigma`) for what follows (the latent
         Hessians, the next stage, the detector's rounds).
         """

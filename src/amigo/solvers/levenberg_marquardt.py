@@ -27,6 +27,18 @@ undamped step is taken with that exact matrix (a loss evaluation: it brings the 
 quadratically close to the optimum, which the tolerance alone leaves up to ~1 sigma away
 along one direction), and the matrix is returned with the solution.
 
+Noise model
+-----------
+What the likelihood takes from the residuals (the 1/f stripes of a level-2 image,
+:meth:`Problem.refresh`) is measured where new Jacobians are taken, so that each Fisher
+matrix is the likelihood's at its point, but not at a cold start: there the model's own
+errors fill the image's halo, where the stripes are measured, and the estimate is
+spurious (on a simulated pair without stripes, stripes "found" at the start and dropped
+at the next Jacobians raised chi2 by ~1000 and cost the fit a set of Jacobians). The
+first measurement is taken at the second set of Jacobians, or, where the first set's
+chord steps already converge, before the confirmation: if it changes the likelihood,
+new Jacobians are taken for it.
+
 Confirmation
 ------------
 What the confirmation needs in float64 is the gradient: float32 rounding of the model
@@ -284,6 +296,10 @@ def minimise(
     fisher_point = np.array(vector, copy=True) if given and given_exact else None
     stale_tried = False
     solver: FisherSolve | None = None  # the decomposition of `fisher`
+    # Whether the noise model has been measured on this problem's residuals (module
+    # notes, "Noise model"); a given matrix comes with the noise model of its fit.
+    measured = given
+    measured_at: np.ndarray | None = None  # where it was last measured
 
     def tolerance() -> float:
         return config.tolerance * max(1.0, 2.0 * loss / problem.n_values)
@@ -333,6 +349,17 @@ def minimise(
             vector, loss = trial, trial_loss
             history.append(loss)
 
+    def measure() -> bool:
+        """Measure the noise model at ``vector`` (:meth:`Problem.refresh`); ``True`` when
+        that changed the loss (then re-evaluated)."""
+        nonlocal loss, measured, measured_at
+        measured, measured_at = True, np.array(vector, copy=True)
+        if not problem.refresh(vector):
+            return False
+        loss = problem.loss(vector)
+        history.append(loss)
+        return True
+
     def to_float64() -> None:
         """From here on the model runs in float64 (the loss is re-evaluated in it)."""
         nonlocal loss
@@ -343,6 +370,9 @@ def minimise(
 
     start_loss = loss
     for iteration in range(1, config.max_iterations + 1):
+        confirm = estimate < tolerance() and not stale_tried and near(fisher, fisher_point)
+        if confirm and not measured and measure():
+            confirm = False  # the last matrix is of another likelihood now
         if given and iteration == 1:
             assert fisher is not None  # given
             if given_exact:  # exact at `vector`: only the gradient is new (in float64)
@@ -351,7 +381,7 @@ def minimise(
             exact = problem.float64 and given_exact
             solver = FisherSolve(fisher)
             source = "the given Fisher matrix"
-        elif estimate < tolerance() and not stale_tried and near(fisher, fisher_point):
+        elif confirm:
             # Confirmation by a float64 gradient, weighed by the last Fisher matrix and
             # its decomposition (module notes, "Confirmation").
             to_float64()
@@ -365,9 +395,10 @@ def minimise(
             # The old matrix and its decomposition are replaced: let them go before the
             # new Jacobians are taken (the fits' matrices are tens of MB each).
             fisher = solver = None
-            if problem.refresh(vector):  # the noise model measured here: a new loss
-                loss = problem.loss(vector)
-                history.append(loss)
+            # Not at a cold start (module notes, "Noise model"), nor again where it was
+            # just measured (before a confirmation that it then called off).
+            if iteration > 1 and not (measured_at is not None and np.array_equal(vector, measured_at)):  # fmt: skip
+                measure()
             fisher, grad = problem.normal_equations(vector, label)
             fisher_point, stale_tried = np.array(vector, copy=True), False
             solver = FisherSolve(fisher)
@@ -383,6 +414,9 @@ def minimise(
         if decrement < tolerance():
             approximate = given and iteration == 1 and not given_exact
             if not approximate and (exact or not config.float64_check):
+                if not measured and measure():
+                    estimate = np.inf  # another likelihood: new Jacobians
+                    continue
                 converged = True
                 if exact:
                     final_step(solver, grad)
