@@ -268,8 +268,8 @@ def _amical_mean_limits(oifits: list[str], comp: dict | None) -> dict[float, flo
             legacy._binary(0),
         )
     data = legacy._load(oifits, ["cp", "v2"], 0.0, 1.0, 0.0, None, remove)
-    rmax = float(AMICAL_CANDID["rmax"])
-    axis = np.arange(-rmax, rmax + 1.0, GRID_STEP_MAS)
+    n = int(np.floor(float(AMICAL_CANDID["rmax"]) / GRID_STEP_MAS + 1e-9))
+    axis = np.arange(-n, n + 1) * GRID_STEP_MAS  # as amigo's grid (companions.grid.Grid)
     samples = {
         "companion.dra": jnp.asarray(axis),
         "companion.ddec": jnp.asarray(axis),

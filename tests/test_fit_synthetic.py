@@ -137,6 +137,19 @@ def test_synthetic_single_and_binary():
     # float64 derivatives).
     result = product.result
     assert result.fisher is not None and set(result.exact_exposures) == {0, 1, 2}
+    # The solver's decompositions of its stages' matrices (calibrators, science) give
+    # the marginal errors fit_summary.json reports, as the whole matrix does.
+    from amigo.fitting.newton import Layout
+    from amigo.solvers.levenberg_marquardt import marginal_errors
+
+    layout = Layout.of(result.params)
+    indices = np.concatenate([layout.geometry, layout.band, layout.jitters])
+    assert len(result.fisher_solves) == 2
+    np.testing.assert_allclose(
+        marginal_errors(result.fisher, indices, result.fisher_solves),
+        marginal_errors(result.fisher, indices),
+        rtol=1e-6,
+    )
     fit = product.fit
     weight = np.asarray(fit.pixels.inverse_sigma, np.float64) ** 2
     with jax.enable_x64(True):

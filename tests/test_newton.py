@@ -76,7 +76,7 @@ def test_undamped_step_is_the_newton_step_and_degeneracies_get_none():
     assert np.linalg.norm(FisherSolve(fisher)(grad, 10.0)) < np.linalg.norm(d)
 
 
-def test_marginal_errors_of_blocks_are_those_of_the_whole_matrix():
+def test_marginal_errors_of_blocks_are_those_of_the_whole_matrix(monkeypatch):
     rng = np.random.default_rng(2)
 
     def block(n, scale):
@@ -115,9 +115,13 @@ def test_marginal_errors_of_blocks_are_those_of_the_whole_matrix():
         part = np.zeros_like(fisher)
         part[rows, rows] = fisher[rows, rows]
         parts.append(FisherSolve(part))
-    from_solves = marginal_errors(fisher, np.arange(16), tuple(parts))
+    with monkeypatch.context() as patch:  # read, not decomposed again
+        patch.setattr(np.linalg, "eigh", None)
+        from_solves = marginal_errors(fisher, np.arange(16), tuple(parts))
     np.testing.assert_allclose(from_solves, expected, rtol=1e-9)
     assert np.isnan(from_solves[9])
+    with pytest.raises(ValueError, match="another Fisher matrix"):
+        marginal_errors(2.0 * fisher, np.arange(16), tuple(parts))
 
 
 def _small_fit(rng: np.random.Generator, w0: np.ndarray):
@@ -339,6 +343,24 @@ def test_the_noise_model_is_measured_after_the_cold_start():
     found = minimise(far, np.array([1.0, 1.0, 0.0]), _Settings(), "far")
     assert found.converged and far.measured_after[0] == 1 and len(far.jacobians) >= 2
     np.testing.assert_allclose(found.vector, reference.vector, rtol=1e-6)
+
+    # A fit that stops first (one iteration) measures it before it returns, and a matrix
+    # of the likelihood before the measurement is not returned as the solution's.
+    class _OneIteration(_Settings):
+        max_iterations = 1
+
+    short = _Measured(changes=True)
+    stopped = minimise(short, np.array([1.0, 1.0, 0.0]), _OneIteration(), "short")
+    assert short.measured_after == [1] and not stopped.converged and stopped.solve is None
+
+    # Without the float64 check, a cold start can converge at its first Jacobians: not
+    # before the noise model is measured (then new Jacobians for the new likelihood).
+    class _Float32(_Settings):
+        float64_check = False
+
+    plain = _Measured(changes=True)
+    done = minimise(plain, reference.vector, _Float32(), "float32")
+    assert done.converged and plain.measured_after == [1] and len(plain.jacobians) == 2
 
 
 def test_a_given_fisher_matrix_saves_jacobians_and_changes_no_optimum():

@@ -4,7 +4,8 @@
 Everything is written directly under ``DIR``, with the names of the individual commands
 (docs/interfaces): ``<stem>_calslope.fits`` (``amigo process``), the calvis, OIFITS,
 ``fit_summary.json`` and ``plots/`` (``amigo fit``), ``companions.json``,
-``contrast_limits.csv`` and the detection figures (``amigo detect``).
+``contrast_limits.csv``, ``contrast_maps.fits`` and the detection figures (``amigo
+detect``).
 
 ``amigo run --manifest targets.toml --out DIR [--workers N | --scheduler ADDRESS]``: every
 target of the manifest (:mod:`amigo.io.manifest`) into ``DIR/<name>/``, in parallel on

@@ -262,8 +262,9 @@ class FilterFit:
         self.anchor = jnp.zeros(2, jnp.float32)
         # (E,) the 1/f column stripes' standard deviation (DN/s) and correlation length
         # along a column (rows) marginalised in each exposure's likelihood
-        # (amigo.likelihood.stripes): measured by the Newton finish wherever it takes new
-        # Jacobians (amigo.fitting.newton); none until then.
+        # (amigo.likelihood.stripes): measured by the Newton finish where it takes new
+        # Jacobians after its cold start's first (amigo.solvers.levenberg_marquardt,
+        # "Noise model"); none until then.
         self.stripe_sigma = np.zeros(len(self.exposures))
         self.stripe_length = np.full(len(self.exposures), np.inf)
         # The whiteners of the last stripes asked for (their values as the key): each

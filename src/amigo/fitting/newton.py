@@ -122,8 +122,9 @@ class JointFit(Protocol):
 
     #: (E,) the 1/f column stripes' standard deviation (DN/s) and correlation length
     #: along a column (rows) of each exposure (:mod:`amigo.likelihood.stripes`): the
-    #: solver measures them wherever it takes new Jacobians and writes them here
-    #: (:meth:`_Problem.refresh`).
+    #: solver measures them where it takes new Jacobians after the cold start's first,
+    #: and writes them here (:meth:`_Problem.refresh`;
+    #: :mod:`amigo.solvers.levenberg_marquardt`, "Noise model").
     stripe_sigma: np.ndarray
     stripe_length: np.ndarray
 

@@ -121,7 +121,8 @@ def _detect_key(files, settings: dict) -> str:
 
 def _kept_search(out: Path, key: str) -> dict | None:
     """The companions.json of a complete search with identity ``key`` in ``out`` (it is
-    written last and records the key; contrast_limits.csv must be there), or ``None``."""
+    written last and records the key; contrast_limits.csv and contrast_maps.fits must be
+    there: a folder searched before the maps existed is searched again), or ``None``."""
     import json
 
     try:
@@ -132,6 +133,7 @@ def _kept_search(out: Path, key: str) -> dict | None:
         isinstance(document, dict)
         and document.get("detect_key") == key
         and (out / "contrast_limits.csv").is_file()
+        and (out / "contrast_maps.fits").is_file()
     )
     return document if complete else None
 

@@ -36,8 +36,12 @@ errors fill the image's halo, where the stripes are measured, and the estimate i
 spurious (on a simulated pair without stripes, stripes "found" at the start and dropped
 at the next Jacobians raised chi2 by ~1000 and cost the fit a set of Jacobians). The
 first measurement is taken at the second set of Jacobians, or, where the first set's
-chord steps already converge, before the confirmation: if it changes the likelihood,
-new Jacobians are taken for it.
+chord steps already converge, before the confirmation (in float64, as the confirmation):
+if it changes the likelihood, new Jacobians are taken for it. A fit that stops before
+either (its iterations spent, or no step lowering the loss) measures it before it
+returns, unconverged or with its matrix dropped where that changed the likelihood, so
+that what follows (the latent Hessians, the next stage) has it. A given matrix comes from
+a solution of the same exposures, whose noise model was measured before it returned.
 
 Confirmation
 ------------
@@ -117,7 +121,9 @@ class Problem(Protocol):
 
     def refresh(self, vector: np.ndarray) -> bool:
         """Re-measure, at ``vector``, what the noise model takes from the residuals (e.g.
-        1/f stripes); ``True`` when that changed the loss. Called before new Jacobians."""
+        1/f stripes); ``True`` when that changed the loss. Called before new Jacobians
+        (not the cold start's first), before the first confirmation where none was taken
+        since, and at the end if never before (module notes, "Noise model")."""
         ...
 
 
@@ -212,6 +218,13 @@ def marginal_errors(
     if fisher is None:
         return out
     if solves:
+        diagonal = np.diag(fisher)
+        for solve in solves:
+            # A decomposition of another matrix would give other errors without a sign.
+            if solve.size != fisher.shape[0] or not np.allclose(
+                solve.root**2, diagonal[solve.active], rtol=1e-9, atol=0.0
+            ):
+                raise ValueError("a decomposition of another Fisher matrix")
         for solve in solves:
             variance = solve.variances(indices)
             found = np.isfinite(variance)
@@ -371,8 +384,10 @@ def minimise(
     start_loss = loss
     for iteration in range(1, config.max_iterations + 1):
         confirm = estimate < tolerance() and not stale_tried and near(fisher, fisher_point)
-        if confirm and not measured and measure():
-            confirm = False  # the last matrix is of another likelihood now
+        if confirm and not measured:
+            to_float64()  # measured on the residuals the confirmation would take
+            if measure():
+                confirm = False  # the last matrix is of another likelihood now
         if given and iteration == 1:
             assert fisher is not None  # given
             if given_exact:  # exact at `vector`: only the gradient is new (in float64)
@@ -452,6 +467,11 @@ def minimise(
             f"{label}: {chords} chord steps so far, chi2 {2 * loss:.2f}, "
             f"decrement estimate {estimate:.3g} per exposure"
         )
+    if not measured and measure():
+        # Stopped before any measurement (iterations spent, or no step lowering the
+        # loss): measured now for what follows; a matrix of the old likelihood is not
+        # the solution's.
+        converged, exact = False, False
     return Solution(
         vector=vector,
         converged=converged,
