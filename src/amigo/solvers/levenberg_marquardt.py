@@ -143,6 +143,18 @@ class Settings(Protocol):
     def float64_check(self) -> bool: ...
 
 
+def _pseudo_inverse_diagonal(
+    rows: np.ndarray, evals: np.ndarray, keep: np.ndarray, root: np.ndarray
+) -> np.ndarray:
+    """``(F^+)_ii`` from the eigenpairs of the Jacobi-scaled ``F_s = D^-1 F D^-1``:
+    ``rows`` (n, m) the eigenvectors' entries of the parameters asked for, ``evals`` (m,)
+    the eigenvalues, ``keep`` (m,) those above the floor, ``root`` (n,) their ``D``; NaN
+    where no kept direction informs a parameter."""
+    inverse = np.where(keep, 1.0 / np.where(keep, evals, 1.0), 0.0)
+    variance = (rows**2 @ inverse) / root**2
+    return np.where(variance > 0, variance, np.nan)
+
+
 def _jacobi_scaled(fisher: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(active, D, F_s)``: the parameters with information (``diag F > 0``), their
     ``D = sqrt(diag F)``, and ``F_s = D^-1 F D^-1`` on them."""
@@ -185,10 +197,8 @@ class FisherSolve:
             return out
         position = np.minimum(np.searchsorted(self.active, indices), self.active.size - 1)
         inside = self.active[position] == indices
-        rows = self.evecs[position[inside]]
-        variance = np.sum(np.where(self.keep, rows**2 / self.evals, 0.0), axis=1)
-        root = self.root[position[inside]]
-        out[inside] = np.where(variance > 0, variance / root**2, np.nan)
+        at = position[inside]
+        out[inside] = _pseudo_inverse_diagonal(self.evecs[at], self.evals, self.keep, self.root[at])
         return out
 
 
@@ -245,10 +255,7 @@ def marginal_errors(
             continue
         evals, evecs = pairs[labels[p]]
         row = evecs[np.searchsorted(blocks[labels[p]], p)]
-        keep = evals > floor
-        variance = float(np.sum(row[keep] ** 2 / evals[keep])) / root[p] ** 2
-        if variance > 0:
-            out[k] = np.sqrt(variance)
+        out[k] = np.sqrt(_pseudo_inverse_diagonal(row, evals, evals > floor, root[p]))
     return out
 
 
