@@ -879,6 +879,8 @@ class LatentInformation:
         state (the state at which the kernel is defined).
     seconds
         Time taken.
+    nuisances
+        The names of ``cross``'s columns (:func:`nuisance_names`).
 
     Why the point-source state: ``d image / d log_flux`` is the model image itself, and
     its regression onto the latent space (:func:`amigo.observables.kernel.nuisance_regression`)
@@ -893,6 +895,7 @@ class LatentInformation:
     cross: np.ndarray
     cal_hessian: np.ndarray
     seconds: float
+    nuisances: tuple[str, ...] = ()
 
 
 def latent_information(
@@ -967,7 +970,8 @@ def latent_information(
             cross += wj0 @ nuis.T
             cal_hessian += wj0 @ wj0.T
             del wj0
-    return LatentInformation(hessian, cross, cal_hessian, time.perf_counter() - start)
+    seconds = time.perf_counter() - start
+    return LatentInformation(hessian, cross, cal_hessian, seconds, tuple(names))
 
 
 # One program: op by op, the template took 0.3 s of each fit's start (docs/performance.md).

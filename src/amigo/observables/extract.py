@@ -253,6 +253,34 @@ def extract_filter(
     )
 
 
+def kernel_nuisances(
+    fit: FilterFit, information: LatentInformation
+) -> tuple[np.ndarray, list[str]]:
+    """The directions the DISCOs are made blind to: ``(G, names)``.
+
+    ``G`` (m_a + m_p, n) holds, column by column, how a fit of the calibrators' latent
+    visibilities moves for a unit error in each nuisance of ``information`` (named by
+    :attr:`LatentInformation.nuisances`), then for the log-amplitude and the phase of
+    every envelope knot (:func:`amigo.observables.kernel.envelope_knots`), named
+    ``env_amp_<i>`` and ``env_phase_<i>`` by the knot's index among the basis's knots.
+    ``benchmarks/inner_limit.py`` selects columns by name to measure what each nuisance
+    costs the contrast limits.
+    """
+    basis = fit.setup.basis
+    assert basis is not None  # FilterFit refuses a setup without its latent basis
+    nuisance = obs.nuisance_regression(information.cal_hessian, information.cross)
+    names = list(information.nuisances)
+    # The knots the fringes do not reach are instrumental too (obs.envelope_knots): on
+    # a real null pair their calibrated phases made a false 5-sigma candidate (docs/fit.md).
+    # Scaled to the largest nuisance column so that the rank threshold keeps them.
+    outside = obs.envelope_knots(basis.knots_m(), nis.baselines_m(), nis.HOLE_FLAT_TO_FLAT_M)
+    envelope = obs.knot_nuisance(basis.latent_from_knots(), outside)
+    scale = float(np.max(np.linalg.norm(nuisance, axis=0), initial=1.0))
+    index = np.flatnonzero(outside)
+    names += [f"env_amp_{k}" for k in index] + [f"env_phase_{k}" for k in index]
+    return np.concatenate([nuisance, envelope * scale], axis=1), names
+
+
 def _calibrate(
     fit: FilterFit,
     latents: np.ndarray,
@@ -270,16 +298,7 @@ def _calibrate(
     assert basis is not None  # FilterFit refuses a setup without its latent basis
     roles = fit.target_roles()
     to_knots = basis.latent_from_knots()
-    nuisance = obs.nuisance_regression(information.cal_hessian, information.cross)
-    # The knots the fringes do not reach are instrumental too (obs.envelope_knots): on
-    # a real null pair their calibrated phases made a false 5-sigma candidate (docs/fit.md).
-    # Scaled to the largest nuisance column so that the rank threshold keeps them.
-    envelope = obs.knot_nuisance(
-        to_knots,
-        obs.envelope_knots(basis.knots_m(), nis.baselines_m(), nis.HOLE_FLAT_TO_FLAT_M),
-    )
-    scale = float(np.max(np.linalg.norm(nuisance, axis=0), initial=1.0))
-    nuisance = np.concatenate([nuisance, envelope * scale], axis=1)
+    nuisance, _ = kernel_nuisances(fit, information)
     kernel = obs.build_kernel(nuisance, basis.n_amp)
     cal_idx = [i for i, t in enumerate(fit.targets) if roles[t] == "calibrator"]
     cal_value, cal_cov = obs.combine(
