@@ -131,3 +131,94 @@ def test_an_output_folder_that_is_a_file_is_one_line(seeds, tmp_path, capsys):
                        capsys)  # fmt: skip
     check_refused(code, stderr, "out")
     assert out.read_text() == "a file, not a folder"
+
+
+def _without(seed: Path, folder: Path, extension: str | None = None, keyword: str | None = None):
+    """A copy of ``seed`` without one extension or one primary keyword."""
+    from astropy.io import fits
+
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / seed.name
+    with fits.open(seed) as hdul:
+        kept = fits.HDUList([h.copy() for h in hdul if h.name != extension])
+        if keyword:
+            del kept[0].header[keyword]
+        kept.writeto(path)
+    return path
+
+
+@pytest.mark.parametrize(
+    ("kind", "extension", "problem"),
+    [
+        ("calvis", "DISCO_MATRIX", "lacks the DISCO_MATRIX extension"),
+        ("calslope", "BADPIX", "BADPIX"),
+        ("oifits", "OI_WAVELENGTH", "OI_WAVELENGTH"),
+    ],
+)
+def test_info_validates_products_as_their_readers_do(kind, extension, problem, seeds, tmp_path,
+                                                     capsys):  # fmt: skip
+    """`amigo info` identifies *and validates* (the interface): a product the fit or the
+    search would refuse is not "ok"."""
+    bad = _without(seeds[kind], tmp_path / "in", extension=extension)
+    code, stderr = run(["info", bad], capsys)
+    check_refused(code, stderr, bad.name)
+    assert problem in stderr
+
+
+def test_detect_says_what_is_wrong_with_a_damaged_calvis(seeds, tmp_path, capsys):
+    """Not "neither a calvis nor an OIFITS file" for a truncated calvis: the reader's own
+    words; and a calvis without its FILTER keyword is refused (filters are searched by
+    name)."""
+    truncated = _damaged_copy(seeds["calvis"], REFUSED["truncated"], tmp_path / "a")
+    code, stderr = run(["detect", truncated, "--out", tmp_path / "o1"], capsys)
+    check_refused(code, stderr, truncated.name)
+    assert "truncated" in stderr
+    nameless = _without(seeds["calvis"], tmp_path / "b", keyword="FILTER")
+    code, stderr = run(["detect", nameless, "--out", tmp_path / "o2"], capsys)
+    check_refused(code, stderr, nameless.name)
+    assert "FILTER" in stderr
+
+
+def test_detect_refuses_a_copy_under_another_name(seeds, tmp_path, capsys):
+    """The same observables twice would double every chi2 gain, whatever the file name."""
+    copy = tmp_path / "copy_calvis.fits"
+    shutil.copyfile(seeds["calvis"], copy)
+    code, stderr = run(["detect", seeds["calvis"], copy, "--out", tmp_path / "o"], capsys)
+    check_refused(code, stderr, copy.name)
+    assert "given twice" in stderr and not (tmp_path / "o").exists()
+
+
+def test_fit_names_the_file_of_the_other_level(seeds, tmp_path, capsys):
+    out = tmp_path / "o"
+    code, stderr = run(["fit", "--sci", seeds["cal"], "--cal", seeds["calslope"], "--out", out],
+                       capsys)  # fmt: skip
+    check_refused(code, stderr, seeds["calslope"].name)
+    assert "one level" in stderr and not out.exists()
+
+
+@pytest.mark.parametrize(
+    ("option", "problem"),
+    [
+        (["--knots", "4"], "--knots"),
+        (["--model", "nope.npz"], "nope.npz"),
+        (["--rmax-mas", "0.5"], "--rmax-mas"),
+    ],
+)
+def test_run_checks_its_options_before_processing_raw_ramps(option, problem, seeds, tmp_path,
+                                                            capsys):  # fmt: skip
+    """Processing takes minutes on real ramps: a usage error is found before it, and no
+    calslope file is written."""
+    cal = tmp_path / "jw9_uncal.fits"
+    shutil.copyfile(seeds["uncal"], cal)
+    out = tmp_path / "o"
+    code, stderr = run(["run", "--sci", seeds["uncal"], "--cal", cal, "--out", out, *option],
+                       capsys)  # fmt: skip
+    assert code == 2 and problem in stderr and stderr.count("\n") == 1, stderr
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_negative_iteration_counts_are_usage_errors(seeds, tmp_path, capsys):
+    for option in (["--max-iterations", "-5"], ["--polish", "-1"]):
+        args = ["fit", "--sci", seeds["cal"], "--cal", seeds["calints"], "--out", tmp_path / "o"]
+        code, stderr = run([*args, *option], capsys)
+        assert code == 2 and option[0] in stderr and stderr.count("\n") == 1, stderr

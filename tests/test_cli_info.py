@@ -93,8 +93,17 @@ def test_single_bad_file_one_line_exit_2(tmp_path, kind):
 
 
 def test_usage_errors_exit_2():
-    assert run("info").returncode == 2
-    assert run("no-such-command").returncode == 2
+    """Usage errors are the interface's one line, with the command and where the usage is
+    (click alone prints the usage, a hint, a blank line and its message)."""
+    for args, words in [
+        (("info",), "amigo info: error: Missing argument"),
+        (("no-such-command",), "amigo: error: No such command"),
+        (("detect", "x_calvis.fits", "--out", "o", "--rmax-mas", "0"), "amigo detect: error:"),
+    ]:
+        result = run(*args)
+        assert result.returncode == 2, args
+        assert result.stderr.count("\n") == 1 and result.stderr.startswith(words), result.stderr
+        assert "-h: usage" in result.stderr
     result = run("--help")
     assert result.returncode == 0 and "info" in result.stdout
 
@@ -124,3 +133,11 @@ def test_info_says_how_the_archive_processed_a_level2_file(tmp_path):
     assert "10,010 DN/s" in result.stdout
     assert "MJy/sr, read in DN/s through PHOTMJSR" in result.stdout
     assert "charge-migration step ran (S_CHGMIG)" in result.stdout
+
+
+def test_steps_are_one_line_each_off_a_terminal(capsys):
+    """The interface: off a terminal, one line per step (not a start and an end line)."""
+    from amigo.progress import track
+
+    assert list(track(range(3), "process x")) == [0, 1, 2]
+    assert capsys.readouterr().err == "process x ...\n"

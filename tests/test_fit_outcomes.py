@@ -147,6 +147,14 @@ def test_failures_are_reported_per_filter_and_runs_resume(inputs, tmp_path, monk
         "sci_F480M_cal.fits": "ok",
         "cal_F480M_cal.fits": "ok",
     }
+    # Every record has every key (docs/interfaces.md): an exposure without a fit its
+    # numbers null, the fitted geometry's included.
+    contract = {"file", "role", "target", "filter", "npix", "chi2", "dof", "zscore_std",
+                "converged", "iterations", "seconds", "rotation_deg", "rotation_deg_err",
+                "anisotropy", "anisotropy_err", "skew_deg", "skew_deg_err", "scale",
+                "scale_err", "jitter_mas", "jitter_mas_err"}  # fmt: skip
+    for record in summary["exposures"]:
+        assert contract <= set(record), (record["file"], contract - set(record))
     assert sorted(_products(out)) == ["STAR-sci_F480M.oifits", "STAR-sci_F480M_calvis.fits"]
     first = _products(out)
 

@@ -73,6 +73,23 @@ def _write(path: Path, text: str) -> Path:
             "must be letters, digits",
         ),
         ("[extra]\n", "unknown table 'extra'"),
+        # Values are checked as amigo run's options are, for every target before any runs.
+        (
+            '[[target]]\nsci = ["a_cal.fits"]\ncal = ["b_cal.fits"]\ndetector = "foo"\n',
+            "target a: --detector must be one of full, linear",
+        ),
+        (
+            '[[target]]\nsci = ["a_cal.fits"]\ncal = ["b_cal.fits"]\nknots = 4\n',
+            "target a: --knots/--knot-spacing",
+        ),
+        (
+            '[options]\nrmax_mas = -5\n[[target]]\nsci = ["a_cal.fits"]\ncal = ["b_cal.fits"]\n',
+            "target a: --rmax-mas must be at least 1",
+        ),
+        (
+            '[[target]]\nsci = ["a_cal.fits"]\ncal = ["b_cal.fits"]\n',
+            "target a: ",  # the inputs' levels read from their headers: these are empty
+        ),
     ],
 )
 def test_manifest_mistakes_are_one_line_naming_the_manifest(files, text, problem, capsys):

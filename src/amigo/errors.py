@@ -37,6 +37,11 @@ class InputError(AmigoError):
         super().__init__(f"{self.path}: {self.problem}" if self.path else self.problem)
 
 
+class ReportedInputError(InputError):
+    """Bad inputs whose lines are on stderr already (one per file, from a batch that went
+    on with the other files): the command line exits with status 2 and adds no line."""
+
+
 class TooFewPixels(InputError):
     """An image with fewer usable pixels than a fit needs (every pixel flagged, say): a
     problem of one exposure, which ``amigo fit`` leaves out of a filter that has others."""

@@ -45,9 +45,10 @@ def track(items: Iterable[T], description: str, total: int | None = None) -> Ite
                 progress.advance(task)
         print(f"{description}: done", file=sys.stderr)
         return
+    # One line per step (the interface's rule off a terminal): the next step's line, or
+    # the command's end, says that this one finished.
     print(f"{description} ...", file=sys.stderr, flush=True)
     yield from items
-    print(f"{description}: done", file=sys.stderr, flush=True)
 
 
 def step(message: str) -> None:

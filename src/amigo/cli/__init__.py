@@ -23,7 +23,7 @@ import click
 
 from amigo._version import __version__
 from amigo.cachedir import enable_compilation_cache
-from amigo.errors import InputError, NumericalFailure
+from amigo.errors import InputError, NumericalFailure, ReportedInputError
 from amigo.runtime import configure_xla
 
 #: command name -> (module under amigo.cli, one-line help shown in ``amigo --help``)
@@ -73,6 +73,17 @@ def fail_input(error: InputError) -> None:
     sys.exit(2)
 
 
+def usage_line(error: click.ClickException) -> str:
+    """Click's message as the interface's one line, with where to read the usage:
+    ``amigo fit: error: Missing option '--cal'. (amigo fit -h: usage)``. Click itself
+    prints the usage, a hint and a blank line before its message."""
+    ctx = getattr(error, "ctx", None)
+    where = ctx.command_path if ctx is not None else "amigo"
+    message = " ".join(error.format_message().split())
+    hint = f" ({where} -h: usage)" if isinstance(error, click.UsageError) else ""
+    return f"{where}: error: {message}{hint}"
+
+
 def main(argv: list[str] | None = None) -> Any:
     """Entry point of the ``amigo`` console script."""
     # Compiled programs are kept between runs (amigo.cachedir): the second fit of the same
@@ -104,9 +115,11 @@ def _run(argv: list[str] | None) -> Any:
         # Not click's standalone mode: it would turn Ctrl-C into "Aborted!" and status 1.
         result = cli.main(args=args, prog_name="amigo", standalone_mode=False, obj={"argv": args})
         sys.exit(result if isinstance(result, int) else 0)
-    except click.ClickException as error:  # usage errors: click's message, status 2
-        error.show()
+    except click.ClickException as error:  # usage errors: status 2, one line
+        click.echo(usage_line(error), err=True)
         sys.exit(error.exit_code)
+    except ReportedInputError:
+        sys.exit(2)
     except InputError as error:
         fail_input(error)
     except NumericalFailure as error:  # a computation without a result, outside a filter

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import click
 
+from amigo.pipeline._detect import MIN_RMAX_MAS
+
 
 @click.command(name="detect")
 @click.argument("files", nargs=-1, required=True, type=click.Path(dir_okay=False))
@@ -16,7 +18,7 @@ import click
 )
 @click.option(
     "--rmax-mas",
-    type=click.FloatRange(min=1.0),
+    type=click.FloatRange(min=MIN_RMAX_MAS),
     default=1000.0,
     show_default=True,
     help="Search radius (mas).",

@@ -109,14 +109,14 @@ def model_options(command: FC) -> FC:
 @model_options
 @click.option(
     "--max-iterations",
-    type=int,
+    type=click.IntRange(min=0),
     default=None,
     help="Natural-gradient steps before the Levenberg-Marquardt finish (an optional first "
     "stage; none by default).",
 )
 @click.option(
     "--polish",
-    type=int,
+    type=click.IntRange(min=0),
     default=0,
     show_default=True,
     help="BFGS polish steps after the natural-gradient descent.",

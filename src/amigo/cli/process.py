@@ -81,6 +81,5 @@ def command(
         one_over_f=one_over_f,
         force=force,
     )
-    if result.failed:
-        click.echo(f"amigo: {len(result.failed)} of {len(uncal)} file(s) failed", err=True)
+    if result.failed:  # each named on its own line already: the interface's one line
         sys.exit(2)

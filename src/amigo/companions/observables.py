@@ -47,6 +47,7 @@ from amigo.companions.models import scene_visibility
 from amigo.errors import InputError
 from amigo.io.calvis import CalVis, is_calvis, read_calvis
 from amigo.io.files import require_file
+from amigo.io.jwst import open_fits
 from amigo.io.oifits import OIFits, is_oifits, read_oifits
 
 #: Observable kinds, indexed by the integers stored in :attr:`Observables.kinds`.
@@ -525,6 +526,9 @@ def load(
     if observables not in OBSERVABLE_CHOICES:
         raise ValueError(f"observables must be one of {list(OBSERVABLE_CHOICES)}")
     require_file(path, "calvis or OIFITS file")
+    # A file FITS cannot read (truncated, empty, not FITS) is refused in the reader's
+    # words: the kind tests below would only say it is neither kind.
+    open_fits(path).close()
     if is_calvis(path):
         block = from_calvis(read_calvis(path), source=path)
     elif is_oifits(path):

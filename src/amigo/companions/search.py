@@ -317,9 +317,11 @@ def _beam_search(
     finished: list[_Hypothesis] = []
     for level in range(settings.max_companions + 1):
         expansions: list[_Hypothesis] = []
-        for parent in beam:
+        for i, parent in enumerate(beam):
+            # Near-equal alternatives are searched each (aliases): which one, said.
+            which = f" (alternative {i + 1} of {len(beam)})" if len(beam) > 1 else ""
             step(
-                f"grid search {level + 1}: {grid.shape[0]}x{grid.shape[1]} positions, "
+                f"grid search {level + 1}{which}: {grid.shape[0]}x{grid.shape[1]} positions, "
                 f"{grid.step_mas:.1f} mas steps, {dataset.n_filters} filter(s)"
             )
             result, candidates = _search_one(dataset, grid, parent.fit, settings)

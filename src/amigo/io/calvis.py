@@ -230,6 +230,9 @@ def read_calvis(path: str | os.PathLike[str]) -> CalVis:
             orientation = Orientation.from_header(primary)
         except KeyError as error:
             raise InputError(path, f"orientation keywords missing ({error})") from None
+        if not str(primary.get("FILTER", "")).strip():
+            # Which filter the observables are of: filters are searched jointly, by name.
+            raise InputError(path, "calvis file lacks the FILTER keyword")
         n_sci, n_cal = _file_count(path, primary, "NSCI"), _file_count(path, primary, "NCAL")
         reserved = _reserved_keys(n_sci, n_cal)
         extra = {

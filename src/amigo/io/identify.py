@@ -18,6 +18,7 @@ from astropy.io import fits
 from amigo import niriss
 from amigo.errors import InputError
 from amigo.io import jwst
+from amigo.io.calvis import CONTENT as CALVIS_CONTENT
 from amigo.io.files import damaged
 from amigo.orientation import Orientation
 
@@ -99,6 +100,9 @@ def _summarise_exposure(path: Path) -> FileSummary:
 
 
 def _summarise_calslope(path: Path, hdul: fits.HDUList) -> FileSummary:
+    from amigo.io.calslope import read_calslope
+
+    read_calslope(path)  # validated as amigo fit reads it: InputError for what it refuses
     primary = hdul[0].header
     slope = hdul["SLOPE"]
     target = primary.get("TARGPROP") or primary.get("TARGNAME") or "UNKNOWN"
@@ -123,6 +127,9 @@ def _summarise_calslope(path: Path, hdul: fits.HDUList) -> FileSummary:
 
 
 def _summarise_calvis(path: Path, hdul: fits.HDUList) -> FileSummary:
+    from amigo.io.calvis import read_calvis
+
+    read_calvis(path)  # validated as amigo detect reads it
     primary = hdul[0].header
     target = primary.get("TARGPROP") or primary.get("TARGNAME") or "UNKNOWN"
     pa = None
@@ -150,6 +157,9 @@ def _nearest_filter(wavelengths_m: np.ndarray) -> str:
 
 
 def _summarise_oifits(path: Path, hdul: fits.HDUList) -> FileSummary:
+    from amigo.io.oifits import read_oifits
+
+    read_oifits(path)  # validated as amigo detect reads it
     names = _hdu_names(hdul)
     target = ""
     if "OI_TARGET" in names:
@@ -181,7 +191,8 @@ def summarise(path: str | os.PathLike[str]) -> FileSummary:
                 names = _hdu_names(hdul)
                 if "SLOPE" in names:
                     return _summarise_calslope(path, hdul)
-                if str(hdul[0].header.get("AMIGOPRD", "")).lower() == "calvis" or "DISCO" in names:
+                content = str(hdul[0].header.get("CONTENT", "")).strip().upper()
+                if content == CALVIS_CONTENT or "DISCO" in names:
                     return _summarise_calvis(path, hdul)
                 if names & {"OI_VIS2", "OI_T3", "OI_VIS"}:
                     return _summarise_oifits(path, hdul)

@@ -191,9 +191,11 @@ def load_instrument(path: str | os.PathLike[str]) -> Instrument:
     import json
 
     path = require_file(path, "base-model file")
+    tagged = False  # a file that says it is an instrument (format 2)
     try:
         with open(path, "rb") as stream:
-            if stream.read(len(INSTRUMENT_MAGIC)) == INSTRUMENT_MAGIC:
+            tagged = stream.read(len(INSTRUMENT_MAGIC)) == INSTRUMENT_MAGIC
+            if tagged:
                 settings = json.loads(stream.readline())
                 n_wavelengths = int(settings["n_wavelengths"])
                 if n_wavelengths < 1:
@@ -207,7 +209,13 @@ def load_instrument(path: str | os.PathLike[str]) -> Instrument:
                 like = Instrument.nominal()
             return eqx.tree_deserialise_leaves(stream, like)
     except Exception as error:  # equinox, json and int() raise several types
-        raise InputError(path, f"is not an amigo base model of this version ({error})") from None
+        if not tagged:  # any other file: equinox's message would name a leaf, not the file
+            raise InputError(
+                path, "is neither a trained base model (.npz) nor an amigo instrument file"
+            ) from None
+        raise InputError(
+            path, f"is not an amigo instrument file of this version ({error})"
+        ) from None
 
 
 class FilterSetup(eqx.Module):

@@ -41,6 +41,17 @@ class DetectResult:
         return list(self.document.get("companions", []))
 
 
+#: The smallest search radius (mas) ``--rmax-mas`` accepts.
+MIN_RMAX_MAS = 1.0
+
+
+def check_rmax(rmax_mas: float) -> None:
+    """:class:`~amigo.errors.InputError` for a search radius below :data:`MIN_RMAX_MAS`
+    (or not a number): checked before any work, by ``detect``, ``run`` and a manifest."""
+    if not rmax_mas >= MIN_RMAX_MAS:
+        raise InputError(None, f"--rmax-mas must be at least {MIN_RMAX_MAS:g} mas, not {rmax_mas}")
+
+
 def detect(
     files: Sequence[str | Path],
     out: str | Path,
@@ -78,6 +89,7 @@ def detect(
     Returns a :class:`DetectResult` (``.companions``, ``.document``, ``.result``).
     """
     options = dict(locals())  # the parameters, before any other name is bound
+    check_rmax(rmax_mas)
     settings = {k: v for k, v in options.items() if k not in ("files", "out", "force")}
     files = [str(f) for f in files]
     out = Path(out)
@@ -160,16 +172,20 @@ def _search(
     """Load, search, write the products (companions.json last, recording ``key``) and
     print the findings; return the search's DetectionResult and the companions.json
     document."""
+    import numpy as np
+
     from amigo.companions import observables as obs
     from amigo.companions import products
     from amigo.companions.search import SearchSettings, detect
     from amigo.plots import companions as plots
-    from amigo.progress import step
+    from amigo.progress import step, warn
 
     blocks = [obs.load(f, cp_correlation=cp_correlation, observables=observables) for f in files]
     _refuse_other_targets(files, blocks)
     for path, block in zip(files, blocks, strict=True):
         step(f"{path}: {block.filter_name}, {block.n_obs} observables, {block.n_uv} uv points")
+        if not np.isfinite(block.n_photons):  # a calvis file without NPHOT (not amigo's)
+            warn(f"{path}: no photon count (NPHOT): no photon-rule limit for {block.filter_name}")
     dataset = obs.Dataset.from_blocks(blocks)
     if step_mas is not None and step_mas >= rmax_mas:
         raise InputError(
@@ -232,13 +248,20 @@ def _search(
 
 def _refuse_repeats(files) -> None:
     """A file given twice would count its observables twice (every chi2 gain doubled,
-    a 3.6-sigma candidate read as 5.1): refused, as a bad input."""
-    seen: set[Path] = set()
+    a 3.6-sigma candidate read as 5.1): refused, as a bad input, whether by the same
+    path or as a copy under another name (the same content fingerprint)."""
+    from amigo.io.files import fingerprint, require_file
+
+    seen: dict[Path, str] = {}
+    contents: dict[str, str] = {}
     for path in files:
         resolved = Path(path).resolve()
         if resolved in seen:
             raise InputError(path, "is given twice")
-        seen.add(resolved)
+        content = fingerprint(require_file(path, "calvis or OIFITS file"))
+        if content in contents:
+            raise InputError(path, f"has the content of {contents[content]}: given twice")
+        seen[resolved] = contents[content] = str(path)
 
 
 def _refuse_other_targets(files, blocks) -> None:

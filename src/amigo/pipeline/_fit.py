@@ -149,6 +149,7 @@ def fit(
     out = Path(out)
     model = None if model is None else Path(model)
     check_roles(sci_paths, cal_paths, superbias_paths, first_group)
+    check_model_options(model, detector, knots, knot_spacing)
     level = _check_inputs(sci_paths, cal_paths, detector)
     grid = _grid(knots, knot_spacing)
 
@@ -320,10 +321,57 @@ def _check_inputs(sci: tuple[Path, ...], cal: tuple[Path, ...], detector: str | 
     for path, kind in kinds.items():
         if kind == "uncal":
             raise InputError(path, "is a raw ramp (uncal): run 'amigo process' first")
-    levels = {"level2" if k in LEVEL2_KINDS else k for k in kinds.values()}
-    if len(levels) > 1:
-        raise InputError(None, "mixing raw-ramp products and level-2 images in one call")
-    return levels.pop()
+    levels = {path: "level2" if k in LEVEL2_KINDS else k for path, k in kinds.items()}
+    check_one_level(levels)
+    return next(iter(levels.values()))
+
+
+#: The detector models of ``--detector``.
+DETECTORS = ("full", "linear")
+
+#: How a level reads in a message.
+_LEVEL_WORDS = {
+    "level2": "a level-2 image",
+    "calslope": "a raw-ramp product",
+    "uncal": "a raw ramp",
+}
+
+
+def check_one_level(levels: dict[Path, str]) -> None:
+    """Inputs of one call are of one level (raw ramps and their calslope products count
+    as one, ``"calslope"``, against ``"level2"``): :class:`~amigo.errors.InputError` naming
+    the first file of another level than the first file's."""
+    ramps = {"uncal": "calslope"}
+    items = [(path, ramps.get(level, level), level) for path, level in levels.items()]
+    if not items:
+        return
+    first, first_level, first_kind = items[0]
+    for path, level, kind in items[1:]:
+        if level != first_level:
+            raise InputError(
+                path,
+                f"is {_LEVEL_WORDS[kind]}, {first.name} {_LEVEL_WORDS[first_kind]}: one call "
+                "fits one level (raw ramps and their calslope files, or level-2 images)",
+            )
+
+
+def check_model_options(
+    model: str | Path | None,
+    detector: str | None,
+    knots: int | None,
+    knot_spacing: float | None,
+) -> None:
+    """The fit's model options, checked before any work (``amigo run`` and a manifest's
+    targets check them before processing raw ramps): :class:`~amigo.errors.InputError`."""
+    from amigo.io.files import require_file
+
+    if detector not in (None, *DETECTORS):
+        raise InputError(
+            None, f"--detector must be one of {', '.join(DETECTORS)}, not {detector!r}"
+        )
+    _grid(knots, knot_spacing)
+    if model is not None:
+        require_file(model, "model file")
 
 
 @dataclass(frozen=True)
@@ -401,7 +449,12 @@ def _fit_model(model: Path | None, detector: str | None, level: str) -> FitModel
     # e.g. "(trained on cal4481, simulated ...)"; "(trained on real JWST ...)" when the
     # scenario's first word only repeats the description.
     about = trained if scenario == "?" or trained.startswith(scenario) else f"{scenario}, {trained}"
-    name = f"{model.name} (trained on {about})"
+    # The model's version: its format, when it was trained and by which amigo.
+    version = (
+        f"format {record.get('format_version', '?')}, trained {record.get('date', '?')[:10]} "
+        f"with amigo {record.get('amigo_version', '?')}"
+    )
+    name = f"{model.name} ({version} on {about})"
     if level == "level2" and detector is None and base.config.data_level == "level2":
         # A model trained behind the pipeline is made for level-2 images with its
         # detector: on held-out real images it fits closer to the noise than the same
@@ -633,6 +686,10 @@ def check_roles(
     overlap = set(superbias) & (set(sci) | set(cal))
     if overlap:
         raise InputError(sorted(overlap)[0], "is given both as --superbias and as --sci/--cal")
+    from amigo.io.files import require_file
+
+    for path in superbias:  # a missing dark file is said so, before the levels' rules
+        require_file(path, "superbias file")
 
 
 def _reset_level(paths: tuple[Path, ...], level: str, fit_model: FitModel, off: bool):
@@ -707,6 +764,8 @@ def _unfitted_record(
     """The ``fit_summary.json`` record of an exposure without a fit (``status``
     ``"excluded"`` or ``"failed"``): every key of the interfaces contract, its numbers
     null (``converged`` false), and the ``problem``."""
+    from amigo.model.detector.linear import GEOMETRY_NAMES
+
     return {
         "file": file,
         "role": role,
@@ -719,6 +778,12 @@ def _unfitted_record(
         "converged": False,
         "iterations": None,
         "seconds": None,
+        # The fitted geometry's keys too (docs/interfaces.md: every key, numbers null).
+        **{
+            f"{name}{tail}": None
+            for name in (*GEOMETRY_NAMES, "jitter_mas")
+            for tail in ("", "_err")
+        },
         "status": status,
         "problem": problem,
     }

@@ -234,6 +234,26 @@ def default_workers(n_targets: int) -> int:
     return max(1, min(n_targets, runtime.cores() // 2))
 
 
+def check_target(manifest: Path, target: Target, defaults: Mapping[str, Any]) -> None:
+    """A target's options and inputs as :func:`amigo.pipeline.run` checks them before any
+    work, for every target before the first runs: a mistake in the manifest is one line
+    naming it and the target (:class:`~amigo.errors.InputError`), not a failed target
+    found an hour later."""
+    from amigo.io.jwst import data_kind
+    from amigo.pipeline._detect import check_rmax
+    from amigo.pipeline._fit import check_model_options, check_one_level
+
+    options = {**DEFAULTS, **defaults, **target.options}
+    try:
+        check_model_options(
+            options["model"], options["detector"], options["knots"], options["knot_spacing"]
+        )
+        check_rmax(options["rmax_mas"])
+        check_one_level({p: data_kind(p) for p in (*target.sci, *target.cal)})
+    except InputError as error:
+        raise InputError(manifest, f"target {target.name}: {error}") from None
+
+
 def run_manifest(
     manifest: str | os.PathLike[str],
     out: str | os.PathLike[str],
@@ -261,6 +281,8 @@ def run_manifest(
     if workers is not None and workers < 1:
         raise InputError(None, f"--workers must be at least 1, not {workers}")
     targets = read_manifest(manifest)
+    for target in targets:
+        check_target(Path(manifest), target, defaults)
     out = Path(out)
     outcomes: dict[str, TargetOutcome] = {}
     todo = []

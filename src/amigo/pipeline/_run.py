@@ -13,9 +13,15 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from amigo.errors import InputError
-from amigo.pipeline._detect import DetectResult, detect
-from amigo.pipeline._fit import FitResult, check_roles, fit
+from amigo.errors import InputError, ReportedInputError
+from amigo.pipeline._detect import DetectResult, check_rmax, detect
+from amigo.pipeline._fit import (
+    FitResult,
+    check_model_options,
+    check_one_level,
+    check_roles,
+    fit,
+)
 from amigo.pipeline._process import ProcessResult, process
 
 
@@ -70,16 +76,21 @@ def run(
     out = Path(out)
     check_roles(sci_paths, cal_paths, superbias_paths, first_group)
     one_science_target(sci_paths)
+    # Every option and the inputs' levels before any work: processing raw ramps takes
+    # minutes, and a usage error found after it would be found late.
+    check_model_options(model, detector, knots, knot_spacing)
+    check_rmax(rmax_mas)
     inputs = tuple(dict.fromkeys((*sci_paths, *cal_paths, *superbias_paths)))
-    # Raw ramps are processed; level-2 images and calslope files are slopes already
-    # (amigo fit refuses a mix of the two levels, naming the file).
-    raw = tuple(p for p in inputs if data_kind(p) == "uncal")
+    kinds = {p: data_kind(p) for p in inputs}
+    check_one_level({p: kinds[p] for p in (*sci_paths, *cal_paths)})
+    # Raw ramps are processed; level-2 images and calslope files are slopes already.
+    raw = tuple(p for p in inputs if kinds[p] == "uncal")
     processed = ProcessResult()
     if raw:
         step(f"run: processing {len(raw)} raw exposures")
         processed = process(raw, out, force=force)
     if processed.failed:  # each named on its own line already
-        raise InputError(
+        raise ReportedInputError(
             None, f"{len(processed.failed)} of {len(raw)} raw file(s) could not be processed"
         )
     slopes = {path: out / calslope_name(path) if path in raw else path for path in inputs}
