@@ -170,6 +170,9 @@ class Result:
     dmag_err: dict[str, float]
     limits: dict[str, dict[float, float]]  # method -> sep -> dmag
     seconds: float
+    #: amigo: the radius inside which its maps are masked (its inner working angle);
+    #: AMICAL's ring means leave out the same disc, so both average the same positions.
+    inner_mas: float = 0.0
 
 
 def run_amigo(sci: list[Path], cal: list[Path], out: Path, model: Path | None) -> Result:
@@ -193,12 +196,14 @@ def run_amigo(sci: list[Path], cal: list[Path], out: Path, model: Path | None) -
         step, (n_y, n_x) = hdul[0].header["STEPMAS"], hdu.data.shape
         y, x = np.indices((n_y, n_x))
         radius = step * np.hypot(x - (n_x - 1) / 2, y - (n_y - 1) / 2)
-        limits["absil ring"] = _ring_means(np.asarray(hdu.data, float), radius)
+        dmag = np.asarray(hdu.data, float)
+        limits["absil ring"] = _ring_means(dmag, radius)
+        inner = float(np.min(radius[np.isfinite(dmag)]))
     best = doc["companions"][0] if doc["companions"] else None
     if best is None:
-        return Result(None, None, None, None, {}, {}, limits, fit_s + detect_s)
+        return Result(None, None, None, None, {}, {}, limits, fit_s + detect_s, inner)
     return Result(best["sep_mas"], best["sep_err_mas"], best["pa_deg"], best["pa_err_deg"],
-                  best["dmag"], best["dmag_err"], limits, fit_s + detect_s)  # fmt: skip
+                  best["dmag"], best["dmag_err"], limits, fit_s + detect_s, inner)  # fmt: skip
 
 
 # ---------------------------------------------------------------------- AMICAL
@@ -219,7 +224,9 @@ def _amical_cube(path: Path, scratch: Path, seed: int) -> tuple[Path, np.ndarray
     return cube, bad.astype(int)
 
 
-def run_amical(sci: list[Path], cal: list[Path], out: Path, seed: int = 0) -> Result:
+def run_amical(
+    sci: list[Path], cal: list[Path], out: Path, seed: int = 0, inner_mas: float = 0.0
+) -> Result:
     import amical
 
     out.mkdir(parents=True, exist_ok=True)
@@ -244,7 +251,7 @@ def run_amical(sci: list[Path], cal: list[Path], out: Path, seed: int = 0) -> Re
     seconds = time.perf_counter() - start
     r, cr = np.asarray(limits["r"]), np.asarray(limits["cr_limit"])
     curve = {"candid": {s: float(np.interp(s, r, cr)) for s in LIMIT_SEPS}}
-    curve["mean"] = _amical_mean_limits(oifits, fit["comp"] if significant else None)
+    curve["mean"] = _amical_mean_limits(oifits, fit["comp"] if significant else None, inner_mas)
     if not significant:
         return Result(None, None, None, None, {}, {}, curve, seconds)
     best, uncer = fit["best"], fit["uncer"]
@@ -254,9 +261,12 @@ def run_amical(sci: list[Path], cal: list[Path], out: Path, seed: int = 0) -> Re
                   curve, seconds)  # fmt: skip
 
 
-def _amical_mean_limits(oifits: list[str], comp: dict | None) -> dict[float, float]:
+def _amical_mean_limits(
+    oifits: list[str], comp: dict | None, inner_mas: float = 0.0
+) -> dict[float, float]:
     """Azimuthal mean (in magnitudes) of the same Absil 3-sigma map candid_cr_limit
-    reduces by its 99th percentile, in 20-mas annuli, through virgil as AMICAL calls it."""
+    reduces by its 99th percentile, in 20-mas annuli, through virgil as AMICAL calls it
+    (positions inside ``inner_mas`` left out, as amigo's maps leave them)."""
     import jax.numpy as jnp
     from amical.analysis import legacy
     from virgil.limits import absil_limits, flux_to_delta_mag
@@ -280,7 +290,8 @@ def _amical_mean_limits(oifits: list[str], comp: dict | None) -> dict[float, flo
         flux = np.asarray(absil_limits(legacy._binary(0), data, samples, sigma=3.0))
     dmag = np.asarray(flux_to_delta_mag(flux))
     xx, yy = np.meshgrid(axis, axis, indexing="ij")
-    return _ring_means(dmag, np.hypot(xx, yy))
+    radius = np.hypot(xx, yy)
+    return _ring_means(np.where(radius >= inner_mas, dmag, np.nan), radius)
 
 
 def _ring_means(dmag: np.ndarray, radius_mas: np.ndarray) -> dict[float, float]:
@@ -369,7 +380,10 @@ def simulated(args, out: Path) -> list[dict]:
                             template, image, "SCI-STAR", "001", args.seed + i)  # fmt: skip
         tools = {"amigo": run_amigo([sci], [cal], out / f"case{i}" / "amigo", model)}
         if not args.no_amical:
-            tools["AMICAL"] = run_amical([sci], [cal], out / f"case{i}" / "amical", args.seed)
+            inner = tools["amigo"].inner_mas  # the ring means over the same positions
+            tools["AMICAL"] = run_amical(
+                [sci], [cal], out / f"case{i}" / "amical", args.seed, inner
+            )
         for tool, result in tools.items():
             print(f"{label:<22} {tool:<7} {_errors(result, case, args.filter)}  "
                   f"{_limits_text(result)}  {result.seconds:5.0f}")  # fmt: skip
@@ -387,7 +401,8 @@ def real(args, out: Path) -> list[dict]:
     truth = (ABDOR_C["sep_mas"], ABDOR_C["pa_deg"])
     tools = {"amigo": run_amigo(sci, cal, out / "amigo", None)}
     if not args.no_amical:
-        tools["AMICAL"] = run_amical(sci, cal, out / "amical", args.seed)
+        inner = tools["amigo"].inner_mas  # the ring means over the same positions
+        tools["AMICAL"] = run_amical(sci, cal, out / "amical", args.seed, inner)
     print("\nReal COM 1093: AB Dor (obs 12) against HD 37093 (obs 15), F380M/F430M/F480M; "
           "published AB Dor C 328.85 mas, 280.5 deg, dmag 4.313/4.354/4.381")  # fmt: skip
     rows = []

@@ -121,6 +121,42 @@ def test_closure_phase_covariance_from_shared_baselines(tmp_path):
     assert block.kinds == (0,) * 21 + (1,) * 15
 
 
+def test_closure_phase_covariance_without_stations_and_of_several_exposures(tmp_path):
+    """Without STA_INDEX the shared baselines are found from the triangles' coordinates
+    (the same covariance as from the stations); a file listing its triangles twice (two
+    exposures) keeps 30 independent combinations, not the 15 of one shared set of
+    baseline phases."""
+    from dataclasses import replace
+
+    path = write_sim_oifits(tmp_path / "n.oifits", np.random.default_rng(4), None)
+    t3 = read_oifits(path).t3
+    legs = np.stack(
+        [np.column_stack([t3.u1_m, t3.v1_m]), np.column_stack([t3.u2_m, t3.v2_m])], axis=1
+    )
+    by_stations = obs.baseline_closure_covariance(t3.stations, t3.wavelength_m, t3.error_rad)
+    by_coordinates = obs.baseline_closure_covariance(None, t3.wavelength_m, t3.error_rad, legs)
+    np.testing.assert_allclose(by_coordinates, by_stations, rtol=0, atol=1e-20)
+    twice = {
+        name: np.concatenate([getattr(t3, name)] * 2)
+        for name in (
+            "u1_m",
+            "v1_m",
+            "u2_m",
+            "v2_m",
+            "wavelength_m",
+            "bandwidth_m",
+            "phase_rad",
+            "error_rad",
+            "stations",
+        )
+    }
+    for stations in (twice["stations"], None):
+        block = obs.from_oifits(
+            replace(read_oifits(path), vis2=None, t3=replace(t3, **{**twice, "stations": stations}))
+        )
+        assert block.n_obs == 30, stations is None
+
+
 def test_calvis_observables_match_independent_projection(tmp_path):
     rng = np.random.default_rng(5)
     companion = (-320.0, 60.0, 0.02)
@@ -196,8 +232,9 @@ def test_silent_uv_points_are_the_largest_weak_set_within_the_bound():
 
 def test_calvis_points_beyond_the_splodges_are_left_out_within_the_bound(tmp_path):
     """A calvis file whose matrix spans knots the DISCOs barely weigh (as a fit's knot grid
-    beyond the mask's transfer function): reading it leaves them out, keeps the file's
-    longest baseline for the search, and predicts every DISCO as the whole matrix does."""
+    beyond the mask's transfer function): reading it leaves them out, takes the search's
+    longest baseline where the information ends, and predicts every DISCO as the whole
+    matrix does."""
     rng = np.random.default_rng(8)
     companion = (-150.0, 90.0, 0.05)
     path = write_sim_calvis(tmp_path / "s_F480M_calvis.fits", "F480M", [companion], rng)
@@ -216,7 +253,11 @@ def test_calvis_points_beyond_the_splodges_are_left_out_within_the_bound(tmp_pat
     every = obs.from_calvis(read_calvis(wide), str(wide), silent_tolerance=0.0)
     assert block.n_uv == n_uv and every.n_uv == n_uv + n_far
     longest = np.max(np.hypot(*(every.uv_m.T)))  # (9, 9) m, on the sky
-    assert block.max_baseline_m == every.max_baseline_m == longest
+    # The search's B_max is where the information ends, whatever points the file lists
+    # (the far ones carry ~1e-10 of it) and whichever of them are read.
+    reach = obs.information_radius_m(calvis.uv_m @ calvis.sky_to_uv, d, calvis.errors)
+    assert block.max_baseline_m == every.max_baseline_m == pytest.approx(reach, abs=1e-9)
+    assert reach < 0.8 * longest
     assert np.max(np.hypot(*(block.uv_m.T))) < 0.8 * longest
     offsets, contrasts = jnp.asarray([companion[:2]]), jnp.asarray([companion[2]])
     vis = scene_visibility(every.uv_m, every.wavelengths_m, every.weights, offsets, contrasts)
@@ -237,3 +278,15 @@ def test_select_kinds_keeps_one_type(tmp_path):
     amp = obs.load(path, observables="amplitude")
     assert set(amp.kinds) == {0} and amp.n_obs == 14
     assert niriss.baselines_m().shape == (amp.n_uv, 2)
+
+
+def test_the_information_radius_ends_with_the_points_that_carry_information():
+    """A hand count: four points at 1, 2, 3 and 9 m carrying 50, 30, 19.5 and 0.5 % of
+    the whitened information: 99 % lies within 3 m, all of it within 9."""
+    uv = np.array([[1.0, 0.0], [0.0, 2.0], [3.0, 0.0], [0.0, 9.0]])
+    power = np.array([0.5, 0.3, 0.195, 0.005])
+    design = np.concatenate([np.diag(np.sqrt(power)), np.zeros((4, 4))], axis=1)
+    errors = np.ones(4)
+    assert obs.information_radius_m(uv, design, errors, 0.99) == 3.0
+    assert obs.information_radius_m(uv, design, errors, 0.999) == 9.0
+    assert obs.information_radius_m(uv, 2.0 * design, 2.0 * errors, 0.5) == 1.0

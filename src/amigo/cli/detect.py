@@ -88,7 +88,7 @@ from amigo.pipeline._detect import MIN_RMAX_MAS
     type=click.IntRange(min=0),
     default=400,
     show_default=True,
-    help="Stop drawing NUTS samples once every parameter's median and error percentiles "
+    help="Stop drawing NUTS samples once every parameter's mean and error percentiles "
     "have this effective sample size (0: draw all --samples).",
 )
 @click.option(

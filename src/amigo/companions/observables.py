@@ -65,6 +65,10 @@ COVARIANCE_RANK_TOL = 1e-9
 #: of at most this. See :func:`silent_uv_points` for what that bounds.
 SILENT_UV_TOLERANCE = 0.01
 
+#: Fraction of a calvis file's information within its longest baseline ``B_max``
+#: (:func:`information_radius_m`).
+INFORMATION_FRACTION = 0.99
+
 #: An array leaf of :class:`Observables`: NumPy as built, a JAX array where traced.
 Leaf = np.ndarray | Array
 #: A 2x2 matrix as nested tuples (hashable: static metadata).
@@ -132,8 +136,9 @@ class Observables(eqx.Module):
     photon_source: str = eqx.field(static=True, default="")
     linear: bool = eqx.field(static=True, default=False)
     sky_to_uv: Matrix2 = eqx.field(static=True, default=((1.0, 0.0), (0.0, 1.0)))
-    #: Longest baseline (m) of the file's uv points, those left out included (the inner
-    #: working angle and the grid's step are the file's, whatever amigo evaluates).
+    #: Longest baseline (m) the observables see, fixed when the file is read (the inner
+    #: working angle and the grid's step are the file's, whatever amigo evaluates): for
+    #: a calvis file its :func:`information_radius_m`, not its grid's corner.
     longest_baseline_m: float = eqx.field(static=True, default=float("nan"))
 
     # ------------------------------------------------------------------ sizes
@@ -263,6 +268,31 @@ def silent_uv_points(design: np.ndarray, errors: np.ndarray, tolerance: float) -
     return silent
 
 
+def information_radius_m(
+    uv_m: np.ndarray, design: np.ndarray, errors: np.ndarray, fraction: float = INFORMATION_FRACTION
+) -> float:
+    """The baseline length (m) within which ``fraction`` of the observables' whitened
+    information lies: the ``B_max`` of the search's step and inner working angle.
+
+    ``uv_m`` (n_uv, 2), ``design`` [n_obs, 2 n_uv], ``errors`` [n_obs]. A calvis file's
+    uv points are the fit's whole knot grid, out to its corners (9.16 m on the default
+    grid), where the DISCOs see nothing; its information ends with the mask's splodges.
+    With 0.99 this is 5.33-5.34 m on the AB Dor files and a simulated pair, against the
+    mask's longest baseline, 5.28 m (an OIFITS file's longest point): the same data give
+    one inner working angle in either format (99.9 % would be 5.69 m, the splodges' edge).
+    """
+    whitened = np.asarray(design, dtype=float) / np.asarray(errors, dtype=float)[:, None]
+    n_uv = whitened.shape[1] // 2
+    power = np.sum(whitened[:, :n_uv] ** 2, axis=0) + np.sum(whitened[:, n_uv:] ** 2, axis=0)
+    radius = np.hypot(uv_m[:, 0], uv_m[:, 1])
+    order = np.argsort(radius, kind="stable")
+    cumulative = np.cumsum(power[order])
+    if not cumulative[-1] > 0:  # no information at all: the longest point
+        return float(radius.max())
+    inside = int(np.searchsorted(cumulative, fraction * cumulative[-1]))
+    return float(radius[order][min(inside, len(order) - 1)])
+
+
 def from_calvis(
     calvis: CalVis, source: str = "", silent_tolerance: float = SILENT_UV_TOLERANCE
 ) -> Observables:
@@ -271,7 +301,7 @@ def from_calvis(
     0 leaves out only points whose columns are zero)."""
     sky_to_uv = np.asarray(calvis.sky_to_uv, dtype=float)
     uv_all = np.asarray(calvis.uv_m) @ sky_to_uv  # b_sky = S^T b, as rows
-    longest = float(np.max(np.hypot(uv_all[:, 0], uv_all[:, 1])))
+    longest = information_radius_m(uv_all, calvis.disco_matrix, calvis.errors)
     kept = ~silent_uv_points(calvis.disco_matrix, calvis.errors, silent_tolerance)
     uv_sky = uv_all[kept]
     n_uv = uv_sky.shape[0]
@@ -366,9 +396,13 @@ def from_oifits(
         kinds.append(np.full(len(i1), PHASE))
         if t3.covariance is not None:
             blocks_cov.append(t3.covariance)
-        elif cp_correlation == "baseline" and t3.stations is not None:
+        elif cp_correlation == "baseline":
+            # Without STA_INDEX the baselines are known by their coordinates.
+            legs = np.stack(
+                [np.column_stack([t3.u1_m, t3.v1_m]), np.column_stack([t3.u2_m, t3.v2_m])], axis=1
+            )
             blocks_cov.append(
-                baseline_closure_covariance(t3.stations, t3.wavelength_m, t3.error_rad)
+                baseline_closure_covariance(t3.stations, t3.wavelength_m, t3.error_rad, legs)
             )
         else:
             blocks_cov.append(np.diag(t3.error_rad**2))
@@ -417,7 +451,10 @@ def from_oifits(
 
 
 def baseline_closure_covariance(
-    stations: np.ndarray, wavelength_m: np.ndarray, error_rad: np.ndarray
+    stations: np.ndarray | None,
+    wavelength_m: np.ndarray,
+    error_rad: np.ndarray,
+    baselines_m: np.ndarray | None = None,
 ) -> np.ndarray:
     """Closure-phase covariance implied by independent noise on each baseline phase.
 
@@ -425,22 +462,53 @@ def baseline_closure_covariance(
     phases of equal variance, two closure phases sharing one baseline are correlated by
     +-1/3. The covariance is ``diag(sigma) (T T^T / 3) diag(sigma)`` with ``T`` the closure
     operator, built per spectral channel. Its rank is n_baselines - (n_holes - 1).
+
+    Baselines are known by their ``stations`` (n, 3) or, for a file without
+    ``STA_INDEX``, by their coordinates: ``baselines_m`` (n, 2, 2) holds each triangle's
+    first two baselines ``(u1, v1), (u2, v2)``, the third being their sum; coordinates
+    are compared to a millimetre, a baseline and its reverse being one (of opposite
+    phase). A triangle listed again (another exposure or integration, in one table or
+    several) starts a new set of baseline phases: the k-th listing of a triangle shares
+    baselines only with the k-th listings of the others, so that exposures are
+    independent of each other and none is projected away.
     """
     n = len(error_rad)
-    operator: dict[tuple[float, int, int], int] = {}
+    if stations is None and baselines_m is None:
+        raise ValueError("baseline_closure_covariance needs stations or baselines_m")
+    operator: dict[tuple, int] = {}
+    listed: dict[tuple, int] = {}  # a triangle -> how many times it came before
     rows = np.zeros((n, 3), dtype=int)
     signs = np.zeros((n, 3))
     for k in range(n):
-        a, b, c = (int(s) for s in stations[k])
-        for j, (p, q, sign) in enumerate(((a, b, 1.0), (b, c, 1.0), (a, c, -1.0))):
-            key = (float(wavelength_m[k]), min(p, q), max(p, q))
-            rows[k, j] = operator.setdefault(key, len(operator))
-            signs[k, j] = sign if p < q else -sign
+        wave = float(wavelength_m[k])
+        if stations is not None:
+            a, b, c = (int(x) for x in stations[k])
+            legs = [((min(p, q), max(p, q)), 1.0 if p < q else -1.0)
+                    for p, q in ((a, b), (b, c), (a, c))]  # fmt: skip
+        else:
+            assert baselines_m is not None
+            b1, b2 = np.asarray(baselines_m[k], dtype=float)
+            legs = [_baseline_key(b1), _baseline_key(b2), _baseline_key(b1 + b2)]
+        triangle = (wave, *sorted(key for key, _ in legs))
+        listing = listed.get(triangle, 0)
+        listed[triangle] = listing + 1
+        for j, ((key, sign), closure_sign) in enumerate(zip(legs, (1.0, 1.0, -1.0), strict=True)):
+            rows[k, j] = operator.setdefault((listing, wave, key), len(operator))
+            signs[k, j] = sign * closure_sign
     closure = np.zeros((n, len(operator)))
     for k in range(n):
         np.add.at(closure[k], rows[k], signs[k])
     correlation = closure @ closure.T / 3.0
     return correlation * np.outer(error_rad, error_rad)
+
+
+def _baseline_key(b: np.ndarray) -> tuple[tuple[int, int], float]:
+    """A baseline's identity, its coordinates in millimetres with the first non-zero one
+    positive, and the sign of its phase relative to that orientation."""
+    mm = (round(1e3 * float(b[0])), round(1e3 * float(b[1])))
+    if mm[0] < 0 or (mm[0] == 0 and mm[1] < 0):
+        return (-mm[0], -mm[1]), -1.0
+    return mm, 1.0
 
 
 def _whitening(

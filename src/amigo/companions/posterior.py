@@ -9,7 +9,8 @@ and run in float64, in unconstrained coordinates (each box prior through a
 sigmoid) with one compiled potential function, whose observables are arguments of the
 compiled sampling loops (so one program serves every target of the same shapes). The
 warm-up starts from Laplace's covariance as the inverse mass matrix; sampling stops once
-the medians and the error percentiles have :data:`ESS_TARGET` effective samples.
+the means (numpyro's ``n_eff``) and the error percentiles have :data:`ESS_TARGET`
+effective samples.
 
 Convergence is checked with the split R-hat and the effective sample size of every
 parameter; poor values are reported (returned and emitted as :class:`PosteriorWarning`).
@@ -35,13 +36,14 @@ R_HAT_MAX = 1.05
 ESS_MIN = 100.0
 
 #: Sampling stops early once every parameter has this effective sample size (chains
-#: together) for its median *and* for the two percentiles that give its error
+#: together) for its mean (numpyro's ``n_eff``, the bulk ESS) *and* for the two
+#: percentiles that give its error
 #: (:data:`ERROR_PERCENTILES`), with R-hat at most :data:`R_HAT_STOP`: the thresholds
 #: Vehtari et al. (2021, Bayesian Analysis 16, 667) recommend before a posterior's
-#: quantiles are reported. At 400 the Monte Carlo error of a Gaussian posterior's median
-#: is 0.06 of its standard deviation, that of each percentile 0.08, that of the error
+#: quantiles are reported. At 400 the Monte Carlo error of a Gaussian posterior's mean
+#: is 0.05 of its standard deviation, that of each percentile 0.08, that of the error
 #: (half their difference) about 5 % of itself. The percentiles' ESS is the one that
-#: binds: NUTS's draws are anti-correlated in the mean, so the median's ESS can exceed
+#: binds: NUTS's draws are anti-correlated in the mean, so the mean's ESS can exceed
 #: the number of draws while the tails' is a third of it.
 ESS_TARGET = 400
 R_HAT_STOP = 1.01
@@ -291,7 +293,7 @@ def sample_posterior(
         cost half as much and the samples change within their Monte Carlo noise
         (docs/performance.md).
     ess_target
-        Stop drawing once every parameter's effective sample size, for its median and
+        Stop drawing once every parameter's effective sample size, for its mean and
         for its error's percentiles, reaches this and its R-hat is at most
         :data:`R_HAT_STOP`, checked after the first :data:`CHUNK` samples per chain and
         then every :data:`CONTINUATION` of a chunk (at most); 0
@@ -470,8 +472,8 @@ def _percentile_ess(x: np.ndarray) -> np.ndarray:
 
 
 def _converged(stats: dict, tails: dict, ess_target: float) -> bool:
-    """Whether every parameter reaches ``ess_target`` effective samples for its median
-    (numpyro's ``summary`` of the chains so far) and its error percentiles (``tails``)
+    """Whether every parameter reaches ``ess_target`` effective samples for its mean
+    (numpyro's ``summary`` of the chains so far: ``n_eff``, the ESS of the mean) and its error percentiles (``tails``)
     with R-hat at most :data:`R_HAT_STOP`; never for a target of 0 (draw all asked)."""
     if ess_target <= 0:
         return False

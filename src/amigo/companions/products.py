@@ -136,7 +136,7 @@ def companions_document(result: DetectionResult, inputs: list[str]) -> dict[str,
         "search": {
             "rmax_mas": result.grid.rmax_mas,
             "step_mas": _r(result.grid.step_mas),
-            "inner_working_angle_mas": _r(result.detection_maps[0].iwa_mas, 2),
+            "inner_working_angle_mas": _r(result.iwa_mas, 2),
             "threshold_sigma": result.settings.threshold_sigma,
             "threshold_is": "global significance (trials of the grid included)",
             "trials": _r(result.trials, 1),

@@ -169,6 +169,10 @@ class DetectionResult:
     warnings: tuple[str, ...]
     rejected: tuple[Rejected, ...] = ()
     trials: float = 1.0
+    #: The search's inner working angle (mas): all filters' mean wavelength over twice
+    #: the longest baseline, for the rejection and the trials (each filter's maps and
+    #: curves start at its own).
+    iwa_mas: float = 0.0
 
     @property
     def sigma_scale(self) -> dict[str, float]:
@@ -723,6 +727,7 @@ def _detect(given: Dataset, settings: SearchSettings) -> DetectionResult:
         warnings=tuple(notes),
         rejected=tuple(context.rejected.values()),
         trials=context.trials,
+        iwa_mas=context.iwa_mas,
     )
 
 
