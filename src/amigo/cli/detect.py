@@ -34,7 +34,7 @@ from amigo.pipeline._detect import MIN_RMAX_MAS
     "--step-mas",
     type=click.FloatRange(min=0.1),
     default=None,
-    help="Grid step (mas); default lambda_min / (3 B_max).",
+    help="Grid step (mas); default lambda_min / (5 B_max).",
 )
 @click.option(
     "--max-companions",
