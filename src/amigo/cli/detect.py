@@ -6,6 +6,15 @@ import click
 
 from amigo.pipeline._detect import MIN_RMAX_MAS
 
+#: ``--rmax-mas``, shared by ``detect`` and ``run``.
+rmax_option = click.option(
+    "--rmax-mas",
+    type=click.FloatRange(min=MIN_RMAX_MAS),
+    default=1000.0,
+    show_default=True,
+    help="Search radius (mas).",
+)
+
 
 @click.command(name="detect")
 @click.argument("files", nargs=-1, required=True, type=click.Path(dir_okay=False))
@@ -16,13 +25,7 @@ from amigo.pipeline._detect import MIN_RMAX_MAS
     type=click.Path(file_okay=False),
     help="Output folder (created if needed).",
 )
-@click.option(
-    "--rmax-mas",
-    type=click.FloatRange(min=MIN_RMAX_MAS),
-    default=1000.0,
-    show_default=True,
-    help="Search radius (mas).",
-)
+@rmax_option
 @click.option(
     "--threshold",
     type=click.FloatRange(min=0.0, min_open=True),

@@ -18,8 +18,8 @@ from pathlib import Path
 
 import click
 
+from amigo.cli.detect import rmax_option
 from amigo.cli.fit import exposures_option, model_options, superbias_option
-from amigo.pipeline._detect import MIN_RMAX_MAS
 
 
 @click.command("run")
@@ -57,13 +57,7 @@ from amigo.pipeline._detect import MIN_RMAX_MAS
 )
 @click.option("--out", "out", required=True, type=click.Path(path_type=Path), help="Output folder.")
 @model_options
-@click.option(
-    "--rmax-mas",
-    type=click.FloatRange(min=MIN_RMAX_MAS),
-    default=1000.0,
-    show_default=True,
-    help="Search radius (mas).",
-)
+@rmax_option
 @click.option("--no-hmc", is_flag=True, help="Skip the NUTS posterior in the companion search.")
 @superbias_option(
     "Raw dark ramps (_uncal.fits) of the same detector: processed with the rest, they give "
