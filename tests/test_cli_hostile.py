@@ -222,3 +222,22 @@ def test_negative_iteration_counts_are_usage_errors(seeds, tmp_path, capsys):
         args = ["fit", "--sci", seeds["cal"], "--cal", seeds["calints"], "--out", tmp_path / "o"]
         code, stderr = run([*args, *option], capsys)
         assert code == 2 and option[0] in stderr and stderr.count("\n") == 1, stderr
+
+
+def test_levels_are_levels_whatever_the_kinds(seeds, tmp_path, capsys):
+    """A _cal and a _calints file are one level (level-2 images) for run and a manifest's
+    check as for fit; a raw ramp and a level-2 image are two, refused in one line."""
+    from amigo.io.jwst import data_kind
+    from amigo.io.manifest import Target
+    from amigo.pipeline._fit import check_one_level
+    from amigo.pipeline._manifest import check_target
+
+    check_one_level({p: data_kind(p) for p in (seeds["cal"], seeds["calints"])})
+    check_target(tmp_path / "m.toml", Target("t", (seeds["cal"],), (seeds["calints"],)), {})
+    code, stderr = run(["run", "--sci", seeds["uncal"], "--cal", seeds["cal"], "--out",
+                        tmp_path / "o"], capsys)  # fmt: skip
+    check_refused(code, stderr, seeds["cal"].name)
+    assert "a level-2 image (cal)" in stderr and stderr.count("\n") == 1
+    assert not (tmp_path / "o").exists() or not any((tmp_path / "o").iterdir())
+    with pytest.raises(Exception, match="mixes raw ramps"):
+        check_target(tmp_path / "m.toml", Target("t", (seeds["uncal"],), (seeds["calslope"],)), {})

@@ -104,6 +104,8 @@ def test_usage_errors_exit_2():
         assert result.returncode == 2, args
         assert result.stderr.count("\n") == 1 and result.stderr.startswith(words), result.stderr
         assert "-h: usage" in result.stderr
+    bare = run()  # "amigo" alone: its help as click formats it, not an error line
+    assert "Commands:" in bare.stdout + bare.stderr and "error" not in bare.stderr
     result = run("--help")
     assert result.returncode == 0 and "info" in result.stdout
 

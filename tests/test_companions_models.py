@@ -150,11 +150,31 @@ def test_closure_phase_covariance_without_stations_and_of_several_exposures(tmp_
             "stations",
         )
     }
-    for stations in (twice["stations"], None):
-        block = obs.from_oifits(
-            replace(read_oifits(path), vis2=None, t3=replace(t3, **{**twice, "stations": stations}))
-        )
-        assert block.n_obs == 30, stations is None
+    # Two exposures (their own labels), or one listing its triangles twice: 30 either way.
+    for exposure in (np.repeat([0, 1], len(t3.error_rad)), None):
+        for stations in (twice["stations"], None):
+            doubled = replace(t3, **{**twice, "stations": stations, "exposure": exposure})
+            block = obs.from_oifits(replace(read_oifits(path), vis2=None, t3=doubled))
+            assert block.n_obs == 30, (stations is None, exposure is None)
+    # A flagged entry of the first exposure does not shift the second one's baselines:
+    # the same covariance as the two exposures' own, with that entry left out.
+    keep = np.ones(2 * len(t3.error_rad), bool)
+    keep[3] = False
+    labels = np.repeat([0, 1], len(t3.error_rad))[keep]
+    legs2 = np.concatenate([legs, legs])[keep]
+    flagged = obs.baseline_closure_covariance(
+        None, twice["wavelength_m"][keep], twice["error_rad"][keep], legs2, labels
+    )
+    whole = obs.baseline_closure_covariance(
+        None, twice["wavelength_m"], twice["error_rad"], np.concatenate([legs, legs]),
+        np.repeat([0, 1], len(t3.error_rad)),
+    )  # fmt: skip
+    np.testing.assert_allclose(flagged, whole[np.ix_(keep, keep)], atol=1e-20)
+    # Coordinates rounded to a millimetre in the file: still one baseline each.
+    rounded = obs.baseline_closure_covariance(
+        None, t3.wavelength_m, t3.error_rad, np.round(legs, 3)
+    )
+    np.testing.assert_allclose(rounded, by_stations, atol=1e-20)
 
 
 def test_calvis_observables_match_independent_projection(tmp_path):

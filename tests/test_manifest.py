@@ -84,7 +84,7 @@ def _write(path: Path, text: str) -> Path:
         ),
         (
             '[options]\nrmax_mas = -5\n[[target]]\nsci = ["a_cal.fits"]\ncal = ["b_cal.fits"]\n',
-            "target a: --rmax-mas must be at least 1",
+            "target a: --rmax-mas must be a finite radius of at least 1",
         ),
         (
             '[[target]]\nsci = ["a_cal.fits"]\ncal = ["b_cal.fits"]\n',

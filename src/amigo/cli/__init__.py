@@ -115,6 +115,9 @@ def _run(argv: list[str] | None) -> Any:
         # Not click's standalone mode: it would turn Ctrl-C into "Aborted!" and status 1.
         result = cli.main(args=args, prog_name="amigo", standalone_mode=False, obj={"argv": args})
         sys.exit(result if isinstance(result, int) else 0)
+    except click.exceptions.NoArgsIsHelpError as error:  # "amigo" alone: the help itself
+        error.show()
+        sys.exit(error.exit_code)
     except click.ClickException as error:  # usage errors: status 2, one line
         click.echo(usage_line(error), err=True)
         sys.exit(error.exit_code)

@@ -348,9 +348,10 @@ def from_oifits(
     ----------
     cp_correlation
         How to treat closure phases when the file has no covariance: ``"baseline"``
-        (default) builds the correlation implied by independent baseline phases from the
-        triangles' station indices; ``"independent"`` takes them as independent (as most
-        peer tools do).
+        (default) builds the correlation implied by independent baseline phases, per
+        exposure, from the triangles' station indices or coordinates
+        (:func:`baseline_closure_covariance`); ``"independent"`` takes them as
+        independent (as most peer tools do).
     band_samples
         Wavelengths sampling each channel's ``EFF_BAND`` (top hat, equal weights).
     n_holes
@@ -402,7 +403,9 @@ def from_oifits(
                 [np.column_stack([t3.u1_m, t3.v1_m]), np.column_stack([t3.u2_m, t3.v2_m])], axis=1
             )
             blocks_cov.append(
-                baseline_closure_covariance(t3.stations, t3.wavelength_m, t3.error_rad, legs)
+                baseline_closure_covariance(
+                    t3.stations, t3.wavelength_m, t3.error_rad, legs, t3.exposure
+                )
             )
         else:
             blocks_cov.append(np.diag(t3.error_rad**2))
@@ -450,65 +453,87 @@ def from_oifits(
     )
 
 
+#: Baselines closer than this (m) are one baseline when closure phases give no station
+#: indices (:func:`baseline_closure_covariance`): files round their coordinates, and an
+#: aperture mask's baselines lie tenths of a metre apart.
+BASELINE_MATCH_M = 5e-3
+
+
 def baseline_closure_covariance(
     stations: np.ndarray | None,
     wavelength_m: np.ndarray,
     error_rad: np.ndarray,
     baselines_m: np.ndarray | None = None,
+    exposure: np.ndarray | None = None,
 ) -> np.ndarray:
     """Closure-phase covariance implied by independent noise on each baseline phase.
 
     A triangle (a, b, c) measures ``phi_ab + phi_bc - phi_ac``; with independent baseline
     phases of equal variance, two closure phases sharing one baseline are correlated by
     +-1/3. The covariance is ``diag(sigma) (T T^T / 3) diag(sigma)`` with ``T`` the closure
-    operator, built per spectral channel. Its rank is n_baselines - (n_holes - 1).
+    operator, built per spectral channel and per ``exposure`` (n,) (labels; ``None``: one
+    exposure), whose baseline phases are independent of each other's. Its rank is
+    n_baselines - (n_holes - 1) per channel and exposure.
 
-    Baselines are known by their ``stations`` (n, 3) or, for a file without
-    ``STA_INDEX``, by their coordinates: ``baselines_m`` (n, 2, 2) holds each triangle's
-    first two baselines ``(u1, v1), (u2, v2)``, the third being their sum; coordinates
-    are compared to a millimetre, a baseline and its reverse being one (of opposite
-    phase). A triangle listed again (another exposure or integration, in one table or
-    several) starts a new set of baseline phases: the k-th listing of a triangle shares
-    baselines only with the k-th listings of the others, so that exposures are
-    independent of each other and none is projected away.
+    Baselines are known by their ``stations`` (n, 3), or by their coordinates where a
+    file gives none or gives a triangle repeated stations (placeholders):
+    ``baselines_m`` (n, 2, 2) holds each triangle's first two baselines ``(u1, v1), (u2,
+    v2)``, the third being their sum, matched to a baseline seen before (or its reverse,
+    of opposite phase) within :data:`BASELINE_MATCH_M`. A triangle listed twice within
+    one exposure starts a second set of baseline phases: its k-th listing shares
+    baselines with the k-th listings of the others only.
     """
     n = len(error_rad)
-    if stations is None and baselines_m is None:
-        raise ValueError("baseline_closure_covariance needs stations or baselines_m")
+    exposure = np.zeros(n, dtype=int) if exposure is None else np.asarray(exposure)
+    by_stations = stations is not None and all(
+        len(set(np.asarray(row).tolist())) == 3 for row in stations
+    )
+    if not by_stations and baselines_m is None:
+        raise ValueError("baseline_closure_covariance needs distinct stations or baselines_m")
+    seen: dict[tuple[int, float], list[np.ndarray]] = {}  # baselines met, per group
     operator: dict[tuple, int] = {}
     listed: dict[tuple, int] = {}  # a triangle -> how many times it came before
     rows = np.zeros((n, 3), dtype=int)
     signs = np.zeros((n, 3))
+    legs: list[tuple[Any, float]]
     for k in range(n):
-        wave = float(wavelength_m[k])
-        if stations is not None:
+        group = (int(exposure[k]), float(wavelength_m[k]))
+        if by_stations:
+            assert stations is not None
             a, b, c = (int(x) for x in stations[k])
             legs = [((min(p, q), max(p, q)), 1.0 if p < q else -1.0)
                     for p, q in ((a, b), (b, c), (a, c))]  # fmt: skip
         else:
             assert baselines_m is not None
             b1, b2 = np.asarray(baselines_m[k], dtype=float)
-            legs = [_baseline_key(b1), _baseline_key(b2), _baseline_key(b1 + b2)]
-        triangle = (wave, *sorted(key for key, _ in legs))
+            known = seen.setdefault(group, [])
+            legs = [_matched_baseline(known, leg) for leg in (b1, b2, -(b1 + b2))]
+        triangle = (*group, *sorted(key for key, _ in legs))
         listing = listed.get(triangle, 0)
         listed[triangle] = listing + 1
-        for j, ((key, sign), closure_sign) in enumerate(zip(legs, (1.0, 1.0, -1.0), strict=True)):
-            rows[k, j] = operator.setdefault((listing, wave, key), len(operator))
-            signs[k, j] = sign * closure_sign
-    closure = np.zeros((n, len(operator)))
+        # T3 = V(b1) V(b2) V*(b1 + b2): the third leg's phase enters with a minus sign,
+        # which the coordinates carry in -(b1 + b2) and the stations in the order (a, c).
+        closure_signs = (1.0, 1.0, -1.0) if by_stations else (1.0, 1.0, 1.0)
+        for j, ((key, sign), closure) in enumerate(zip(legs, closure_signs, strict=True)):
+            rows[k, j] = operator.setdefault((*group, listing, key), len(operator))
+            signs[k, j] = sign * closure
+    matrix = np.zeros((n, len(operator)))
     for k in range(n):
-        np.add.at(closure[k], rows[k], signs[k])
-    correlation = closure @ closure.T / 3.0
+        np.add.at(matrix[k], rows[k], signs[k])
+    correlation = matrix @ matrix.T / 3.0
     return correlation * np.outer(error_rad, error_rad)
 
 
-def _baseline_key(b: np.ndarray) -> tuple[tuple[int, int], float]:
-    """A baseline's identity, its coordinates in millimetres with the first non-zero one
-    positive, and the sign of its phase relative to that orientation."""
-    mm = (round(1e3 * float(b[0])), round(1e3 * float(b[1])))
-    if mm[0] < 0 or (mm[0] == 0 and mm[1] < 0):
-        return (-mm[0], -mm[1]), -1.0
-    return mm, 1.0
+def _matched_baseline(known: list[np.ndarray], b: np.ndarray) -> tuple[int, float]:
+    """The index of ``b`` among the baselines ``known`` (appended if new) and the sign of
+    its phase relative to that baseline's (a reversed baseline has the opposite phase)."""
+    for i, other in enumerate(known):
+        if np.hypot(*(b - other)) < BASELINE_MATCH_M:
+            return i, 1.0
+        if np.hypot(*(b + other)) < BASELINE_MATCH_M:
+            return i, -1.0
+    known.append(np.array(b, dtype=float))
+    return len(known) - 1, 1.0
 
 
 def _whitening(

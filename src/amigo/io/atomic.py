@@ -30,8 +30,8 @@ def unwritable(path: str | os.PathLike[str] | None, error: OSError) -> InputErro
     """The one line for an output that cannot be written (``error.errno`` in
     :data:`OUTPUT_ERRNOS`), naming ``path``."""
     if error.errno in (errno.EEXIST, errno.ENOTDIR) and path is not None and Path(path).is_file():
-        # mkdir of an output folder that is a file (errno EEXIST, "File exists"), or of a
-        # folder under one (ENOTDIR): said plainly.
+        # mkdir of an output folder that is a file (errno EEXIST, "File exists"): said
+        # plainly. (A folder under a file, ENOTDIR, names the folder: "Not a directory".)
         return InputError(path, "is a file, where amigo needs a folder for its outputs")
     reason = os.strerror(error.errno) if error.errno is not None else str(error)
     return InputError(path, f"cannot be written ({reason})")

@@ -77,6 +77,10 @@ class OIT3:
     stations
         (n, 3) station indices of the triangle (labels only, to know which triangles
         share baselines), or ``None``.
+    exposure
+        (n,) which exposure each entry belongs to: its table and ``MJD`` (flagged
+        entries are left out after this is known, so that a missing triangle does not
+        shift the others), as consecutive integers.
     covariance
         (n, n) covariance in rad^2 from ``OI_CORR`` or a ``CPCOV`` HDU, or ``None``.
     """
@@ -91,6 +95,7 @@ class OIT3:
     error_rad: np.ndarray
     stations: np.ndarray | None = None
     covariance: np.ndarray | None = None
+    exposure: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -127,7 +132,8 @@ def read_oifits(path: str | os.PathLike[str]) -> OIFits:
         wavelengths = _wavelength_tables(hdul, path)
         corr = _correlation_matrix(hdul, path)
         vis2_parts = [_read_vis2(h, wavelengths, corr, path) for h in hdul if h.name == "OI_VIS2"]
-        t3_parts = [_read_t3(h, wavelengths, corr, path) for h in hdul if h.name == "OI_T3"]
+        tables = [h for h in hdul if h.name == "OI_T3"]
+        t3_parts = [_read_t3(h, wavelengths, corr, path, i) for i, h in enumerate(tables)]
         vis2 = _concat_vis2([p for p in vis2_parts if p is not None])
         t3 = _concat_t3([p for p in t3_parts if p is not None])
         if t3 is not None and t3.covariance is None and "CPCOV" in hdul:
@@ -223,7 +229,7 @@ def _read_vis2(hdu, wavelengths, corr, path) -> _Part | None:
     return _Part({k: np.asarray(a).ravel() for k, a in data.items()}, keep.ravel(), covariance)
 
 
-def _read_t3(hdu, wavelengths, corr, path) -> _Part | None:
+def _read_t3(hdu, wavelengths, corr, path, table_index: int = 0) -> _Part | None:
     table = hdu.data
     if table is None or len(table) == 0:
         return None
@@ -253,9 +259,18 @@ def _read_t3(hdu, wavelengths, corr, path) -> _Part | None:
     if "STA_INDEX" in table.columns.names:
         stations = np.asarray(table["STA_INDEX"]).reshape(n, 3)
         data["stations"] = np.repeat(stations[:, None, :], n_wl, axis=1)
+    # An exposure is a table and an MJD (OIFITS2 requires the column), known per row
+    # before flagged entries are dropped.
+    mjd = np.asarray(table["MJD"], float) if "MJD" in table.columns.names else np.zeros(n)
+    data["exposure_key"] = np.repeat(
+        np.column_stack([np.full(n, float(table_index)), np.nan_to_num(mjd)])[:, None, :],
+        n_wl,
+        axis=1,
+    )
     covariance = _covariance_from_corr(table, "CORRINDX_T3PHI", corr, error, path)
+    columns = {"stations": 3, "exposure_key": 2}  # entries of several values
     flat = {
-        k: (np.asarray(a).reshape(n * n_wl, 3) if k == "stations" else np.asarray(a).ravel())
+        k: np.asarray(a).reshape(n * n_wl, columns[k]) if k in columns else np.asarray(a).ravel()
         for k, a in data.items()
     }
     return _Part(flat, keep.ravel(), covariance)
@@ -383,7 +398,9 @@ def _concat_t3(parts: list[_Part]) -> OIT3 | None:
     if data is None:
         return None
     data.setdefault("stations", None)
-    return OIT3(**data, covariance=cov)
+    keys = data.pop("exposure_key", None)
+    exposure = None if keys is None else np.unique(keys, axis=0, return_inverse=True)[1].ravel()
+    return OIT3(**data, covariance=cov, exposure=exposure)
 
 
 def _target_name(hdul: fits.HDUList, primary: fits.Header) -> str:

@@ -48,8 +48,11 @@ MIN_RMAX_MAS = 1.0
 def check_rmax(rmax_mas: float) -> None:
     """:class:`~amigo.errors.InputError` for a search radius below :data:`MIN_RMAX_MAS`
     (or not a number): checked before any work, by ``detect``, ``run`` and a manifest."""
-    if not rmax_mas >= MIN_RMAX_MAS:
-        raise InputError(None, f"--rmax-mas must be at least {MIN_RMAX_MAS:g} mas, not {rmax_mas}")
+    if not MIN_RMAX_MAS <= rmax_mas < float("inf"):
+        raise InputError(
+            None,
+            f"--rmax-mas must be a finite radius of at least {MIN_RMAX_MAS:g} mas, not {rmax_mas}",
+        )
 
 
 def detect(
@@ -77,14 +80,14 @@ def detect(
     figures.
 
     Keywords (the command's options, defaults in brackets): ``rmax_mas`` (1000), ``threshold``
-    (5 sigma), ``step_mas`` (None: lambda_min / 3 B_max), ``max_companions`` (3),
+    (5 sigma), ``step_mas`` (None: lambda_min / 5 B_max), ``max_companions`` (3),
     ``observables`` (``"all"``, ``"phase"``, ``"amplitude"``), ``cp_correlation``
     (``"baseline"``, ``"independent"``), ``primary_diameter_mas`` (0), ``hmc`` (True),
     ``per_filter`` (True), ``warmup`` (None: 150 steps tuning the step size from
     Laplace's covariance, 500 adapting the mass matrix where that covariance is not
     available), ``samples`` (1000: the most drawn per chain), ``chains`` (2), ``seed``
     (0), ``force`` (False: keep a search of the same inputs and options), ``ess`` (400:
-    stop drawing once every parameter's median and error percentiles have this effective
+    stop drawing once every parameter's mean and error percentiles have this effective
     sample size; 0 draws all ``samples``).
     Returns a :class:`DetectResult` (``.companions``, ``.document``, ``.result``).
     """
@@ -184,8 +187,8 @@ def _search(
     _refuse_other_targets(files, blocks)
     for path, block in zip(files, blocks, strict=True):
         step(f"{path}: {block.filter_name}, {block.n_obs} observables, {block.n_uv} uv points")
-        if not np.isfinite(block.n_photons):  # a calvis file without NPHOT (not amigo's)
-            warn(f"{path}: no photon count (NPHOT): no photon-rule limit for {block.filter_name}")
+        if not np.isfinite(block.n_photons):  # a calvis without NPHOT, an OIFITS without T3
+            warn(f"{path}: no photon count: no photon-rule limit for {block.filter_name}")
     dataset = obs.Dataset.from_blocks(blocks)
     if step_mas is not None and step_mas >= rmax_mas:
         raise InputError(

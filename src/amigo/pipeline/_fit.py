@@ -321,36 +321,39 @@ def _check_inputs(sci: tuple[Path, ...], cal: tuple[Path, ...], detector: str | 
     for path, kind in kinds.items():
         if kind == "uncal":
             raise InputError(path, "is a raw ramp (uncal): run 'amigo process' first")
-    levels = {path: "level2" if k in LEVEL2_KINDS else k for path, k in kinds.items()}
-    check_one_level(levels)
-    return next(iter(levels.values()))
+    check_one_level(kinds)
+    return "level2" if next(iter(kinds.values())) in LEVEL2_KINDS else "calslope"
 
 
 #: The detector models of ``--detector``.
 DETECTORS = ("full", "linear")
 
-#: How a level reads in a message.
-_LEVEL_WORDS = {
-    "level2": "a level-2 image",
-    "calslope": "a raw-ramp product",
-    "uncal": "a raw ramp",
-}
+
+def _kind_words(kind: str) -> str:
+    """A file kind of :func:`amigo.io.jwst.data_kind` in a message."""
+    from amigo.io.jwst import LEVEL2_KINDS
+
+    if kind in LEVEL2_KINDS:
+        return f"a level-2 image ({kind})"
+    return "a raw ramp" if kind == "uncal" else "a raw-ramp product (calslope)"
 
 
-def check_one_level(levels: dict[Path, str]) -> None:
-    """Inputs of one call are of one level (raw ramps and their calslope products count
-    as one, ``"calslope"``, against ``"level2"``): :class:`~amigo.errors.InputError` naming
+def check_one_level(kinds: dict[Path, str]) -> None:
+    """Inputs of one call are of one level: level-2 images (``cal``, ``calints``,
+    ``rateints``... together), or raw ramps and their calslope products
+    (:func:`amigo.io.jwst.data_kind`'s kinds): :class:`~amigo.errors.InputError` naming
     the first file of another level than the first file's."""
-    ramps = {"uncal": "calslope"}
-    items = [(path, ramps.get(level, level), level) for path, level in levels.items()]
+    from amigo.io.jwst import LEVEL2_KINDS
+
+    items = list(kinds.items())
     if not items:
         return
-    first, first_level, first_kind = items[0]
-    for path, level, kind in items[1:]:
-        if level != first_level:
+    first, first_kind = items[0]
+    for path, kind in items[1:]:
+        if (kind in LEVEL2_KINDS) != (first_kind in LEVEL2_KINDS):
             raise InputError(
                 path,
-                f"is {_LEVEL_WORDS[kind]}, {first.name} {_LEVEL_WORDS[first_kind]}: one call "
+                f"is {_kind_words(kind)}, {first.name} {_kind_words(first_kind)}: one call "
                 "fits one level (raw ramps and their calslope files, or level-2 images)",
             )
 
@@ -451,7 +454,7 @@ def _fit_model(model: Path | None, detector: str | None, level: str) -> FitModel
     about = trained if scenario == "?" or trained.startswith(scenario) else f"{scenario}, {trained}"
     # The model's version: its format, when it was trained and by which amigo.
     version = (
-        f"format {record.get('format_version', '?')}, trained {record.get('date', '?')[:10]} "
+        f"format {record.get('format_version', '?')}, trained {str(record.get('date') or '?')[:10]} "
         f"with amigo {record.get('amigo_version', '?')}"
     )
     name = f"{model.name} ({version} on {about})"

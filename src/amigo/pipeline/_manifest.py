@@ -39,6 +39,10 @@ SUMMARY = "manifest_summary.json"
 #: The thread counts Dask caps in its workers (see :class:`_client`).
 BLAS_THREADS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
 #: Options of :func:`run_manifest`'s callers that apply to every target (the command line's).
+#: A target's raw ramps are processed with amigo run, its other files fitted as they are:
+#: one target is one or the other.
+MIXED_RAW = "mixes raw ramps (_uncal) with level-2 or calslope files"
+
 DEFAULTS: dict[str, Any] = {
     "model": None,
     "detector": None,
@@ -179,7 +183,7 @@ def run_target(
                          force=force, **settings)  # fmt: skip
             status, search = result.status, result.detect
         elif "uncal" in kinds:
-            raise InputError(None, "mixes raw ramps (_uncal) with level-2 or calslope files")
+            raise InputError(None, MIXED_RAW)
         else:
             status, search = _fit_and_detect(target, folder, settings, force)
         companions = None if search is None else len(search.companions)
@@ -243,13 +247,16 @@ def check_target(manifest: Path, target: Target, defaults: Mapping[str, Any]) ->
     from amigo.pipeline._detect import check_rmax
     from amigo.pipeline._fit import check_model_options, check_one_level
 
-    options = {**DEFAULTS, **defaults, **target.options}
+    options = _settings(target, defaults)
     try:
         check_model_options(
             options["model"], options["detector"], options["knots"], options["knot_spacing"]
         )
         check_rmax(options["rmax_mas"])
-        check_one_level({p: data_kind(p) for p in (*target.sci, *target.cal)})
+        kinds = {p: data_kind(p) for p in (*target.sci, *target.cal)}
+        check_one_level(kinds)
+        if "uncal" in kinds.values() and set(kinds.values()) != {"uncal"}:
+            raise InputError(None, MIXED_RAW)  # as run_target would, after the others ran
     except InputError as error:
         raise InputError(manifest, f"target {target.name}: {error}") from None
 
