@@ -33,7 +33,7 @@ def test_calslope_mixed_with_level2_or_full_detector_without_base_model_is_refus
     code = _run(["fit", "--sci", str(calslope), "--cal", str(cal), "--out", str(tmp_path / "o")])
     assert code == 2
     err = capsys.readouterr().err
-    assert "c_cal.fits: is a level-2 image, x_calslope.fits a raw-ramp product" in err
+    assert "c_cal.fits: is a level-2 image (cal), x_calslope.fits a raw-ramp product" in err
     assert "one level" in err and "Traceback" not in err and err.count("\n") == 1
     other = tmp_path / "y_calslope.fits"
     fits.HDUList([fits.PrimaryHDU(), fits.ImageHDU(np.zeros((2, 80, 80)), name="SLOPE")]).writeto(
