@@ -258,14 +258,21 @@ def silent_uv_points(design: np.ndarray, errors: np.ndarray, tolerance: float) -
     has 1.4-3.8 (the median). They cost the companion models as much as any other point
     and tell them nothing.
     """
-    design = np.asarray(design, dtype=float) / np.asarray(errors, dtype=float)[:, None]
-    n_uv = design.shape[1] // 2
-    power = np.sum(design[:, :n_uv] ** 2, axis=0) + np.sum(design[:, n_uv:] ** 2, axis=0)
+    power = _point_power(design, errors)
+    n_uv = power.size
     order = np.argsort(power, kind="stable")
     n_silent = int(np.searchsorted(np.cumsum(power[order]), tolerance**2, side="right"))
     silent = np.zeros(n_uv, dtype=bool)
     silent[order[: min(n_silent, n_uv - 1)]] = True  # a block keeps at least one point
     return silent
+
+
+def _point_power(design: np.ndarray, errors: np.ndarray) -> np.ndarray:
+    """(n_uv,) each uv point's whitened information: the squared norm of its two columns
+    (log-amplitude and phase) of ``design / errors`` ([n_obs, 2 n_uv], [n_obs])."""
+    whitened = np.asarray(design, dtype=float) / np.asarray(errors, dtype=float)[:, None]
+    n_uv = whitened.shape[1] // 2
+    return np.sum(whitened[:, :n_uv] ** 2, axis=0) + np.sum(whitened[:, n_uv:] ** 2, axis=0)
 
 
 def information_radius_m(
@@ -281,9 +288,7 @@ def information_radius_m(
     mask's longest baseline, 5.28 m (an OIFITS file's longest point): the same data give
     one inner working angle in either format (99.9 % would be 5.69 m, the splodges' edge).
     """
-    whitened = np.asarray(design, dtype=float) / np.asarray(errors, dtype=float)[:, None]
-    n_uv = whitened.shape[1] // 2
-    power = np.sum(whitened[:, :n_uv] ** 2, axis=0) + np.sum(whitened[:, n_uv:] ** 2, axis=0)
+    power = _point_power(design, errors)
     radius = np.hypot(uv_m[:, 0], uv_m[:, 1])
     order = np.argsort(radius, kind="stable")
     cumulative = np.cumsum(power[order])

@@ -38,11 +38,10 @@ TARGET_RECORD = "target.json"
 SUMMARY = "manifest_summary.json"
 #: The thread counts Dask caps in its workers (see :class:`_client`).
 BLAS_THREADS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
-#: Options of :func:`run_manifest`'s callers that apply to every target (the command line's).
 #: A target's raw ramps are processed with amigo run, its other files fitted as they are:
 #: one target is one or the other.
 MIXED_RAW = "mixes raw ramps (_uncal) with level-2 or calslope files"
-
+#: Options of :func:`run_manifest`'s callers that apply to every target (the command line's).
 DEFAULTS: dict[str, Any] = {
     "model": None,
     "detector": None,
@@ -243,18 +242,14 @@ def check_target(manifest: Path, target: Target, defaults: Mapping[str, Any]) ->
     work, for every target before the first runs: a mistake in the manifest is one line
     naming it and the target (:class:`~amigo.errors.InputError`), not a failed target
     found an hour later."""
-    from amigo.io.jwst import data_kind
-    from amigo.pipeline._detect import check_rmax
-    from amigo.pipeline._fit import check_model_options, check_one_level
+    from amigo.pipeline._run import check_before_work
 
-    options = _settings(target, defaults)
+    o = _settings(target, defaults)
     try:
-        check_model_options(
-            options["model"], options["detector"], options["knots"], options["knot_spacing"]
-        )
-        check_rmax(options["rmax_mas"])
-        kinds = {p: data_kind(p) for p in (*target.sci, *target.cal)}
-        check_one_level(kinds)
+        kinds = check_before_work(
+            target.sci, target.cal, o["model"], o["detector"], o["knots"], o["knot_spacing"],
+            o["rmax_mas"],
+        )  # fmt: skip
         if "uncal" in kinds.values() and set(kinds.values()) != {"uncal"}:
             raise InputError(None, MIXED_RAW)  # as run_target would, after the others ran
     except InputError as error:

@@ -76,13 +76,9 @@ def run(
     out = Path(out)
     check_roles(sci_paths, cal_paths, superbias_paths, first_group)
     one_science_target(sci_paths)
-    # Every option and the inputs' levels before any work: processing raw ramps takes
-    # minutes, and a usage error found after it would be found late.
-    check_model_options(model, detector, knots, knot_spacing)
-    check_rmax(rmax_mas)
+    kinds = check_before_work(sci_paths, cal_paths, model, detector, knots, knot_spacing, rmax_mas)
+    kinds.update({p: data_kind(p) for p in superbias_paths if p not in kinds})
     inputs = tuple(dict.fromkeys((*sci_paths, *cal_paths, *superbias_paths)))
-    kinds = {p: data_kind(p) for p in inputs}
-    check_one_level({p: kinds[p] for p in (*sci_paths, *cal_paths)})
     # Raw ramps are processed; level-2 images and calslope files are slopes already.
     raw = tuple(p for p in inputs if kinds[p] == "uncal")
     processed = ProcessResult()
@@ -118,6 +114,28 @@ def run(
     step(f"run: searching {len(calvis)} calvis file(s) for companions")
     found = detect(calvis, out, rmax_mas=rmax_mas, hmc=hmc, force=force)
     return RunResult(processed, fitted, found)
+
+
+def check_before_work(
+    sci: Sequence[Path],
+    cal: Sequence[Path],
+    model: str | Path | None,
+    detector: str | None,
+    knots: int | None,
+    knot_spacing: float | None,
+    rmax_mas: float,
+) -> dict[Path, str]:
+    """Every option and the inputs' levels, before any work (processing raw ramps takes
+    minutes: a usage error found after it would be found late), for :func:`run` and for
+    each target of a manifest before the first runs. Returns the inputs' kinds
+    (:func:`amigo.io.jwst.data_kind`); :class:`~amigo.errors.InputError` otherwise."""
+    from amigo.io.jwst import data_kind
+
+    check_model_options(model, detector, knots, knot_spacing)
+    check_rmax(rmax_mas)
+    kinds = {Path(p): data_kind(p) for p in (*sci, *cal)}
+    check_one_level(kinds)
+    return kinds
 
 
 def one_science_target(sci: Sequence[Path]) -> None:
