@@ -25,15 +25,27 @@
 #                   the latent bases of $SEED (if set) already in the cold cache, and the
 #                   results against $REFERENCE (if set: an output folder of the same
 #                   commands elsewhere, its fit_summary.json and detect/companions.json)
+# PLAN spy: where a warm three-filter fit and detection spend their time, and NUTS on the
+# host beside the GPU (AMIGO_SAMPLER_DEVICE=host):
+#   profile.log     benchmarks/profile_fit.py --platform any --runs both --spy: the stages
+#                   of a cold and a warm `amigo fit` + `amigo detect` (NUTS on), the warm
+#                   ones sampled by py-spy
+#   warm_fit.spy, warm_detect.spy   py-spy's samples (--idle, 50 Hz, raw folded stacks)
+#   lease.log       then `amigo detect` on the same products with the chains on the host,
+#                   twice (the first compiles their CPU programs), and once more with the
+#                   chains on the GPU: each line stamped, /usr/bin/time's wall and peak
+# PLAN more: after 'spy' on the same machine while it is warm, with the same WORK: the
+#   target in one process (`amigo run` on the level-2 files), a warm fit sampled with
+#   native frames (fit_native.spy), and a warm fit and detection again, each timed.
 # Each step has its own time limit, so that a slow one leaves the next their share, and
 # none runs past $DEADLINE seconds (575: the call's limit is 600).
 set -u
 DATA=${1:?usage: gpu_lease.sh DATA_DIR [batches|profile]}
 PLAN=${2:-batches}
 case $PLAN in
-batches | profile) ;;
+batches | profile | spy | more) ;;
 *)
-    echo "gpu_lease.sh: unknown plan '$PLAN' (batches or profile)" >&2
+    echo "gpu_lease.sh: unknown plan '$PLAN' (batches, profile, spy or more)" >&2
     exit 2
     ;;
 esac
@@ -43,10 +55,13 @@ LOG=$OUT/lease.log
 START=$(date +%s)
 DEADLINE=${DEADLINE:-575} # seconds after START by which every step has ended
 
+START_US=${EPOCHREALTIME/./}
 stamp() {
-    # Prefix each line with the seconds since the lease's script began.
+    # Prefix each line with the seconds since the lease's script began (to 0.1 s).
+    local us
     while IFS= read -r line; do
-        printf '%6d %s\n' "$(($(date +%s) - START))" "$line"
+        us=$((${EPOCHREALTIME/./} - START_US))
+        printf '%6d.%d %s\n' "$((us / 1000000))" "$((us % 1000000 / 100000))" "$line"
     done
 }
 
@@ -95,6 +110,47 @@ if [ "$PLAN" = profile ]; then
         $PY benchmarks/profile_fit.py --platform any --runs both \
         ${SEED:+--seed-cache "$SEED"} ${REFERENCE:+--reference "$REFERENCE"}
     wait
+    echo "lease script done after $(($(date +%s) - START)) s" | tee -a "$LOG"
+    exit 0
+fi
+
+if [ "$PLAN" = spy ] || [ "$PLAN" = more ]; then
+    # WORK: set it to keep the products and caches for a later call on the same machine.
+    WORK=${WORK:-$(mktemp -d)}
+    mkdir -p "$WORK"
+fi
+if [ "$PLAN" = more ]; then
+    # After 'spy' on the same (still warm) machine, same WORK: the whole target in one
+    # process (amigo run on the level-2 files), a warm fit sampled with native frames (what
+    # reading programs from XLA's cache costs inside XLA), and the two commands again.
+    D=$DATA
+    SCI=("$D"/jw01093012001_0310{2,3,4}_00001_nis_cal.fits)
+    CAL=("$D"/jw01093015001_0310{2,3,4}_00001_nis_cal.fits)
+    export AMIGO_CACHE_DIR=$WORK/cache
+    step "${RUN_LIMIT:-100}" "amigo run, one process" ${TIMEV[@]+"${TIMEV[@]}"} $PY -m amigo run \
+        --sci "${SCI[@]}" --cal "${CAL[@]}" --out "$WORK/run" --force
+    step "${NATIVE_LIMIT:-80}" "warm fit, native frames" "$SPY" record --idle --native -r 50 \
+        -f raw -o "$OUT/fit_native.spy" -- $PY -m amigo fit --sci "${SCI[@]}" --cal "${CAL[@]}" \
+        --out "$WORK/fit2" --force
+    step "${FIT_LIMIT:-60}" "warm fit" ${TIMEV[@]+"${TIMEV[@]}"} $PY -m amigo fit \
+        --sci "${SCI[@]}" --cal "${CAL[@]}" --out "$WORK/fit3" --force
+    step "${DETECT_LIMIT:-60}" "warm detect" ${TIMEV[@]+"${TIMEV[@]}"} $PY -m amigo detect \
+        "$WORK"/fit3/*_calvis.fits --out "$WORK/fit3/detect" --force
+    echo "lease script done after $(($(date +%s) - START)) s" | tee -a "$LOG"
+    exit 0
+fi
+if [ "$PLAN" = spy ]; then
+    STEPLOG=$OUT/profile.log step "${PROFILE_LIMIT:-470}" "cold and warm fit + detect, sampled" \
+        env SPY="$SPY" $PY benchmarks/profile_fit.py --platform any --runs both --spy "$OUT" \
+        --out "$WORK/fit" --cache "$WORK/cache" ${REFERENCE:+--reference "$REFERENCE"}
+    for run in "host (compiles)" "host" "gpu"; do
+        device=${run%% *}
+        [ "$device" = gpu ] && device=default
+        step "${DETECT_LIMIT:-60}" "detect, chains on the $run" env AMIGO_CACHE_DIR="$WORK/cache" \
+            AMIGO_SAMPLER_DEVICE=$device ${TIMEV[@]+"${TIMEV[@]}"} $PY -m amigo detect \
+            "$WORK"/fit/*_calvis.fits --out "$WORK/detect_$device" --force
+        cp "$WORK/detect_$device/companions.json" "$OUT/companions_$device.json" 2>/dev/null
+    done
     echo "lease script done after $(($(date +%s) - START)) s" | tee -a "$LOG"
     exit 0
 fi

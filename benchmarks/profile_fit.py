@@ -10,6 +10,7 @@ process's peak memory (resident set).
     python benchmarks/profile_fit.py [--filters F480M F430M F380M] [--out DIR] [--no-detect]
                                      [--no-hmc] [--runs cold|warm|both] [--wavelengths N]
                                      [--reference DIR] [--seed-cache DIR] [--platform cpu|any]
+                                     [--spy DIR] [--cache DIR]
 
 ``--wavelengths N`` fits with the shipped real-data model sampling each filter at ``N``
 wavelengths instead of its own number (:meth:`amigo.model.base.BaseModel.with_config`:
@@ -155,7 +156,11 @@ def stages(run: dict) -> list[tuple[str, float, float]]:
     return [(name, wall, comp) for name, (wall, comp) in table.items()]
 
 
-def run_command(argv: list[str], cache: Path, label: str, platform_: str = "cpu") -> dict:
+def run_command(
+    argv: list[str], cache: Path, label: str, platform_: str = "cpu", spy: Path | None = None
+) -> dict:
+    """Run ``amigo ARGV`` in a new process (under py-spy, its samples written to ``spy /
+    <label>_<command>.spy``, where ``spy`` is given) and return its timeline."""
     with tempfile.TemporaryDirectory() as folder:
         report = Path(folder) / "report.json"
         env = {**os.environ, "AMIGO_CACHE_DIR": str(cache)}
@@ -165,6 +170,10 @@ def run_command(argv: list[str], cache: Path, label: str, platform_: str = "cpu"
             env.pop("JAX_PLATFORMS", None)
         env.pop("JAX_COMPILATION_CACHE_DIR", None)
         cmd = [sys.executable, __file__, "--child", str(report), "--", *argv]
+        if spy is not None:  # every thread's samples, waits included (raw: folded stacks)
+            samples = spy / f"{label}_{argv[0]}.spy"
+            cmd = [os.environ.get("SPY", "py-spy"), "record", "--idle", "-r", "50", "-f", "raw",
+                   "-o", str(samples), "--", *cmd]  # fmt: skip
         print(f"[{label}] amigo {' '.join(argv)}", flush=True)
         done = subprocess.run(cmd, env=env, stderr=subprocess.PIPE, text=True)
         if done.returncode != 0 or not report.is_file():
@@ -224,6 +233,21 @@ def main() -> None:
         help="copy the latent bases (basis_*.npz) of this cache folder into the cold run's "
         "empty one: a cold run without the bases' construction (a lent machine's short time)",
     )
+    parser.add_argument(
+        "--spy",
+        type=Path,
+        default=None,
+        help="sample the warm commands with py-spy ($SPY, else py-spy on the PATH) into this "
+        "folder (warm_fit.spy, warm_detect.spy)",
+    )
+    parser.add_argument(
+        "--cache",
+        type=Path,
+        default=None,
+        help="the cache folder (default: a temporary one, deleted at the end); kept for the "
+        "commands run after this benchmark. With --runs warm and a cache folder that exists, "
+        "the cold run is not made again",
+    )
     parser.add_argument("--child", type=Path, default=None, help=argparse.SUPPRESS)
     parser.add_argument("rest", nargs=argparse.REMAINDER, help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -236,7 +260,9 @@ def main() -> None:
     cal = [DATA / f"jw01093015001_{EXPOSURE[f]}_00001_nis_cal.fits" for f in args.filters]
     with tempfile.TemporaryDirectory() as scratch:
         out = args.out or Path(scratch) / "out"
-        cache = Path(scratch) / "cache"
+        cache = args.cache or Path(scratch) / "cache"
+        if args.spy is not None:
+            args.spy.mkdir(parents=True, exist_ok=True)
         if args.seed_cache is not None:
             cache.mkdir()
             for basis in sorted(args.seed_cache.glob("basis_*.npz")):
@@ -250,16 +276,20 @@ def main() -> None:
         if args.wavelengths is not None:
             print(f"wavelengths per filter: {args.wavelengths}", flush=True)
         # A warm run needs the cold one before it (it fills the caches), shown or not.
-        for label in ("cold",) if args.runs == "cold" else ("cold", "warm"):
+        labels = ("cold",) if args.runs == "cold" else ("cold", "warm")
+        if args.runs == "warm" and args.cache is not None and args.cache.is_dir():
+            labels = ("warm",)  # the caller's cache holds what the cold run would write
+        for label in labels:
             shown = args.runs in (label, "both")
             # Each table as soon as its run ends: a run cut short still reports the others.
-            run = run_command([*fit, "--force"], cache, label, args.platform)
+            spy = args.spy if label == "warm" else None
+            run = run_command([*fit, "--force"], cache, label, args.platform, spy)
             if shown:
                 print_run(f"{label} fit", run)
             if not args.no_detect:
                 calvis = sorted(out.glob("*_calvis.fits"))
                 detect = ["detect", *map(str, calvis), "--out", str(out / "detect"), *extra]
-                run = run_command(detect, cache, label, args.platform)
+                run = run_command(detect, cache, label, args.platform, spy)
                 if shown:
                     print_run(f"{label} detect", run)
             sys.stdout.flush()

@@ -388,3 +388,74 @@ def test_a_section_without_observables_stays_empty(tmp_path):
         assert padded.n_obs == -(-phases.n_obs // obs.ROW_MULTIPLE) * obs.ROW_MULTIPLE
         with pytest.raises(ValueError, match="kinds"):
             view.dataset.group_index(0)
+
+
+HOST_CHILD = """
+import sys, tempfile
+import jax
+import numpy as np
+from amigo import programs
+from amigo.companions import posterior
+import test_companions_posterior as t
+
+assert len(jax.devices()) == 2, jax.devices()
+other = jax.devices()[1]
+with jax.enable_x64(True):
+    dataset = t._dataset(__import__("pathlib").Path(tempfile.mkdtemp()))
+    best, scales = t._best_fit(dataset)
+    settings = dict(num_chains=2, seed=4, num_samples=250, ess_target=0)
+    here = posterior.sample_posterior(dataset, best, scales, **settings)
+    placed = []
+    put = programs.on_device
+    def spy(tree, device):
+        moved = put(tree, device)
+        placed.extend({d for leaf in jax.tree.leaves(moved) if isinstance(leaf, jax.Array)
+                       for d in leaf.devices()})
+        return moved
+    programs.on_device = spy
+    posterior.programs.latency_device = lambda: other  # a host device beside the default
+    there = posterior.sample_posterior(dataset, best, scales, **settings)
+assert placed and set(placed) == {other}, placed
+for name in here.samples:
+    np.testing.assert_array_equal(here.samples[name], there.samples[name])
+print("the chains on the other device drew the same samples")
+"""
+
+
+def test_the_chains_run_on_the_latency_device_with_the_same_draws():
+    """Where NUTS's chains are sent to another device (``programs.latency_device``: the
+    host beside an accelerator), their inputs are committed to it, their programs made for
+    it, and, the device being a CPU as here, the draws are the same bits. Two CPU devices
+    stand in for host and accelerator (``--xla_force_host_platform_device_count=2`` in a
+    child process, since JAX reads the flag when it starts)."""
+    import os
+    import subprocess
+    import sys
+
+    tests = os.path.dirname(os.path.abspath(__file__))
+    env = {
+        **os.environ,
+        "JAX_PLATFORMS": "cpu",
+        "XLA_FLAGS": " ".join(
+            [os.environ.get("XLA_FLAGS", ""), "--xla_force_host_platform_device_count=2"]
+        ).strip(),
+        "PYTHONPATH": os.pathsep.join([tests, os.environ.get("PYTHONPATH", "")]),
+    }
+    done = subprocess.run(
+        [sys.executable, "-c", HOST_CHILD], capture_output=True, text=True, env=env, timeout=600
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "the same samples" in done.stdout
+
+
+def test_the_sampler_device_setting_is_checked(monkeypatch):
+    """``AMIGO_SAMPLER_DEVICE`` is ``host`` or ``default``; on a CPU backend either way
+    the chains run where everything runs (no other device)."""
+    from amigo import programs
+
+    for choice in ("host", "default", ""):
+        monkeypatch.setenv("AMIGO_SAMPLER_DEVICE", choice)
+        assert programs.latency_device() is None
+    monkeypatch.setenv("AMIGO_SAMPLER_DEVICE", "gpu")
+    with pytest.raises(ValueError, match="'host' or 'default'"):
+        programs.latency_device()

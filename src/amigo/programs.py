@@ -251,6 +251,52 @@ def _config(name: str) -> Any:
     return getattr(jax.config, name)
 
 
+def _device_platform() -> str:
+    """The platform this thread's programs run on: the default device's where one is set
+    (``jax.default_device``: NUTS's chains on the host, :func:`latency_device`), else
+    the default backend's."""
+    device = _config("jax_default_device")
+    if device is None:
+        return jax.default_backend()
+    return device if isinstance(device, str) else device.platform
+
+
+#: ``AMIGO_SAMPLER_DEVICE``: where latency-bound programs (NUTS's chains) run when JAX's
+#: default backend is an accelerator: ``host`` (the CPU) or ``default`` (the accelerator).
+SAMPLER_DEVICE_VARIABLE = "AMIGO_SAMPLER_DEVICE"
+SAMPLER_DEVICE_DEFAULT = "default"
+
+
+def latency_device() -> Any | None:
+    """The CPU device, where latency-bound programs should run instead of the default
+    accelerator (``AMIGO_SAMPLER_DEVICE=host``); ``None`` where they run where JAX runs
+    everything (the default backend is the CPU, the setting is ``default``, or JAX has no
+    CPU backend in this process).
+
+    A chain of NUTS is thousands of small steps one after the other, each a handful of
+    matrix-vector products of ~1000 rows: on an accelerator each step waits on kernel
+    launches and on the while loops' conditions read back by the host
+    (docs/performance.md, "On a GPU").
+    """
+    choice = os.environ.get(SAMPLER_DEVICE_VARIABLE, "").strip() or SAMPLER_DEVICE_DEFAULT
+    if choice not in ("host", "default"):
+        raise ValueError(f"{SAMPLER_DEVICE_VARIABLE} must be 'host' or 'default', not {choice!r}")
+    if choice == "default" or jax.default_backend() == "cpu":
+        return None
+    try:
+        return jax.devices("cpu")[0]
+    except RuntimeError:  # JAX_PLATFORMS without the CPU
+        return None
+
+
+def on_device(tree: Any, device: Any | None) -> Any:
+    """``tree`` with its arrays committed to ``device`` (unchanged for ``None``); the other
+    leaves (static numbers, strings) stay as they are, so programs keep their keys."""
+    if device is None:
+        return tree
+    return jax.tree.map(lambda x: jax.device_put(x, device) if eqx.is_array(x) else x, tree)
+
+
 #: Libraries whose code is traced into amigo's programs (numpyro's NUTS, equinox's
 #: modules, NumPy's constants): a new version is a new program.
 TRACED_LIBRARIES = ("jax", "jaxlib", "numpy", "equinox", "numpyro", "optax", "optimistix")
@@ -285,7 +331,7 @@ def _environment() -> list[str]:
         f"format:{FORMAT}",
         f"source:{_source_digest()}",
         f"versions:{_versions()}",
-        f"backend:{jax.default_backend()}",
+        f"backend:{_device_platform()}",
         f"x64:{_config('jax_enable_x64')}",
         f"matmul:{_config('jax_default_matmul_precision')}",
         f"prng:{_config('jax_default_prng_impl')}",
@@ -354,8 +400,9 @@ def _read(path: Path) -> tuple[str, bytes] | None:
         return None
 
 
-#: Programs of this process by key: the deserialized export (compiled) and its output's
-#: structure, or ``None`` for a program that cannot be exported. Emptied by :func:`release`.
+#: Programs of this process by key and device: the deserialized export (compiled for the
+#: device in effect: an executable is bound to its device) and its output's structure, or
+#: ``None`` for a program that cannot be exported. Emptied by :func:`release`.
 _LOADED: dict[str, tuple[Any, Any] | None] = {}
 #: Held while a program is looked up, read or exported: threads that want the same
 #: program at once (NUTS's chains, amigo.companions.posterior) read it once. Re-entrant:
@@ -440,10 +487,11 @@ class _Program:
     def _program_locked(
         self, key: str, path: Path, treedef: Any, leaves: list[Any]
     ) -> tuple[Any, Any] | None:
-        if key in _LOADED:
-            return _LOADED[key]
+        held = f"{key}:{_config('jax_default_device')}"
+        if held in _LOADED:
+            return _LOADED[held]
         if path.with_suffix(".none").exists():
-            _LOADED[key] = None
+            _LOADED[held] = None
             return None
         stored = _read(path)
         if stored is not None:
@@ -458,7 +506,7 @@ class _Program:
                 program = self._export(treedef, leaves, path)
         else:
             program = self._export(treedef, leaves, path)
-        _LOADED[key] = program
+        _LOADED[held] = program
         return program
 
     def _export(self, treedef: Any, leaves: list[Any], path: Path) -> tuple[Any, Any] | None:
@@ -483,7 +531,11 @@ class _Program:
                 shape, dtype, weak = _aval(leaf)
                 specs.append(jax.ShapeDtypeStruct(shape, dtype, weak_type=weak))
         try:
-            exported = jax.export.export(jax.jit(flat))(*specs)
+            # Exported for the platform it will run on (the default backend's, unless a
+            # default device of another platform is set in this thread: latency_device).
+            platform = _device_platform()
+            platforms = None if platform == jax.default_backend() else [platform]
+            exported = jax.export.export(jax.jit(flat), platforms=platforms)(*specs)
             out_tree = trees[-1]
             skeleton = json.dumps(_encode(out_tree))
             if jax.tree.structure(_decode(json.loads(skeleton))) != out_tree:
@@ -520,16 +572,18 @@ def side_by_side(
     (measured on a 2-core CPU: docs/performance.md, "Work side by side"). Each call's
     results are waited for in its thread, so a caller gets finished arrays. The calls
     share only their inputs, which they must not change: their results are the same bits
-    as one after the other. The calling thread's ``jax.enable_x64`` (a per-thread
-    setting) holds in every thread. One item or none: called in this thread.
+    as one after the other. The calling thread's ``jax.enable_x64`` and
+    ``jax.default_device`` (per-thread settings) hold in every thread. One item or none:
+    called in this thread.
     """
     items = list(items)
     if len(items) < 2:
         return [function(item) for item in items]
     x64 = bool(_config("jax_enable_x64"))
+    device = _config("jax_default_device")
 
     def run(item: Any) -> Any:
-        with jax.enable_x64(x64):
+        with jax.enable_x64(x64), jax.default_device(device):
             return jax.block_until_ready(function(item))
 
     from concurrent.futures import ThreadPoolExecutor

@@ -18,6 +18,7 @@ parameter; poor values are reported (returned and emitted as :class:`PosteriorWa
 
 from __future__ import annotations
 
+import contextlib
 import warnings
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -341,13 +342,21 @@ def sample_posterior(
             num_warmup = WARMUP_ADAPTIVE if inverse_mass is None else WARMUP_LAPLACE
         mass = None if inverse_mass is None else jnp.asarray(inverse_mass)
         keys = jax.random.split(jax.random.PRNGKey(seed), num_chains)
+        # On an accelerator the chains may run on the host (programs.latency_device):
+        # their inputs are committed there, and their programs made for it.
+        device = programs.latency_device()
+        inputs = programs.on_device((evaluated.dataset, evaluated.groups, boxes, mass), device)
 
         def run(starts: list, n: int) -> tuple[dict[str, np.ndarray], list]:
             """Every chain's next ``n`` draws from ``starts``: (chains, n, ...) per site in
             the physical box, and the chains' last states."""
-            common = (evaluated.dataset, evaluated.groups, boxes, diameter, mass, num_warmup, n)
+            dataset_, groups_, boxes_, mass_ = inputs
+            common = (dataset_, groups_, boxes_, diameter, mass_, num_warmup, n)
             # Side by side in threads: each chain alone leaves a 2-core CPU a third idle.
-            results = programs.side_by_side(lambda start: _nuts_draws(start, *common), starts)
+            with contextlib.nullcontext() if device is None else jax.default_device(device):
+                results = programs.side_by_side(
+                    lambda start: _nuts_draws(start, *common), programs.on_device(starts, device)
+                )
             per_chain, ends = [r[0] for r in results], [r[1] for r in results]
             boxed = {
                 name: _to_box_numpy(
