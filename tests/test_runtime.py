@@ -100,3 +100,40 @@ def test_the_installed_jaxlib_accepts_what_amigo_sets():
     known = runtime._jaxlib_minor() in runtime.FUSION_EMITTERS_JAXLIB
     assert (FUSION_EMITTERS_FLAG in out) == known
     assert (OPT_LEVEL_FLAG in out) == (known and not runtime._accelerator_plugin())
+
+
+def test_programs_carry_one_line_per_operation_unless_the_user_asks(monkeypatch):
+    """configure_xla asks JAX for short locations (a line, not a traceback, per operation:
+    XLA's GPU back end formats every frame when it loads a program); a user's setting wins."""
+    monkeypatch.delenv("JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS", raising=False)
+    runtime.short_locations()
+    assert os.environ["JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS"] == "false"
+    monkeypatch.setenv("JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS", "true")
+    runtime.short_locations()
+    assert os.environ["JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS"] == "true"
+
+
+def test_a_lowered_program_has_no_tracebacks_after_configure_xla():
+    """In a new process: a function lowered after amigo's settings has no callsite
+    locations (tracebacks) in its text, one lowered with JAX's default has them."""
+    code = (
+        "import sys\n"
+        "if sys.argv[1] == 'amigo':\n"
+        "    from amigo.runtime import configure_xla\n"
+        "    configure_xla()\n"
+        "import jax, jax.numpy as jnp\n"
+        "def inner(x):\n"
+        "    return jnp.sin(x) * 2\n"
+        "def outer(x):\n"
+        "    return inner(x) + 1\n"
+        "text = jax.jit(outer).lower(jnp.ones(3)).as_text(debug_info=True)\n"
+        "print(text.count('callsite('))\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS"}
+    counts = {}
+    for mode in ("amigo", "plain"):
+        done = subprocess.run(
+            [sys.executable, "-c", code, mode], capture_output=True, text=True, env=env, check=True
+        )
+        counts[mode] = int(done.stdout.split()[-1])
+    assert counts["amigo"] == 0 and counts["plain"] > 0, counts

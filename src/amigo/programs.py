@@ -333,6 +333,8 @@ def _environment() -> list[str]:
         f"versions:{_versions()}",
         f"backend:{_device_platform()}",
         f"x64:{_config('jax_enable_x64')}",
+        # Not the arithmetic, but what the program carries (amigo.runtime.short_locations).
+        f"locations:{_config('jax_include_full_tracebacks_in_locations')}",
         f"matmul:{_config('jax_default_matmul_precision')}",
         f"prng:{_config('jax_default_prng_impl')}",
         f"promotion:{_config('jax_numpy_dtype_promotion')}:{_config('jax_numpy_rank_promotion')}",
