@@ -287,3 +287,38 @@ def test_a_file_twice_or_two_targets_are_refused(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert "b_F430M_calvis.fits: is of target 'OTHER'" in err and "one target at a time" in err
     assert len(err.splitlines()) == 1 and not out.exists()
+
+
+def test_products_of_one_science_exposure_are_refused_together(tmp_path, capsys):
+    """A fit's calvis and OIFITS files, or the calvis files of two fits of one exposure
+    (against two calibrators), hold the same photons: searched together their information
+    would count twice. Refused (one line naming the file and the exposure, exit 2,
+    nothing written) where the files name their science exposures, as amigo's do."""
+    from amigo.io.oifits_write import write_oifits
+
+    rng = np.random.default_rng(5)
+    one = write_sim_calvis(tmp_path / "a_F480M_calvis.fits", "F480M", [], rng)
+    # The same exposure calibrated against another star: other DISCOs, the same photons.
+    again = write_sim_calvis(tmp_path / "b_F480M_calvis.fits", "F480M", [], rng)
+    out = tmp_path / "out"
+    assert run([str(one), str(again), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "b_F480M_calvis.fits: was made from the science exposure jw_sim_F480M_cal.fits" in err
+    assert "count twice" in err and len(err.splitlines()) == 1 and not out.exists()
+
+    oifits = write_oifits(
+        tmp_path / "a_F480M.oifits",
+        target="SIM-STAR",
+        filter_name="F480M",
+        wavelength_m=4.8e-6,
+        bandwidth_m=3e-7,
+        log_amp=np.zeros(21),
+        phase_rad=np.zeros(21),
+        covariance=1e-6 * np.eye(42),
+        sky_to_uv=np.eye(2),
+        science_files=["jw_sim_F480M_cal.fits"],
+    )
+    assert run([str(one), str(oifits), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "a_F480M.oifits: was made from the science exposure jw_sim_F480M_cal.fits" in err
+    assert not out.exists()

@@ -18,6 +18,7 @@ from __future__ import annotations
 import datetime as _dt
 import itertools
 import os
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -84,11 +85,16 @@ def write_oifits(
     date_obs: str = "",
     mjd: float = 0.0,
     int_time_s: float = 0.0,
+    science_files: Sequence[str] = (),
 ) -> Path:
     """Write calibrated visibilities of one target and filter.
 
     Parameters
     ----------
+    science_files
+        The science exposures' file names, written as ``NSCI`` and ``SCI_1``... in the
+        primary header as in a calvis file: ``amigo detect`` refuses two inputs made from
+        the same exposure (its information would count twice).
     log_amp, phase_rad
         (21,) calibrated ``log|V|`` and ``arg V`` at :func:`amigo.niriss.baselines_m`.
     covariance
@@ -134,6 +140,9 @@ def write_oifits(
     h["FILTER"] = filter_name
     h["PROCSOFT"] = f"amigo {__version__}"
     h["REFERENC"] = "AMIGO calibrated latent visibilities at the mask baselines"
+    h["NSCI"] = (len(science_files), "number of science input files")
+    for i, name in enumerate(science_files, start=1):
+        h[f"SCI_{i}"] = os.path.basename(str(name))
 
     def table(columns, name, extra):
         hdu = fits.BinTableHDU.from_columns(columns, name=name)

@@ -265,6 +265,33 @@ def _refuse_repeats(files) -> None:
         if content in contents:
             raise InputError(path, f"has the content of {contents[content]}: given twice")
         seen[resolved] = contents[content] = str(path)
+    _refuse_shared_exposures(files)
+
+
+def _refuse_shared_exposures(files) -> None:
+    """Two products of the same science exposure (a fit's calvis and OIFITS files, or
+    the calvis files of two fits of one exposure against different calibrators) hold
+    the same photons: searched together their information would count twice, as a file
+    given twice does. Refused where the files name their science exposures (``SCI_1``...
+    in the primary header: amigo's calvis and OIFITS files); other files are not checked."""
+    from astropy.io import fits
+
+    owner: dict[str, str] = {}
+    for path in files:
+        try:
+            header = fits.getheader(path, 0)
+        except (OSError, ValueError):  # the readers report what is wrong with it
+            continue
+        names = {str(header[f"SCI_{i}"]) for i in range(1, int(header.get("NSCI", 0)) + 1)
+                 if f"SCI_{i}" in header}  # fmt: skip
+        for name in sorted(names):
+            if name in owner:
+                raise InputError(
+                    path,
+                    f"was made from the science exposure {name}, as {owner[name]} was: "
+                    "its information would count twice",
+                )
+            owner[name] = str(path)
 
 
 def _refuse_other_targets(files, blocks) -> None:

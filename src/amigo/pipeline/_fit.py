@@ -1048,6 +1048,7 @@ def _run_filter(
             sky_to_uv=sky_to_uv,
             date_obs=meta.date_obs,
             int_time_s=float(meta.primary_header.get("EFFEXPTM") or 0.0),
+            science_files=[e.name for e, _ in sci_items],
         )
         step(f"wrote {oifits_path}")
         written += [calvis_path.name, oifits_path.name]
