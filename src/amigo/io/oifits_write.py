@@ -141,8 +141,8 @@ def write_oifits(
     h["PROCSOFT"] = f"amigo {__version__}"
     h["REFERENC"] = "AMIGO calibrated latent visibilities at the mask baselines"
     h["NSCI"] = (len(science_files), "number of science input files")
-    for i, name in enumerate(science_files, start=1):
-        h[f"SCI_{i}"] = os.path.basename(str(name))
+    for number, name in enumerate(science_files, start=1):
+        h[f"SCI_{number}"] = os.path.basename(str(name))
 
     def table(columns, name, extra):
         hdu = fits.BinTableHDU.from_columns(columns, name=name)
