@@ -101,3 +101,37 @@ def test_creation_date_follows_source_date_epoch(monkeypatch):
     assert creation_date() == "2022-01-08"
     monkeypatch.setenv("SOURCE_DATE_EPOCH", "yesterday")
     assert creation_date() in (before, after)
+
+
+def test_the_photon_count_and_science_files_travel_with_the_file(tmp_path):
+    """amigo's OIFITS file carries the fit's photon count (NPHOT) and science files
+    (SCI_n) as its calvis file does: detection reads the count instead of estimating it
+    from the closure phases' errors (Ireland 2013's N_p = 1.5 N_h^2 / sigma_CP^2), which it
+    still does for a file without it."""
+    from astropy.io import fits
+
+    from amigo.companions.observables import from_oifits
+
+    common = dict(
+        target="AB-DOR",
+        filter_name="F480M",
+        wavelength_m=4.8e-6,
+        bandwidth_m=3e-7,
+        log_amp=np.zeros(21),
+        phase_rad=np.zeros(21),
+        covariance=1e-4 * np.eye(42),
+        sky_to_uv=np.eye(2),
+    )
+    with_count = write_oifits(
+        tmp_path / "a.oifits", science_files=["jw_a_cal.fits"], n_photons=3.2e9, **common
+    )
+    header = fits.getheader(with_count, 0)
+    assert header["NPHOT"] == 3.2e9 and (header["NSCI"], header["SCI_1"]) == (1, "jw_a_cal.fits")
+    block = from_oifits(read_oifits(with_count))
+    assert (block.n_photons, block.photon_source) == (3.2e9, "NPHOT")
+
+    without = from_oifits(read_oifits(write_oifits(tmp_path / "b.oifits", **common)))
+    assert without.photon_source == "closure-phase errors"
+    # sigma_CP of each closure phase: three baseline phases of 1e-2 rad each in quadrature
+    sigma_cp = np.sqrt(3) * 1e-2
+    np.testing.assert_allclose(without.n_photons, 1.5 * 7**2 / sigma_cp**2, rtol=1e-5)

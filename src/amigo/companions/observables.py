@@ -433,7 +433,13 @@ def from_oifits(
     wl, w = _band_sampling(np.concatenate(waves), np.concatenate(bands), band_samples)
     projection, errors, obs_kinds = _whitening(blocks_cov, np.concatenate(kinds))
     n_photons, photon_source = float("nan"), ""
-    if oi.t3 is not None:
+    try:
+        counted = float(oi.header.get("NPHOT", np.nan))
+    except (TypeError, ValueError):  # a keyword of another meaning: estimated as without
+        counted = np.nan
+    if np.isfinite(counted) and counted > 0:  # the photons the fit used (amigo's files)
+        n_photons, photon_source = counted, "NPHOT"
+    elif oi.t3 is not None:
         # Ireland (2013): sigma_CP = N_h / N_p * sqrt(1.5 N_p) => N_p = 1.5 N_h^2 / sigma_CP^2.
         sigma_cp = float(np.median(oi.t3.error_rad))
         n_photons, photon_source = 1.5 * n_holes**2 / sigma_cp**2, "closure-phase errors"

@@ -86,6 +86,7 @@ def write_oifits(
     mjd: float = 0.0,
     int_time_s: float = 0.0,
     science_files: Sequence[str] = (),
+    n_photons: float | None = None,
 ) -> Path:
     """Write calibrated visibilities of one target and filter.
 
@@ -95,6 +96,10 @@ def write_oifits(
         The science exposures' file names, written as ``NSCI`` and ``SCI_1``... in the
         primary header as in a calvis file: ``amigo detect`` refuses two inputs made from
         the same exposure (its information would count twice).
+    n_photons
+        The photons behind the science observables, written as ``NPHOT`` as in a calvis
+        file (``amigo detect``'s photon rule reads it; without it the rule estimates them
+        from the closure phases' errors).
     log_amp, phase_rad
         (21,) calibrated ``log|V|`` and ``arg V`` at :func:`amigo.niriss.baselines_m`.
     covariance
@@ -140,6 +145,8 @@ def write_oifits(
     h["FILTER"] = filter_name
     h["PROCSOFT"] = f"amigo {__version__}"
     h["REFERENC"] = "AMIGO calibrated latent visibilities at the mask baselines"
+    if n_photons is not None and np.isfinite(n_photons):
+        h["NPHOT"] = (float(n_photons), "photons used for the science observables")
     h["NSCI"] = (len(science_files), "number of science input files")
     for number, name in enumerate(science_files, start=1):
         h[f"SCI_{number}"] = os.path.basename(str(name))

@@ -1049,6 +1049,7 @@ def _run_filter(
             date_obs=meta.date_obs,
             int_time_s=float(meta.primary_header.get("EFFEXPTM") or 0.0),
             science_files=[e.name for e, _ in sci_items],
+            n_photons=photons,
         )
         step(f"wrote {oifits_path}")
         written += [calvis_path.name, oifits_path.name]
