@@ -29,16 +29,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from peers import (
-    CALIBRATOR,
-    CALIBRATOR_XY,
-    EXPOSURE,
-    SCIENCE_XY,
-    SHARED,
-    _render,
-    run_amigo,
-    write_calints,
-)
+from peers import CALIBRATOR_XY, SCIENCE_XY, _render, run_amigo, simulation_setup, write_calints
 
 SHARED_CALIBRATOR_SEED = 1000
 
@@ -52,16 +43,9 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("contrast_bias"))
     args = parser.parse_args()
 
-    from amigo.io.jwst import read_exposure
-    from amigo.model.image import Instrument, save_instrument
-
     filter_name = "F480M"
     out = args.out
-    out.mkdir(parents=True, exist_ok=True)
-    model = out / "nominal.eqx"
-    save_instrument(Instrument.nominal(), model)
-    template = SHARED / CALIBRATOR.format(EXPOSURE[filter_name])
-    orientation = read_exposure(template).meta.orientation
+    model, template, orientation = simulation_setup(out, filter_name)
     truth = (args.sep, args.pa, args.dmag)
     science = _render(filter_name, orientation, SCIENCE_XY, truth, 0)
     star = _render(filter_name, orientation, CALIBRATOR_XY, (None, None, None), 0)

@@ -239,23 +239,9 @@ def main() -> None:
 def simulated_pair(out: Path, seed: int) -> tuple[list[Path], list[Path], Path]:
     """peers.py's companion-free F480M science file and its calibrator, and the nominal
     instrument they are fitted with."""
-    from amigo.io.jwst import read_exposure
-    from amigo.model.image import Instrument, save_instrument
-    from peers import (
-        CALIBRATOR,
-        CALIBRATOR_XY,
-        EXPOSURE,
-        SCIENCE_XY,
-        SHARED,
-        _render,
-        write_calints,
-    )
+    from peers import CALIBRATOR_XY, SCIENCE_XY, _render, simulation_setup, write_calints
 
-    out.mkdir(parents=True, exist_ok=True)
-    model = out / "nominal.eqx"
-    save_instrument(Instrument.nominal(), model)
-    template = SHARED / CALIBRATOR.format(EXPOSURE["F480M"])
-    orientation = read_exposure(template).meta.orientation
+    model, template, orientation = simulation_setup(out, "F480M")
     nothing = (None, None, None)
     cal_image = _render("F480M", orientation, CALIBRATOR_XY, nothing, seed)
     cal = write_calints(out / "jw09999002001_03102_00001_nis_calints.fits", template,

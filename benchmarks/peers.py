@@ -115,6 +115,20 @@ def _render(filter_name: str, orientation, xy, companion, seed: int) -> np.ndarr
     return np.asarray(bin_pixels(jnp.asarray(rate), k), np.float64)
 
 
+def simulation_setup(out: Path, filter_name: str) -> tuple[Path, Path, Any]:
+    """For simulated pairs in ``filter_name``: the nominal instrument saved in ``out`` (what
+    they are fitted with), the real calibrator file whose headers, bad pixels and noise
+    law they borrow (:func:`write_calints`), and its orientation (for :func:`_render`)."""
+    from amigo.io.jwst import read_exposure
+    from amigo.model.image import Instrument, save_instrument
+
+    out.mkdir(parents=True, exist_ok=True)
+    model = out / "nominal.eqx"
+    save_instrument(Instrument.nominal(), model)
+    template = SHARED / CALIBRATOR.format(EXPOSURE[filter_name])
+    return model, template, read_exposure(template).meta.orientation
+
+
 def write_calints(path: Path, template: Path, image: np.ndarray, target: str, observation: str, seed: int, noise_scale: float = 1.0) -> Path:  # fmt: skip
     """A ``_calints`` file like ``template`` (its headers, bad pixels, flux scale, noise
     law and NINTS) whose integrations are ``image`` (unit flux) plus Gaussian noise
@@ -352,14 +366,7 @@ def main() -> None:
 
 
 def simulated(args, out: Path) -> list[dict]:
-    from amigo.io.jwst import read_exposure
-    from amigo.model.image import Instrument, save_instrument
-
-    out.mkdir(parents=True, exist_ok=True)
-    model = out / "nominal.eqx"
-    save_instrument(Instrument.nominal(), model)
-    template = SHARED / CALIBRATOR.format(EXPOSURE[args.filter])
-    orientation = read_exposure(template).meta.orientation
+    model, template, orientation = simulation_setup(out, args.filter)
     cal_image = _render(args.filter, orientation, CALIBRATOR_XY, (None, None, None), args.seed)
     cal = write_calints(out / "jw09999002001_03102_00001_nis_calints.fits", template, cal_image,
                         "CAL-STAR", "002", args.seed + 1000)  # fmt: skip
