@@ -40,7 +40,7 @@
 # Each step has its own time limit, so that a slow one leaves the next their share, and
 # none runs past $DEADLINE seconds (575: the call's limit is 600).
 set -u
-DATA=${1:?usage: gpu_lease.sh DATA_DIR [batches|profile]}
+DATA=${1:?usage: gpu_lease.sh DATA_DIR [batches|profile|spy|more]}
 PLAN=${2:-batches}
 case $PLAN in
 batches | profile | spy | more) ;;
@@ -55,12 +55,13 @@ LOG=$OUT/lease.log
 START=$(date +%s)
 DEADLINE=${DEADLINE:-575} # seconds after START by which every step has ended
 
-START_US=${EPOCHREALTIME/./}
+# Microseconds from bash 5's EPOCHREALTIME (its decimal point is the locale's: digits only).
+START_US=${EPOCHREALTIME//[!0-9]/}
 stamp() {
     # Prefix each line with the seconds since the lease's script began (to 0.1 s).
     local us
     while IFS= read -r line; do
-        us=$((${EPOCHREALTIME/./} - START_US))
+        us=$((${EPOCHREALTIME//[!0-9]/} - START_US))
         printf '%6d.%d %s\n' "$((us / 1000000))" "$((us % 1000000 / 100000))" "$line"
     done
 }
@@ -114,6 +115,10 @@ if [ "$PLAN" = profile ]; then
     exit 0
 fi
 
+if [ "$PLAN" = more ] && [ -z "${WORK:-}" ]; then
+    echo "gpu_lease.sh: plan 'more' needs WORK, the folder a 'spy' call left on this machine" >&2
+    exit 2
+fi
 if [ "$PLAN" = spy ] || [ "$PLAN" = more ]; then
     # WORK: set it to keep the products and caches for a later call on the same machine.
     WORK=${WORK:-$(mktemp -d)}
@@ -129,7 +134,8 @@ if [ "$PLAN" = more ]; then
     export AMIGO_CACHE_DIR=$WORK/cache
     step "${RUN_LIMIT:-100}" "amigo run, one process" ${TIMEV[@]+"${TIMEV[@]}"} $PY -m amigo run \
         --sci "${SCI[@]}" --cal "${CAL[@]}" --out "$WORK/run" --force
-    step "${NATIVE_LIMIT:-80}" "warm fit, native frames" "$SPY" record --idle --native -r 50 \
+    # Native sampling about doubles the fit's time (35 s -> over 75 s on an H200).
+    step "${NATIVE_LIMIT:-150}" "warm fit, native frames" "$SPY" record --idle --native -r 50 \
         -f raw -o "$OUT/fit_native.spy" -- $PY -m amigo fit --sci "${SCI[@]}" --cal "${CAL[@]}" \
         --out "$WORK/fit2" --force
     step "${FIT_LIMIT:-60}" "warm fit" ${TIMEV[@]+"${TIMEV[@]}"} $PY -m amigo fit \

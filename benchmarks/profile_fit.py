@@ -261,10 +261,13 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as scratch:
         out = args.out or Path(scratch) / "out"
         cache = args.cache or Path(scratch) / "cache"
+        filled = cache.is_dir() and any(cache.iterdir())
+        if filled and args.runs != "warm":
+            sys.exit(f"--cache {cache} holds a cache already: a cold run needs an empty folder")
         if args.spy is not None:
             args.spy.mkdir(parents=True, exist_ok=True)
         if args.seed_cache is not None:
-            cache.mkdir()
+            cache.mkdir(parents=True, exist_ok=True)
             for basis in sorted(args.seed_cache.glob("basis_*.npz")):
                 shutil.copy2(basis, cache / basis.name)
                 print(f"seeded the cache with {basis.name}", flush=True)
@@ -277,7 +280,7 @@ def main() -> None:
             print(f"wavelengths per filter: {args.wavelengths}", flush=True)
         # A warm run needs the cold one before it (it fills the caches), shown or not.
         labels = ("cold",) if args.runs == "cold" else ("cold", "warm")
-        if args.runs == "warm" and args.cache is not None and args.cache.is_dir():
+        if args.runs == "warm" and filled:
             labels = ("warm",)  # the caller's cache holds what the cold run would write
         for label in labels:
             shown = args.runs in (label, "both")

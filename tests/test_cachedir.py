@@ -16,6 +16,7 @@ def _env(tmp_path: Path) -> dict[str, str]:
     env = {**os.environ, "PYTHONPATH": SRC, "JAX_PLATFORMS": "cpu"}
     env.pop("JAX_COMPILATION_CACHE_DIR", None)  # the test session's own cache
     env.pop("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", None)
+    env.pop("JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS", None)  # the command line's default
     env["AMIGO_CACHE_DIR"] = str(tmp_path / "cache")
     return env
 
@@ -55,4 +56,13 @@ def test_the_command_line_creates_the_cache_folder(tmp_path):
         env=_env(tmp_path), capture_output=True, text=True,
     )  # fmt: skip
     assert run.returncode == 0, run.stderr
-    assert (tmp_path / "cache" / "xla").is_dir()
+    # One line per operation in the programs (amigo.runtime): their own folder, since
+    # JAX's cache keys a program without its locations.
+    assert (tmp_path / "cache" / "xla-lines").is_dir()
+    assert not (tmp_path / "cache" / "xla").exists()
+    env = {**_env(tmp_path / "full"), "JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS": "true"}
+    run = subprocess.run(
+        [sys.executable, "-m", "amigo", "info", "--help"], env=env, capture_output=True, text=True
+    )
+    assert run.returncode == 0, run.stderr
+    assert (tmp_path / "full" / "cache" / "xla").is_dir()

@@ -303,7 +303,7 @@ def test_products_of_one_science_exposure_are_refused_together(tmp_path, capsys)
     out = tmp_path / "out"
     assert run([str(one), str(again), "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip()
-    assert "b_F480M_calvis.fits: was made from the science exposure jw_sim_F480M_cal.fits" in err
+    assert "b_F480M_calvis.fits: was made from the science exposure jw_sim_F480M," in err
     assert "count twice" in err and len(err.splitlines()) == 1 and not out.exists()
 
     oifits = write_oifits(
@@ -316,9 +316,29 @@ def test_products_of_one_science_exposure_are_refused_together(tmp_path, capsys)
         phase_rad=np.zeros(21),
         covariance=1e-6 * np.eye(42),
         sky_to_uv=np.eye(2),
-        science_files=["jw_sim_F480M_cal.fits"],
+        # the same exposure's slopes: another product of it
+        science_files=["jw_sim_F480M_calslope.fits"],
     )
     assert run([str(one), str(oifits), "--out", str(out)]) == 2
     err = capsys.readouterr().err
-    assert "a_F480M.oifits: was made from the science exposure jw_sim_F480M_cal.fits" in err
+    assert "a_F480M.oifits: was made from the science exposure jw_sim_F480M," in err
     assert not out.exists()
+    # A damaged count of science files is the reader's to report (one line, exit 2).
+    from astropy.io import fits
+
+    fits.setval(again, "NSCI", value="abc")
+    assert run([str(again), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "b_F480M_calvis.fits: NSCI is 'abc'" in err and len(err.splitlines()) == 1
+
+
+def test_an_unknown_sampler_device_is_refused_before_the_search(tmp_path, capsys, monkeypatch):
+    """``AMIGO_SAMPLER_DEVICE`` is read only where NUTS runs: a typo is found before the
+    grid search, not after it (one line, exit 2, nothing written)."""
+    one = write_sim_calvis(tmp_path / "a_F480M_calvis.fits", "F480M", [], np.random.default_rng(1))
+    monkeypatch.setenv("AMIGO_SAMPLER_DEVICE", "gpu")
+    out = tmp_path / "out"
+    assert run([str(one), "--out", str(out), "--no-hmc"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "AMIGO_SAMPLER_DEVICE is 'gpu': expected 'default' or 'host'" in err
+    assert len(err.splitlines()) == 1 and not out.exists()

@@ -457,5 +457,5 @@ def test_the_sampler_device_setting_is_checked(monkeypatch):
         monkeypatch.setenv("AMIGO_SAMPLER_DEVICE", choice)
         assert programs.latency_device() is None
     monkeypatch.setenv("AMIGO_SAMPLER_DEVICE", "gpu")
-    with pytest.raises(ValueError, match="'host' or 'default'"):
+    with pytest.raises(ValueError, match="expected 'default' or 'host'"):
         programs.latency_device()

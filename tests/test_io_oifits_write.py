@@ -130,6 +130,13 @@ def test_the_photon_count_and_science_files_travel_with_the_file(tmp_path):
     block = from_oifits(read_oifits(with_count))
     assert (block.n_photons, block.photon_source) == (3.2e9, "NPHOT")
 
+    # Another tool's file with a keyword of that name: not read (not the standard's).
+    foreign = tmp_path / "foreign.oifits"
+    with fits.open(with_count) as hdul:
+        hdul[0].header["PROCSOFT"] = "AMICAL"
+        hdul.writeto(foreign)
+    assert from_oifits(read_oifits(foreign)).photon_source == "closure-phase errors"
+
     without = from_oifits(read_oifits(write_oifits(tmp_path / "b.oifits", **common)))
     assert without.photon_source == "closure-phase errors"
     # sigma_CP of each closure phase: three baseline phases of 1e-2 rad each in quadrature

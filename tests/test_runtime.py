@@ -103,14 +103,30 @@ def test_the_installed_jaxlib_accepts_what_amigo_sets():
 
 
 def test_programs_carry_one_line_per_operation_unless_the_user_asks(monkeypatch):
-    """configure_xla asks JAX for short locations (a line, not a traceback, per operation:
-    XLA's GPU back end formats every frame when it loads a program); a user's setting wins."""
+    """Before JAX starts, short_locations asks for one line per operation (XLA's GPU back
+    end formats every frame of a traceback when it loads a program); a user's setting
+    wins, and a process that imported JAX already keeps JAX's own."""
+    code = (
+        "import os\n"
+        "from amigo.runtime import full_tracebacks, short_locations\n"
+        "short_locations()\n"
+        "print(os.environ['JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS'], full_tracebacks())\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS"}
+    for given, expected in ((None, ["false", "False"]), ("true", ["true", "True"])):
+        if given is not None:
+            env["JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS"] = given
+        done = subprocess.run(
+            [sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True
+        )
+        assert done.stdout.split() == expected
+    # This process imported JAX: its setting is left alone, and read from JAX.
+    import jax
+
     monkeypatch.delenv("JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS", raising=False)
     runtime.short_locations()
-    assert os.environ["JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS"] == "false"
-    monkeypatch.setenv("JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS", "true")
-    runtime.short_locations()
-    assert os.environ["JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS"] == "true"
+    assert "JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS" not in os.environ
+    assert runtime.full_tracebacks() == jax.config.jax_include_full_tracebacks_in_locations
 
 
 def test_a_lowered_program_has_no_tracebacks_after_configure_xla():

@@ -30,19 +30,29 @@ def cache_dir() -> Path:
 
 
 def enable_compilation_cache() -> Path | None:
-    """Turn on JAX's persistent compilation cache in ``cache_dir() / "xla"``.
+    """Turn on JAX's persistent compilation cache in ``cache_dir() / "xla-lines"``
+    (``"xla"`` where the programs carry full tracebacks: :mod:`amigo.runtime`).
 
     A second ``amigo fit`` of the same shapes then loads its compiled programs from disk
     instead of compiling them again (minutes on a 2-core CPU). An explicit
     ``JAX_COMPILATION_CACHE_DIR`` wins (an empty value turns the cache off). JAX writes
     the entries under a file lock, so concurrent runs can share the folder.
 
+    The folder depends on what the programs carry in their locations
+    (:func:`amigo.runtime.short_locations`, asked for here first): JAX's cache keys a
+    program without them, so a folder filled with full tracebacks (``xla``, JAX's
+    default, and amigo's before 2026-11-30) would serve those to a process that asked
+    for one line per operation, and the other way round.
+
     Returns the folder in use, or ``None`` when the cache is off.
     """
     if "JAX_COMPILATION_CACHE_DIR" in os.environ:
         explicit = os.environ["JAX_COMPILATION_CACHE_DIR"]
         return Path(explicit) if explicit else None
-    folder = cache_dir() / "xla"
+    from amigo.runtime import full_tracebacks, short_locations
+
+    short_locations()
+    folder = cache_dir() / ("xla" if full_tracebacks() else "xla-lines")
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError:

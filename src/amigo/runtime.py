@@ -34,12 +34,15 @@ Programs carry one source line per operation, not a Python traceback
 the program's locations, and XLA's GPU back end formats them into its profiling
 annotations each time it loads an executable, also from its persistent cache. In a warm
 three-filter ``amigo fit`` on an H200 (2026-11-30, JAX 0.11.2), reading programs from the
-cache took 13.0 s of the fit's 47.4 s (``benchmarks/profile_fit.py``, under py-spy), and
-in native samples of another warm fit 14.1 of the 23.4 s spent loading programs were in
-``xla::gpu::ModuleAnnotations``, most of them formatting stack frames. With one line per
-operation the largest program's callsite locations go from 361 to 0; on the CPU the
-products are the same to every printed digit (AB Dor, three filters) and the warm fit's
-time reading programs is 3.0 s either way. What it saves on a GPU is not measured yet.
+cache took 10.5 s of py-spy's 45.8 s of samples (13.0 s in ``benchmarks/profile_fit.py``'s
+compile column), and in native samples of another warm fit (cut short) 14.1 of the 23.4 s
+spent loading programs were in ``xla::gpu::ModuleAnnotations``, most of them formatting
+stack frames. With one line per operation the largest program's callsite locations go
+from 361 to 0; on the CPU (fresh caches) the products are the same to every printed digit
+(AB Dor, three filters) and the warm fit's time reading programs is 3.0 s either way.
+What it saves on a GPU is not measured yet. JAX's persistent cache keys a program
+without its locations: the two settings keep their compiled programs in folders of their
+own (:func:`full_tracebacks`, :func:`amigo.cachedir.enable_compilation_cache`).
 
 This module imports neither JAX nor NumPy, so that the command line can set the flags
 before JAX reads its environment.
@@ -74,16 +77,27 @@ LOCATIONS_OPTION = "jax_include_full_tracebacks_in_locations"
 
 def short_locations() -> None:
     """Programs carry each operation's own source line, not its whole traceback (module
-    notes), unless the user set ``JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS`` (a user's
-    choice wins). Where JAX was imported already, its option is set in place."""
-    variable = LOCATIONS_OPTION.upper()
-    if variable in os.environ:
+    notes): ``JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS=false`` before JAX starts, unless
+    the user set it (a user's choice wins) or JAX is imported already (a library user's
+    process keeps its own setting)."""
+    if LOCATIONS_OPTION.upper() in os.environ or "jax" in sys.modules:
         return
-    os.environ[variable] = "false"
-    if "jax" in sys.modules:  # JAX read its environment when it was imported
+    os.environ[LOCATIONS_OPTION.upper()] = "false"
+
+
+def full_tracebacks() -> bool:
+    """Whether this process's programs carry full tracebacks in their locations: JAX's
+    option where JAX is imported, else its environment variable (JAX's default: yes).
+
+    JAX's persistent cache keys a program without its locations, so executables of both
+    settings would share entries: :func:`amigo.cachedir.enable_compilation_cache` keeps
+    them in folders of their own."""
+    if "jax" in sys.modules:
         import jax
 
-        jax.config.update(LOCATIONS_OPTION, False)
+        return bool(getattr(jax.config, LOCATIONS_OPTION))
+    value = os.environ.get(LOCATIONS_OPTION.upper(), "true").strip().lower()
+    return value in ("1", "true", "t", "yes", "y", "on")
 
 
 def fast_cpu_compile() -> bool:
@@ -159,3 +173,18 @@ def cores() -> int:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:  # no affinity on this platform (macOS)
         return max(1, os.cpu_count() or 1)
+
+
+#: Where latency-bound programs (NUTS's chains) run when JAX's default backend is an
+#: accelerator: ``host`` (the CPU) or ``default`` (the accelerator;
+#: :func:`amigo.programs.latency_device`, docs/performance.md "On a GPU, a sixth time").
+SAMPLER_DEVICE_VARIABLE = "AMIGO_SAMPLER_DEVICE"
+SAMPLER_DEVICE_CHOICES = ("default", "host")
+
+
+def sampler_device_setting() -> str:
+    """``AMIGO_SAMPLER_DEVICE`` (``default`` when unset); ``ValueError`` for another value."""
+    choice = os.environ.get(SAMPLER_DEVICE_VARIABLE, "").strip() or SAMPLER_DEVICE_CHOICES[0]
+    if choice not in SAMPLER_DEVICE_CHOICES:
+        raise ValueError(f"{SAMPLER_DEVICE_VARIABLE} is {choice!r}: expected 'default' or 'host'")
+    return choice

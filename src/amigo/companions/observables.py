@@ -433,11 +433,12 @@ def from_oifits(
     wl, w = _band_sampling(np.concatenate(waves), np.concatenate(bands), band_samples)
     projection, errors, obs_kinds = _whitening(blocks_cov, np.concatenate(kinds))
     n_photons, photon_source = float("nan"), ""
-    try:
-        counted = float(oi.header.get("NPHOT", np.nan))
-    except (TypeError, ValueError):  # a keyword of another meaning: estimated as without
+    # NPHOT is amigo's keyword (not the OIFITS standard's): read from amigo's files only,
+    # where it is the photons the fit used; another tool's may mean something else.
+    counted = oi.header.get("NPHOT") if _written_by_amigo(oi.header) else None
+    if isinstance(counted, bool) or not isinstance(counted, int | float):
         counted = np.nan
-    if np.isfinite(counted) and counted > 0:  # the photons the fit used (amigo's files)
+    if np.isfinite(counted) and counted > 0:
         n_photons, photon_source = counted, "NPHOT"
     elif oi.t3 is not None:
         # Ireland (2013): sigma_CP = N_h / N_p * sqrt(1.5 N_p) => N_p = 1.5 N_h^2 / sigma_CP^2.
@@ -468,6 +469,11 @@ def from_oifits(
 #: indices (:func:`baseline_closure_covariance`): files round their coordinates, and an
 #: aperture mask's baselines lie tenths of a metre apart.
 BASELINE_MATCH_M = 5e-3
+
+
+def _written_by_amigo(header: Any) -> bool:
+    """Whether an OIFITS primary header is amigo's (``PROCSOFT = 'amigo <version>'``)."""
+    return str(header.get("PROCSOFT", "")).strip().lower().startswith("amigo")
 
 
 def baseline_closure_covariance(

@@ -47,12 +47,20 @@ MIN_RMAX_MAS = 1.0
 
 def check_rmax(rmax_mas: float) -> None:
     """:class:`~amigo.errors.InputError` for a search radius below :data:`MIN_RMAX_MAS`
-    (or not a number): checked before any work, by ``detect``, ``run`` and a manifest."""
+    (or not a number), or an ``AMIGO_SAMPLER_DEVICE`` that is not a setting
+    (:func:`amigo.runtime.sampler_device_setting`, read only where NUTS runs): checked
+    before any work, by ``detect``, ``run`` and a manifest."""
+    from amigo.runtime import sampler_device_setting
+
     if not MIN_RMAX_MAS <= rmax_mas < float("inf"):
         raise InputError(
             None,
             f"--rmax-mas must be a finite radius of at least {MIN_RMAX_MAS:g} mas, not {rmax_mas}",
         )
+    try:
+        sampler_device_setting()
+    except ValueError as error:
+        raise InputError(None, str(error)) from None
 
 
 def detect(
@@ -273,8 +281,15 @@ def _refuse_shared_exposures(files) -> None:
     the calvis files of two fits of one exposure against different calibrators) hold
     the same photons: searched together their information would count twice, as a file
     given twice does. Refused where the files name their science exposures (``SCI_1``...
-    in the primary header: amigo's calvis and OIFITS files); other files are not checked."""
+    in the primary header: amigo's calvis and OIFITS files), an exposure being its file
+    name without the product suffix (:func:`amigo.io.jwst.exposure_stem`: its ``_cal``
+    and ``_calslope`` files are one exposure); blank names and files whose header cannot
+    be read are left to the readers."""
+    import re
+
     from astropy.io import fits
+
+    from amigo.io.jwst import exposure_stem
 
     owner: dict[str, str] = {}
     for path in files:
@@ -282,8 +297,12 @@ def _refuse_shared_exposures(files) -> None:
             header = fits.getheader(path, 0)
         except (OSError, ValueError):  # the readers report what is wrong with it
             continue
-        names = {str(header[f"SCI_{i}"]) for i in range(1, int(header.get("NSCI", 0)) + 1)
-                 if f"SCI_{i}" in header}  # fmt: skip
+        # Every SCI_n card, whatever NSCI says (a damaged count is the reader's to report).
+        names = {
+            exposure_stem(value)
+            for key, value in header.items()
+            if re.fullmatch(r"SCI_\d+", key) and isinstance(value, str) and value.strip()
+        }
         for name in sorted(names):
             if name in owner:
                 raise InputError(
