@@ -108,7 +108,8 @@ def test_programs_carry_one_line_per_operation_unless_the_user_asks(monkeypatch)
     wins, and a process that imported JAX already keeps JAX's own."""
     code = (
         "import os\n"
-        "from amigo.runtime import full_tracebacks, short_locations\n"
+        "from amigo.cachedir import full_tracebacks\n"
+        "from amigo.runtime import short_locations\n"
         "short_locations()\n"
         "print(os.environ['JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS'], full_tracebacks())\n"
     )
@@ -123,10 +124,12 @@ def test_programs_carry_one_line_per_operation_unless_the_user_asks(monkeypatch)
     # This process imported JAX: its setting is left alone, and read from JAX.
     import jax
 
+    from amigo.cachedir import full_tracebacks
+
     monkeypatch.delenv("JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS", raising=False)
     runtime.short_locations()
     assert "JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS" not in os.environ
-    assert runtime.full_tracebacks() == jax.config.jax_include_full_tracebacks_in_locations
+    assert full_tracebacks() == jax.config.jax_include_full_tracebacks_in_locations
 
 
 def test_a_lowered_program_has_no_tracebacks_after_configure_xla():

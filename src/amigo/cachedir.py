@@ -39,19 +39,17 @@ def enable_compilation_cache() -> Path | None:
     the entries under a file lock, so concurrent runs can share the folder.
 
     The folder depends on what the programs carry in their locations
-    (:func:`amigo.runtime.short_locations`, asked for here first): JAX's cache keys a
-    program without them, so a folder filled with full tracebacks (``xla``, JAX's
-    default, and amigo's before 2026-11-30) would serve those to a process that asked
-    for one line per operation, and the other way round.
+    (:func:`full_tracebacks`; the command line asks for one line per operation first,
+    :func:`amigo.runtime.short_locations`): JAX's cache keys a program without them, so
+    a folder filled with full tracebacks (``xla``, JAX's default, and amigo's before
+    2026-11-30) would serve those to a process that asked for one line per operation,
+    and the other way round.
 
     Returns the folder in use, or ``None`` when the cache is off.
     """
     if "JAX_COMPILATION_CACHE_DIR" in os.environ:
         explicit = os.environ["JAX_COMPILATION_CACHE_DIR"]
         return Path(explicit) if explicit else None
-    from amigo.runtime import full_tracebacks, short_locations
-
-    short_locations()
     folder = cache_dir() / ("xla" if full_tracebacks() else "xla-lines")
     try:
         folder.mkdir(parents=True, exist_ok=True)
@@ -68,3 +66,19 @@ def enable_compilation_cache() -> Path | None:
             float(os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"]),
         )
     return folder
+
+
+#: JAX's option (and, upper case, its environment variable) for full Python tracebacks in
+#: the programs' locations (:mod:`amigo.runtime`).
+LOCATIONS_OPTION = "jax_include_full_tracebacks_in_locations"
+
+
+def full_tracebacks() -> bool:
+    """Whether this process's programs carry full tracebacks in their locations: JAX's
+    option where JAX is imported, else its environment variable (JAX's default: yes)."""
+    if "jax" in sys.modules:
+        import jax
+
+        return bool(getattr(jax.config, LOCATIONS_OPTION))
+    value = os.environ.get(LOCATIONS_OPTION.upper(), "true").strip().lower()
+    return value in ("1", "true", "t", "yes", "y", "on")

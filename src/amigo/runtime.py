@@ -42,7 +42,7 @@ from 361 to 0; on the CPU (fresh caches) the products are the same to every prin
 (AB Dor, three filters) and the warm fit's time reading programs is 3.0 s either way.
 What it saves on a GPU is not measured yet. JAX's persistent cache keys a program
 without its locations: the two settings keep their compiled programs in folders of their
-own (:func:`full_tracebacks`, :func:`amigo.cachedir.enable_compilation_cache`).
+own (:func:`amigo.cachedir.full_tracebacks`, :func:`amigo.cachedir.enable_compilation_cache`).
 
 This module imports neither JAX nor NumPy, so that the command line can set the flags
 before JAX reads its environment.
@@ -71,7 +71,9 @@ def configure_xla() -> bool:
     return reproducible_cpu()
 
 
-#: JAX's option (and environment variable) for full tracebacks in programs' locations.
+#: JAX's option (and, upper case, its environment variable) for full tracebacks in the
+#: programs' locations (the same as :data:`amigo.cachedir.LOCATIONS_OPTION`, which picks
+#: the compiled programs' folder by it; the foundation's modules do not import each other).
 LOCATIONS_OPTION = "jax_include_full_tracebacks_in_locations"
 
 
@@ -83,21 +85,6 @@ def short_locations() -> None:
     if LOCATIONS_OPTION.upper() in os.environ or "jax" in sys.modules:
         return
     os.environ[LOCATIONS_OPTION.upper()] = "false"
-
-
-def full_tracebacks() -> bool:
-    """Whether this process's programs carry full tracebacks in their locations: JAX's
-    option where JAX is imported, else its environment variable (JAX's default: yes).
-
-    JAX's persistent cache keys a program without its locations, so executables of both
-    settings would share entries: :func:`amigo.cachedir.enable_compilation_cache` keeps
-    them in folders of their own."""
-    if "jax" in sys.modules:
-        import jax
-
-        return bool(getattr(jax.config, LOCATIONS_OPTION))
-    value = os.environ.get(LOCATIONS_OPTION.upper(), "true").strip().lower()
-    return value in ("1", "true", "t", "yes", "y", "on")
 
 
 def fast_cpu_compile() -> bool:

@@ -86,12 +86,13 @@ def usage_line(error: click.ClickException) -> str:
 
 def main(argv: list[str] | None = None) -> Any:
     """Entry point of the ``amigo`` console script."""
+    # The same inputs give the same products, bit for bit, the CPU compiles faster and
+    # programs carry one source line per operation (amigo.runtime): first, since the
+    # compiled programs' folder depends on the last.
+    configure_xla()
     # Compiled programs are kept between runs (amigo.cachedir): the second fit of the same
     # shapes skips the compilation, most of a cold run's time on a CPU.
     enable_compilation_cache()
-    # The same inputs give the same products, bit for bit, and the CPU compiles faster
-    # (amigo.runtime).
-    configure_xla()
     # SIGTERM (a batch system's kill, a closed terminal) as Ctrl-C: the finally clauses run,
     # so no temporary product is left behind (SIGKILL cannot be caught; amigo.io.atomic's
     # temporary files are then hidden names no command reads). Restored on return, for

@@ -48,12 +48,13 @@ from amigo.runtime import configure_xla
 
 PathLike = str | os.PathLike[str]
 
+# Bitwise reproducible products, faster CPU compilation and programs with one source line
+# per operation, where JAX has not started yet (amigo.runtime): before the cache, whose
+# folder depends on the last.
+configure_xla()
 # Compiled programs persist between processes for the API as for the commands (the cache
 # folder of :mod:`amigo.cachedir`; ``JAX_COMPILATION_CACHE_DIR=""`` turns it off).
 enable_compilation_cache()
-# Bitwise reproducible products and faster CPU compilation where JAX has not started
-# yet (amigo.runtime).
-configure_xla()
 
 __all__ = [
     "BasisReport",
