@@ -344,3 +344,25 @@ def _write_oifits(
     t3.header["INSNAME"] = "NIRISS"
     fits.HDUList([primary, wl, target, vis2, t3]).writeto(path, overwrite=True)
     return Path(path)
+
+
+def write_point_source_oifits(
+    path: Path, target: str = "SIM-STAR", error: float = 1e-2, **extra
+) -> Path:
+    """amigo's OIFITS file of a point source in F480M (log-amplitudes and phases 0, each
+    with ``error`` rad, independent); ``extra``: :func:`amigo.io.oifits_write.write_oifits`'s
+    keywords (``science_files``, ``n_photons``)."""
+    from amigo.io.oifits_write import write_oifits
+
+    return write_oifits(
+        path,
+        target=target,
+        filter_name="F480M",
+        wavelength_m=4.8e-6,
+        bandwidth_m=3e-7,
+        log_amp=np.zeros(21),
+        phase_rad=np.zeros(21),
+        covariance=error**2 * np.eye(42),
+        sky_to_uv=np.eye(2),
+        **extra,
+    )

@@ -12,7 +12,7 @@ import pytest
 
 from amigo.cli import main
 from conftest import SHARED_DATA
-from detect_helpers import write_sim_calvis, write_sim_oifits
+from detect_helpers import write_point_source_oifits, write_sim_calvis, write_sim_oifits
 
 #: Keys of companions.json fixed by the project's interfaces (shared/design/interfaces.md).
 TOP_KEYS = {
@@ -294,8 +294,6 @@ def test_products_of_one_science_exposure_are_refused_together(tmp_path, capsys)
     (against two calibrators), hold the same photons: searched together their information
     would count twice. Refused (one line naming the file and the exposure, exit 2,
     nothing written) where the files name their science exposures, as amigo's do."""
-    from amigo.io.oifits_write import write_oifits
-
     rng = np.random.default_rng(5)
     one = write_sim_calvis(tmp_path / "a_F480M_calvis.fits", "F480M", [], rng)
     # The same exposure calibrated against another star: other DISCOs, the same photons.
@@ -306,18 +304,9 @@ def test_products_of_one_science_exposure_are_refused_together(tmp_path, capsys)
     assert "b_F480M_calvis.fits: was made from the science exposure jw_sim_F480M," in err
     assert "count twice" in err and len(err.splitlines()) == 1 and not out.exists()
 
-    oifits = write_oifits(
-        tmp_path / "a_F480M.oifits",
-        target="SIM-STAR",
-        filter_name="F480M",
-        wavelength_m=4.8e-6,
-        bandwidth_m=3e-7,
-        log_amp=np.zeros(21),
-        phase_rad=np.zeros(21),
-        covariance=1e-6 * np.eye(42),
-        sky_to_uv=np.eye(2),
-        # the same exposure's slopes: another product of it
-        science_files=["jw_sim_F480M_calslope.fits"],
+    # the same exposure's slopes: another product of it
+    oifits = write_point_source_oifits(
+        tmp_path / "a_F480M.oifits", science_files=["jw_sim_F480M_calslope.fits"]
     )
     assert run([str(one), str(oifits), "--out", str(out)]) == 2
     err = capsys.readouterr().err

@@ -428,19 +428,12 @@ def test_the_chains_run_on_the_latency_device_with_the_same_draws():
     it, and, the device being a CPU as here, the draws are the same bits. Two CPU devices
     stand in for host and accelerator (``--xla_force_host_platform_device_count=2`` in a
     child process, since JAX reads the flag when it starts)."""
-    import os
     import subprocess
     import sys
 
-    tests = os.path.dirname(os.path.abspath(__file__))
-    env = {
-        **os.environ,
-        "JAX_PLATFORMS": "cpu",
-        "XLA_FLAGS": " ".join(
-            [os.environ.get("XLA_FLAGS", ""), "--xla_force_host_platform_device_count=2"]
-        ).strip(),
-        "PYTHONPATH": os.pathsep.join([tests, os.environ.get("PYTHONPATH", "")]),
-    }
+    from conftest import two_device_env
+
+    env = two_device_env()
     done = subprocess.run(
         [sys.executable, "-c", HOST_CHILD], capture_output=True, text=True, env=env, timeout=600
     )

@@ -111,19 +111,10 @@ def test_the_photon_count_and_science_files_travel_with_the_file(tmp_path):
     from astropy.io import fits
 
     from amigo.companions.observables import from_oifits
+    from detect_helpers import write_point_source_oifits
 
-    common = dict(
-        target="AB-DOR",
-        filter_name="F480M",
-        wavelength_m=4.8e-6,
-        bandwidth_m=3e-7,
-        log_amp=np.zeros(21),
-        phase_rad=np.zeros(21),
-        covariance=1e-4 * np.eye(42),
-        sky_to_uv=np.eye(2),
-    )
-    with_count = write_oifits(
-        tmp_path / "a.oifits", science_files=["jw_a_cal.fits"], n_photons=3.2e9, **common
+    with_count = write_point_source_oifits(
+        tmp_path / "a.oifits", science_files=["jw_a_cal.fits"], n_photons=3.2e9
     )
     header = fits.getheader(with_count, 0)
     assert header["NPHOT"] == 3.2e9 and (header["NSCI"], header["SCI_1"]) == (1, "jw_a_cal.fits")
@@ -137,7 +128,7 @@ def test_the_photon_count_and_science_files_travel_with_the_file(tmp_path):
         hdul.writeto(foreign)
     assert from_oifits(read_oifits(foreign)).photon_source == "closure-phase errors"
 
-    without = from_oifits(read_oifits(write_oifits(tmp_path / "b.oifits", **common)))
+    without = from_oifits(read_oifits(write_point_source_oifits(tmp_path / "b.oifits")))
     assert without.photon_source == "closure-phase errors"
     # sigma_CP of each closure phase: three baseline phases of 1e-2 rad each in quadrature
     sigma_cp = np.sqrt(3) * 1e-2

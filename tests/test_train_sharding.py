@@ -5,10 +5,11 @@ the same step as on one device."""
 
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
 import textwrap
+
+from conftest import two_device_env
 
 CHILD = textwrap.dedent(
     """
@@ -69,18 +70,7 @@ CHILD = textwrap.dedent(
 
 
 def test_a_training_step_on_two_devices_equals_one_on_one():
-    tests = os.path.dirname(os.path.abspath(__file__))
-    env = {
-        **os.environ,
-        "JAX_PLATFORMS": "cpu",
-        # The suite's own XLA flags too (tests/conftest.py: amigo.runtime's faster CPU
-        # compilation): without them the child compiled its programs in 54 s, with them
-        # in 35 s (alone, 2-core AMD EPYC).
-        "XLA_FLAGS": " ".join(
-            [os.environ.get("XLA_FLAGS", ""), "--xla_force_host_platform_device_count=2"]
-        ).strip(),
-        "PYTHONPATH": os.pathsep.join([tests, os.environ.get("PYTHONPATH", "")]),
-    }
+    env = two_device_env()
     done = subprocess.run(
         [sys.executable, "-c", CHILD], capture_output=True, text=True, env=env, timeout=900
     )
