@@ -2,6 +2,7 @@
 
     python benchmarks/optics_fidelity.py [--filters F380M] [--pupils 128,256]
                                          [--methods angular_spectrum,pupil]
+                                         [--offsets X,Y;X,Y] [--nints N]
 
 A noiseless image of the simulator's optics (:class:`amigo.simulation.OpticalModelIllumination`:
 512-pixel pupil, 15 wavelengths, 4x sub-pixels) with the instrument state that
@@ -14,11 +15,18 @@ integrations of a ``peak_dn`` peak, plus 300 e-^2 of read noise per integration)
 chi2 left is what the optics alone cannot reach: a floor under the z-score of any model
 using that setting. Levenberg-Marquardt in float64 on the exact forward-mode Jacobian.
 A few minutes per setting on a 2-core CPU. Not a test: nothing is asserted.
+
+``--offsets`` places the star at other sub-pixel offsets from the reference pixel (the
+exposure's own by default), one table row each: how the floor depends on the pixel phase,
+which calibration against a star elsewhere in its pixel does not cancel (docs/detect.md,
+the HD 206893-like scenario). ``--nints`` sets the depth (the exposure's ``nints_full``
+by default).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import time
 from importlib import resources
@@ -134,6 +142,12 @@ def main() -> None:
     parser.add_argument("--filters", default="F380M")
     parser.add_argument("--pupils", default="128,256")
     parser.add_argument("--methods", default="angular_spectrum,pupil")
+    parser.add_argument(
+        "--offsets",
+        default=None,
+        help="sub-pixel offsets of the star, 'x,y;x,y' (pixels; default: the exposure's)",
+    )
+    parser.add_argument("--nints", type=int, default=None, help="integrations (depth)")
     args = parser.parse_args()
     path = resources.files("amigo") / "data" / "base_model" / "cal4481_heldout.toml"
     scenario = load_scenario(str(path))
@@ -145,15 +159,31 @@ def main() -> None:
     specs: dict[str, Any] = {}
     for spec in scenario.exposures:  # the first exposure of each filter (observation 3)
         specs.setdefault(spec.filter, spec)
-    print(f"{'filter':<6} {'pupil':>5} {'defocus':<17} {'chi2 floor':>10} {'pixels':>6} {'s':>5}")
+    offsets = (
+        [tuple(float(v) for v in pair.split(",")) for pair in args.offsets.split(";")]
+        if args.offsets
+        else [None]
+    )
+    print(
+        f"{'filter':<6} {'offset (pix)':>13} {'nints':>6} {'pupil':>5} {'defocus':<17} "
+        f"{'chi2 floor':>10} {'pixels':>6} {'s':>5}"
+    )
     for name in wanted:
-        for pupil in (int(p) for p in args.pupils.split(",")):
-            for method in args.methods.split(","):
-                chi2, n, seconds = floor(specs[name], state, pupil, method)
-                print(
-                    f"{name:<6} {pupil:>5} {method:<17} {chi2:>10.0f} {n:>6} {seconds:>5.0f}",
-                    flush=True,
-                )
+        for offset in offsets:
+            spec = specs[name]
+            if offset is not None:
+                spec = dataclasses.replace(spec, offset_pix=offset)
+            if args.nints is not None:
+                spec = dataclasses.replace(spec, nints_full=args.nints)
+            where = f"{spec.offset_pix[0]:+.2f},{spec.offset_pix[1]:+.2f}"
+            for pupil in (int(p) for p in args.pupils.split(",")):
+                for method in args.methods.split(","):
+                    chi2, n, seconds = floor(spec, state, pupil, method)
+                    print(
+                        f"{name:<6} {where:>13} {spec.nints_full:>6} {pupil:>5} {method:<17} "
+                        f"{chi2:>10.0f} {n:>6} {seconds:>5.0f}",
+                        flush=True,
+                    )
 
 
 if __name__ == "__main__":

@@ -47,16 +47,20 @@ MIN_RMAX_MAS = 1.0
 
 def check_rmax(rmax_mas: float) -> None:
     """:class:`~amigo.errors.InputError` for a search radius below :data:`MIN_RMAX_MAS`
-    (or not a number), or an ``AMIGO_SAMPLER_DEVICE`` that is not a setting
-    (:func:`amigo.runtime.sampler_device_setting`, read only where NUTS runs): checked
-    before any work, by ``detect``, ``run`` and a manifest."""
-    from amigo.runtime import sampler_device_setting
-
+    (or not a number): checked before any work, by ``detect``, ``run`` and a manifest."""
     if not MIN_RMAX_MAS <= rmax_mas < float("inf"):
         raise InputError(
             None,
             f"--rmax-mas must be a finite radius of at least {MIN_RMAX_MAS:g} mas, not {rmax_mas}",
         )
+
+
+def check_sampler_device() -> None:
+    """:class:`~amigo.errors.InputError` for an ``AMIGO_SAMPLER_DEVICE`` that is not a
+    setting (:func:`amigo.runtime.sampler_device_setting`): read only where NUTS runs, so
+    checked before any work, by ``detect``, ``run`` and a manifest."""
+    from amigo.runtime import sampler_device_setting
+
     try:
         sampler_device_setting()
     except ValueError as error:
@@ -101,6 +105,7 @@ def detect(
     """
     options = dict(locals())  # the parameters, before any other name is bound
     check_rmax(rmax_mas)
+    check_sampler_device()
     settings = {k: v for k, v in options.items() if k not in ("files", "out", "force")}
     files = [str(f) for f in files]
     out = Path(out)

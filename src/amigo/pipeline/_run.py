@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from amigo.errors import InputError, ReportedInputError
-from amigo.pipeline._detect import DetectResult, check_rmax, detect
+from amigo.pipeline._detect import DetectResult, check_rmax, check_sampler_device, detect
 from amigo.pipeline._fit import (
     FitResult,
     check_model_options,
@@ -133,6 +133,7 @@ def check_before_work(
 
     check_model_options(model, detector, knots, knot_spacing)
     check_rmax(rmax_mas)
+    check_sampler_device()
     kinds = {Path(p): data_kind(p) for p in (*sci, *cal)}
     check_one_level(kinds)
     return kinds
