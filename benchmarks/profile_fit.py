@@ -109,6 +109,11 @@ def child(argv: list[str], report: Path) -> None:
     start = time.perf_counter()
     stamped = _Stamped(sys.stderr, start)
     sys.stderr = stamped
+    # amigo's settings before JAX is imported, as the command line makes them (one source
+    # line per operation, and its cache folder, needs JAX not yet started).
+    from amigo.runtime import configure_xla
+
+    configure_xla()
     import jax
 
     from amigo.cli import main as amigo

@@ -28,7 +28,7 @@ def test_an_explicit_jax_setting_wins_and_an_empty_one_turns_the_cache_off(monke
     assert enable_compilation_cache() == tmp_path / "mine"
     monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", "")
     assert enable_compilation_cache() is None
-    assert not (tmp_path / "xla").exists()
+    assert not (tmp_path / "xla").exists() and not (tmp_path / "xla-lines").exists()
 
 
 def test_a_compiled_program_is_written_to_the_amigo_cache(tmp_path):

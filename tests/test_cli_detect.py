@@ -301,7 +301,7 @@ def test_products_of_one_science_exposure_are_refused_together(tmp_path, capsys)
     out = tmp_path / "out"
     assert run([str(one), str(again), "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip()
-    assert "b_F480M_calvis.fits: was made from the science exposure jw_sim_F480M," in err
+    assert "b_F480M_calvis.fits: was made from the science exposure jw_sim_F480M_cal.fits," in err
     assert "count twice" in err and len(err.splitlines()) == 1 and not out.exists()
 
     # the same exposure's slopes: another product of it
@@ -310,7 +310,7 @@ def test_products_of_one_science_exposure_are_refused_together(tmp_path, capsys)
     )
     assert run([str(one), str(oifits), "--out", str(out)]) == 2
     err = capsys.readouterr().err
-    assert "a_F480M.oifits: was made from the science exposure jw_sim_F480M," in err
+    assert "a_F480M.oifits: was made from the science exposure jw_sim_F480M_calslope.fits" in err
     assert not out.exists()
     # A damaged count of science files is the reader's to report (one line, exit 2).
     from astropy.io import fits

@@ -111,7 +111,10 @@ def test_programs_carry_one_line_per_operation_unless_the_user_asks(monkeypatch)
         "from amigo.cachedir import full_tracebacks\n"
         "from amigo.runtime import short_locations\n"
         "short_locations()\n"
-        "print(os.environ['JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS'], full_tracebacks())\n"
+        "before = full_tracebacks()\n"
+        "import jax\n"
+        "assert before == jax.config.jax_include_full_tracebacks_in_locations\n"
+        "print(os.environ['JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS'], before)\n"
     )
     env = {k: v for k, v in os.environ.items() if k != "JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS"}
     for given, expected in ((None, ["false", "False"]), ("true", ["true", "True"])):
@@ -121,15 +124,10 @@ def test_programs_carry_one_line_per_operation_unless_the_user_asks(monkeypatch)
             [sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True
         )
         assert done.stdout.split() == expected
-    # This process imported JAX: its setting is left alone, and read from JAX.
-    import jax
-
-    from amigo.cachedir import full_tracebacks
-
+    # This process imported JAX: its setting is left alone.
     monkeypatch.delenv("JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS", raising=False)
     runtime.short_locations()
     assert "JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS" not in os.environ
-    assert full_tracebacks() == jax.config.jax_include_full_tracebacks_in_locations
 
 
 def test_a_lowered_program_has_no_tracebacks_after_configure_xla():

@@ -43,14 +43,19 @@ def enable_compilation_cache() -> Path | None:
     :func:`amigo.runtime.short_locations`): JAX's cache keys a program without them, so
     a folder filled with full tracebacks (``xla``, JAX's default, and amigo's before
     2026-11-30) would serve those to a process that asked for one line per operation,
-    and the other way round.
+    and the other way round. An explicit ``JAX_COMPILATION_CACHE_DIR`` is one folder for
+    whatever setting the process has.
 
     Returns the folder in use, or ``None`` when the cache is off.
     """
     if "JAX_COMPILATION_CACHE_DIR" in os.environ:
         explicit = os.environ["JAX_COMPILATION_CACHE_DIR"]
         return Path(explicit) if explicit else None
-    folder = cache_dir() / ("xla" if full_tracebacks() else "xla-lines")
+    full = full_tracebacks()
+    folder = cache_dir() / ("xla" if full else "xla-lines")
+    # Child processes (a manifest's workers, commands started from here) inherit the
+    # folder: they must make their programs with the setting that chose it.
+    os.environ.setdefault(LOCATIONS_OPTION.upper(), "true" if full else "false")
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError:

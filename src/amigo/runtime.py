@@ -42,7 +42,8 @@ from 361 to 0; on the CPU (fresh caches) the products are the same to every prin
 (AB Dor, three filters) and the warm fit's time reading programs is 3.0 s either way.
 What it saves on a GPU is not measured yet. JAX's persistent cache keys a program
 without its locations: the two settings keep their compiled programs in folders of their
-own (:func:`amigo.cachedir.full_tracebacks`, :func:`amigo.cachedir.enable_compilation_cache`).
+own (:func:`amigo.cachedir.full_tracebacks`, :func:`amigo.cachedir.enable_compilation_cache`),
+unless ``JAX_COMPILATION_CACHE_DIR`` names one folder for both.
 
 This module imports neither JAX nor NumPy, so that the command line can set the flags
 before JAX reads its environment.
@@ -64,8 +65,8 @@ OPT_LEVEL_FLAG = "--xla_backend_optimization_level"
 
 
 def configure_xla() -> bool:
-    """Both settings of this module (:func:`reproducible_cpu`, :func:`fast_cpu_compile`);
-    whether they apply (no JAX backend started yet)."""
+    """The settings of this module (:func:`reproducible_cpu`, :func:`fast_cpu_compile`,
+    :func:`short_locations`); whether the first applies (no JAX backend started yet)."""
     fast_cpu_compile()
     short_locations()
     return reproducible_cpu()

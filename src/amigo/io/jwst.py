@@ -56,16 +56,18 @@ FLAT_EXP_TYPES = ("NIS_LAMP", "NIS_FLAT")
 REQUIRED_KEYWORDS = ("INSTRUME", "FILTER", "PUPIL", "EXP_TYPE", "SUBARRAY", "NGROUPS", "NINTS")
 
 _SUFFIX = re.compile(r"_(uncal|rateints|calints|rate|cal)\.fits(\.gz)?$", re.IGNORECASE)
-#: The products of one exposure: JWST's levels and amigo's calslope.
+#: The products of one exposure: JWST's levels and amigo's calslope, or a bare FITS name
+#: (``calslope_name`` makes ``foo_calslope.fits`` of ``foo.fits``).
 _PRODUCT_SUFFIX = re.compile(
-    r"_(uncal|rateints|calints|rate|cal|calslope)\.fits(\.gz)?$", re.IGNORECASE
+    r"(_(uncal|rateints|calints|rate|cal|calslope))?\.fits?(\.gz)?$", re.IGNORECASE
 )
 
 
 def exposure_stem(name: str) -> str:
     """The exposure a product's file name belongs to: its base name without the product
-    suffix (``jw..._nis`` for ``jw..._nis_cal.fits`` and ``jw..._nis_calslope.fits``)."""
-    return _PRODUCT_SUFFIX.sub("", os.path.basename(name.strip()))
+    suffix, in lower case (``jw..._nis`` for ``jw..._nis_cal.fits``,
+    ``JW..._NIS_CAL.FITS`` and ``jw..._nis_calslope.fits``; ``foo`` for ``foo.fits``)."""
+    return _PRODUCT_SUFFIX.sub("", os.path.basename(name.strip())).lower()
 
 
 class AmiWarning(UserWarning):

@@ -287,9 +287,10 @@ def _refuse_shared_exposures(files) -> None:
     the same photons: searched together their information would count twice, as a file
     given twice does. Refused where the files name their science exposures (``SCI_1``...
     in the primary header: amigo's calvis and OIFITS files), an exposure being its file
-    name without the product suffix (:func:`amigo.io.jwst.exposure_stem`: its ``_cal``
-    and ``_calslope`` files are one exposure); blank names and files whose header cannot
-    be read are left to the readers."""
+    name without the product suffix, in any case (:func:`amigo.io.jwst.exposure_stem`: its
+    ``_cal`` and ``_calslope`` files are one exposure); blank names and files whose header
+    cannot be read are left to the readers. Another tool's file with ``SCI_n`` cards is
+    compared too: the same exposure is the same photons whoever wrote the file."""
     import re
 
     from astropy.io import fits
@@ -304,18 +305,18 @@ def _refuse_shared_exposures(files) -> None:
             continue
         # Every SCI_n card, whatever NSCI says (a damaged count is the reader's to report).
         names = {
-            exposure_stem(value)
+            exposure_stem(value): value.strip()
             for key, value in header.items()
             if re.fullmatch(r"SCI_\d+", key) and isinstance(value, str) and value.strip()
         }
-        for name in sorted(names):
-            if name in owner:
+        for stem, name in sorted(names.items()):
+            if stem in owner:
                 raise InputError(
                     path,
-                    f"was made from the science exposure {name}, as {owner[name]} was: "
+                    f"was made from the science exposure {name}, as {owner[stem]} was: "
                     "its information would count twice",
                 )
-            owner[name] = str(path)
+            owner[stem] = str(path)
 
 
 def _refuse_other_targets(files, blocks) -> None:
