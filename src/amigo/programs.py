@@ -58,7 +58,7 @@ import jax
 import numpy as np
 
 from amigo import heap
-from amigo.cachedir import cache_dir
+from amigo.cachedir import LOCATIONS_OPTION, cache_dir
 
 #: Bumped when the file format or the key's recipe changes.
 FORMAT = 1
@@ -328,7 +328,7 @@ def _environment() -> list[str]:
         f"backend:{_device_platform()}",
         f"x64:{_config('jax_enable_x64')}",
         # Not the arithmetic, but what the program carries (amigo.runtime.short_locations).
-        f"locations:{_config('jax_include_full_tracebacks_in_locations')}",
+        f"locations:{_config(LOCATIONS_OPTION)}",
         f"matmul:{_config('jax_default_matmul_precision')}",
         f"prng:{_config('jax_default_prng_impl')}",
         f"promotion:{_config('jax_numpy_dtype_promotion')}:{_config('jax_numpy_rank_promotion')}",
