@@ -48,6 +48,16 @@ def test_calslope_mixed_with_level2_or_full_detector_without_base_model_is_refus
     assert _run([*args, "--model", str(instrument), "--detector", "full"]) == 2
     err = capsys.readouterr().err
     assert "--detector full needs a trained base model" in err and "nominal.eqx" in err
+    assert _run([*args, "--model", str(instrument), "--detector", "boundary"]) == 2
+    err = capsys.readouterr().err
+    assert "--detector boundary needs a trained base model" in err and err.count("\n") == 1
+    # The physical account's strength is measured in group differences: not in level-2.
+    sci = write_level2(tmp_path / "s_cal.fits", np.ones((80, 80)))
+    level2 = ["fit", "--sci", str(sci), "--cal", str(cal), "--out", str(tmp_path / "o")]
+    assert _run([*level2, "--detector", "boundary"]) == 2
+    err = capsys.readouterr().err
+    assert "s_cal.fits: is a level-2 image: --detector boundary needs calslope" in err
+    assert err.count("\n") == 1
     assert not (tmp_path / "o").exists()
 
 

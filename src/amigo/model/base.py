@@ -69,6 +69,7 @@ from amigo import niriss
 from amigo.errors import InputError
 from amigo.io.atomic import atomic_path
 from amigo.io.files import DAMAGE, is_number, require_file
+from amigo.model.detector.boundary import BoundaryShift
 from amigo.model.detector.dark_residual import level2_offset_response, offset_variance
 from amigo.model.detector.linear import LinearDetector
 from amigo.model.detector.ramp import (
@@ -421,6 +422,8 @@ class BaseModel(eqx.Module):
         network = self.ramp.network
         if network is None:
             raise ValueError("the linear detector has no charge migration to scale")
+        if isinstance(network, BoundaryShift):  # exactly proportional: its strength
+            return self.with_network(network.scaled(scale))
         last = network.layers[-1].weight
         return eqx.tree_at(lambda m: m.ramp.network.layers[-1].weight, self, last * scale)
 
@@ -574,8 +577,9 @@ class BaseModel(eqx.Module):
             variance = offset_variance(response, prior, chol) / group_time_s**2
         return pattern, variance
 
-    def with_network(self, network: ChargeMigrationNetwork | None) -> BaseModel:
-        """The same instrument with another network (``None``: linear)."""
+    def with_network(self, network: ChargeMigrationNetwork | BoundaryShift | None) -> BaseModel:
+        """The same instrument with another network (``None``: linear; a
+        :class:`BoundaryShift`: the physical account of ``--detector boundary``)."""
         return eqx.tree_at(lambda m: m.ramp.network, self, network, is_leaf=lambda x: x is None)
 
     @property

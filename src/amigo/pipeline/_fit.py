@@ -322,11 +322,18 @@ def _check_inputs(sci: tuple[Path, ...], cal: tuple[Path, ...], detector: str | 
         if kind == "uncal":
             raise InputError(path, "is a raw ramp (uncal): run 'amigo process' first")
     check_one_level(kinds)
-    return "level2" if next(iter(kinds.values())) in LEVEL2_KINDS else "calslope"
+    first, kind = next(iter(kinds.items()))
+    if kind in LEVEL2_KINDS and detector == "boundary":
+        # Its strength is measured in the group differences of calslope files
+        # (RampDetector.calibrate_migration); a level-2 image has none to measure it in.
+        raise InputError(
+            first, "is a level-2 image: --detector boundary needs calslope files (raw ramps)"
+        )
+    return "level2" if kind in LEVEL2_KINDS else "calslope"
 
 
 #: The detector models of ``--detector``.
-DETECTORS = ("full", "linear")
+DETECTORS = ("full", "linear", "boundary")
 
 
 def _kind_words(kind: str) -> str:
@@ -390,7 +397,7 @@ class FitModel:
         its network for ``full``, without for ``linear``), or ``None`` (images fitted as
         they are: level-2 files, or calslope files with an instrument file).
     detector
-        ``"full"`` or ``"linear"`` (``fit_summary.json``).
+        ``"full"``, ``"linear"`` or ``"boundary"`` (``fit_summary.json``).
     source
         The model file's name and content fingerprint, or ``"nominal"``: part of the
         identity of a fit (a re-run keeps products of the same model).
@@ -420,7 +427,7 @@ def _fit_model(model: Path | None, detector: str | None, level: str) -> FitModel
         from amigo.model.base import level2_model_path
 
         model = level2_model_path()
-    if model is None and (level == "calslope" or detector == "full"):
+    if model is None and (level == "calslope" or detector in ("full", "boundary")):
         from amigo.model.base import default_model_path
 
         model = default_model_path()
@@ -431,13 +438,15 @@ def _fit_model(model: Path | None, detector: str | None, level: str) -> FitModel
 
     source = f"{model.name}:{fingerprint(require_file(model, 'model file'))}"
     if model.suffix.lower() != ".npz":
-        if detector == "full":
+        if detector in ("full", "boundary"):
             raise InputError(
-                model, "--detector full needs a trained base model (.npz), not an instrument file"
+                model,
+                f"--detector {detector} needs a trained base model (.npz), not an instrument file",
             )
         instrument = load_instrument(model)
         return FitModel(lambda filter_name: instrument, None, "linear", source)
     from amigo.model.base import load_base_model, read_metadata
+    from amigo.model.detector.boundary import BoundaryShift
 
     base = load_base_model(model)
     if level == "calslope" and base.config.data_level == "level2":
@@ -467,7 +476,13 @@ def _fit_model(model: Path | None, detector: str | None, level: str) -> FitModel
         mode, ramp = "linear", None
     else:
         mode = detector or "full"
-        ramp = base if mode == "full" else base.with_linear_detector()
+        ramp = {
+            "full": base,
+            "linear": base.with_linear_detector(),
+            # The physical account in place of the network: its strength is measured
+            # in every filter's data (RampFit.calibrate_migration).
+            "boundary": base.with_network(BoundaryShift.create()),
+        }[mode]
         if level == "level2":
             ramp = ramp.for_level2()  # dark, flat and linearity already corrected
     return FitModel(

@@ -33,6 +33,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from amigo.model.detector.boundary import BoundaryShift, edge_rates
+
 #: Offsets of the 3x3 sub-pixel centres from their pixel centre (pixels), along y and x.
 SUBPIXEL_OFFSETS = np.array([-1.0, 0.0, 1.0]) / 3.0
 #: Number of recurrent sub-steps over one integration (paper: a fixed number; 8).
@@ -269,8 +271,10 @@ class RampModel(eqx.Module):
     Attributes
     ----------
     network
-        :class:`ChargeMigrationNetwork`, or ``None`` for linear charge accumulation (the
-        ``--detector linear`` comparison).
+        :class:`ChargeMigrationNetwork`, the physical
+        :class:`~amigo.model.detector.boundary.BoundaryShift` (``--detector boundary``),
+        or ``None`` for linear charge accumulation (the ``--detector linear``
+        comparison).
     flat
         (ny, nx) inter-pixel sensitivity (flat field), mean ~1.
     intra_pixel
@@ -281,7 +285,7 @@ class RampModel(eqx.Module):
         Bound of the sub-pixel displacements.
     """
 
-    network: ChargeMigrationNetwork | None
+    network: ChargeMigrationNetwork | BoundaryShift | None
     flat: Float[Array, "ny nx"]
     intra_pixel: IntraPixelResponse
     n_substeps: int = eqx.field(static=True, default=DEFAULT_SUBSTEPS)
@@ -315,10 +319,14 @@ class RampModel(eqx.Module):
         step = to_subpixels(illuminance_e) * self.intra_pixel()[None, None] / self.n_substeps
         step = step.astype(dtype)
         ny, nx = step.shape[:2]
+        if isinstance(self.network, BoundaryShift):
+            edge_x, edge_y = edge_rates(step)
 
         def advance(charge: Array, _: None) -> tuple[Array, Array]:
             if self.network is None:
                 collected = step.sum(axis=(2, 3))
+            elif isinstance(self.network, BoundaryShift):
+                collected = step.sum(axis=(2, 3)) + self.network.moved(charge, edge_x, edge_y)
             else:
                 kernels = migration_kernels(self.network(charge), self.max_shift_pix)
                 collected = transport(step, kernels)
