@@ -114,6 +114,19 @@ def test_the_ramp_with_the_physical_account():
     assert np.allclose(two, 2.0 * one, rtol=0.02, atol=0.02 * np.abs(one).max())
 
 
+def test_a_base_model_with_the_physical_account_saves_and_loads(tmp_path):
+    from amigo.model.base import BaseModel, BaseModelConfig, load_base_model, save_base_model
+
+    config = BaseModelConfig(filters=("F480M",), n_wavelengths=3, pupil_npix=64)
+    shift = BoundaryShift.create(2.5e-6, anisotropy=0.9, radius_pix=2, depth_pix=0.25)
+    base = BaseModel.create(config).with_network(shift)
+    loaded = load_base_model(save_base_model(base, tmp_path / "boundary.npz"))
+    assert isinstance(loaded.ramp.network, BoundaryShift)
+    assert (loaded.ramp.network.radius_pix, loaded.ramp.network.depth_pix) == (2, 0.25)
+    assert float(loaded.ramp.network.strength) == pytest.approx(2.5)
+    assert float(loaded.ramp.network.anisotropy) == pytest.approx(0.9)
+
+
 def test_the_base_model_scales_and_names_the_physical_account():
     from amigo.model.base import BaseModel, BaseModelConfig
 

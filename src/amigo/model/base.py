@@ -770,6 +770,14 @@ def save_base_model(
         "dtype": str(np.asarray(model.hole_centres_m).dtype),
         **(metadata or {}),
     }
+    migration = model.ramp.network
+    if isinstance(migration, BoundaryShift):
+        # The physical account in the network's place: its static shape, to rebuild the
+        # skeleton (files without this record hold the network or nothing).
+        record["boundary_shift"] = {
+            "radius_pix": migration.radius_pix,
+            "depth_pix": migration.depth_pix,
+        }
     return write_leaves(path, model, record)
 
 
@@ -838,7 +846,16 @@ def _load_base_model(path: Path, data) -> BaseModel:
     record = _metadata(path, data)
     config = BaseModelConfig.from_json(record.get("config", {}))
     skeleton = BaseModel.create(config, linear=True)
-    if record.get("network", True):
+    shape = record.get("boundary_shift")
+    if record.get("network", True) and isinstance(shape, dict):
+        try:
+            radius, depth = int(shape["radius_pix"]), float(shape["depth_pix"])
+        except (KeyError, TypeError, ValueError):
+            raise InputError(path, f"unreadable boundary_shift record {shape!r}") from None
+        skeleton = skeleton.with_network(
+            BoundaryShift.create(0.0, radius_pix=radius, depth_pix=depth)
+        )
+    elif record.get("network", True):
         # The network's shapes only: the stored weights replace them, and drawing
         # random ones would compile the random-number programs in every process.
         key = jax.ShapeDtypeStruct((2,), jnp.uint32)
