@@ -51,8 +51,6 @@ from amigo.simulation.state import draw_instrument_state
 #: The training scenario's base offset and its dither (cal4481_train.toml).
 TRAINING_OFFSET = (0.1, -0.1)
 TRAINING_DITHER = ((0.0, 0.0), (0.5, 0.0), (0.0, 0.5), (0.5, 0.5), (0.25, 0.25))
-#: The physical accounts' strength (pix/e-); their ratio to the simulator's is fitted.
-STRENGTH_PIX_PER_E = 1.2e-6
 
 
 def last_read(
@@ -96,7 +94,9 @@ def main() -> None:
     linear = base.with_linear_detector()
     accounts = {"network": base}
     for radius, depth in ((3, 0.5), (2, 0.0)):
-        shift = BoundaryShift.create(STRENGTH_PIX_PER_E, radius_pix=radius, depth_pix=depth)
+        # At the simulator's strength: the table's ratios then say how the two differ.
+        strength = on.bfe_strength_pix_per_e
+        shift = BoundaryShift.create(strength, radius_pix=radius, depth_pix=depth)
         accounts[f"boundary R{radius} h{depth:g}"] = base.with_network(shift)
     integration_s = spec.ngroups * niriss.GROUP_TIME_S
 

@@ -134,7 +134,9 @@ def main() -> None:
     if args.offsets:
         offsets = [tuple(map(float, o.split(","))) for o in args.offsets.split(";")]
         print(f"{args.nints} integrations, chi2 over the 6400 pixels")
-        print("| filter | offset (pix) | strength (1e-6) | common | chi2 of physics | chi2 left |")
+        print(
+            "| filter | offset (pix) | strength (1e-6) | common | chi2 of scaled physics | chi2 left |"
+        )
         print("|---|---|---|---|---|---|")
         for filter_name in args.filters.split(","):
             psf = isim.polychromatic_psf(filter_name, 4500.0, amplitude, opd, 12.0)

@@ -24,6 +24,9 @@ def _brute_force(charge, edge_x, edge_y, strength, anisotropy, radius, depth):
     ny, nx = charge.shape
     gain = np.zeros((ny, nx))
 
+    def bound(shift):  # smooth, at one 1/3-pixel strip
+        return np.tanh(3.0 * shift) / 3.0
+
     def q(y, x):
         return charge[y, x] if 0 <= y < ny and 0 <= x < nx else 0.0
 
@@ -38,7 +41,7 @@ def _brute_force(charge, edge_x, edge_y, strength, anisotropy, radius, depth):
                 for n in range(-radius, radius + 1)
                 for m in range(radius)
             )
-            flow = strength * field * edge_x[y, x]
+            flow = bound(strength * field) * edge_x[y, x]
             gain[y, x] += flow
             gain[y, x + 1] -= flow
     for y in range(ny - 1):
@@ -48,7 +51,7 @@ def _brute_force(charge, edge_x, edge_y, strength, anisotropy, radius, depth):
                 for n in range(-radius, radius + 1)
                 for m in range(radius)
             )
-            flow = strength * anisotropy * field * edge_y[y, x]
+            flow = bound(strength * anisotropy * field) * edge_y[y, x]
             gain[y, x] += flow
             gain[y + 1, x] -= flow
     return gain
@@ -56,8 +59,9 @@ def _brute_force(charge, edge_x, edge_y, strength, anisotropy, radius, depth):
 
 def test_one_boundary_moves_into_the_brighter_pixel():
     """Charge Q in one pixel only: the boundary to its left neighbour moves into it by
-    strength * Q (c[0, 0] = 1), and the neighbour gains that times the photon rate per
-    pixel width at the boundary; what it gains the bright pixel loses."""
+    strength * Q (c[0, 0] = 1; 0.02 pixel, where the bound at 1/3 pixel takes 0.1 %
+    off), and the neighbour gains that times the photon rate per pixel width at the
+    boundary; what it gains the bright pixel loses."""
     charge = np.zeros((1, 2))
     charge[0, 1] = 1.0e4
     sub = np.full((1, 2, 3, 3), 5.0)  # 15 e- per strip: 45 e- per pixel width
@@ -65,7 +69,8 @@ def test_one_boundary_moves_into_the_brighter_pixel():
     assert np.allclose(edge_x, 45.0) and edge_y.shape == (0, 2)
     shift = BoundaryShift.create(2.0e-6, radius_pix=1, depth_pix=0.0)
     moved = np.asarray(shift.moved(jnp.asarray(charge), edge_x, edge_y))
-    assert moved[0, 0] == pytest.approx(2.0e-6 * 1.0e4 * 45.0)
+    assert moved[0, 0] == pytest.approx(np.tanh(3 * 2.0e-6 * 1.0e4) / 3 * 45.0, rel=1e-6)
+    assert moved[0, 0] == pytest.approx(2.0e-6 * 1.0e4 * 45.0, rel=2e-3)
     assert moved[0, 1] == pytest.approx(-moved[0, 0])
 
 
@@ -82,6 +87,47 @@ def test_every_boundary_against_a_brute_force_loop():
     expected = _brute_force(charge, np.asarray(edge_x), np.asarray(edge_y), 1.3e-6, 0.8, 2, 0.5)
     assert np.allclose(moved, expected, rtol=1e-12, atol=1e-9)
     assert abs(moved.sum()) < 1e-9 * np.abs(moved).sum()  # conserved
+
+
+def test_rows_are_columns_transposed_and_single_precision_stays_single():
+    """With anisotropy one, the account of a transposed image is the transpose of the
+    account (the rows' convention is the columns'); float32 in, float32 out, and the
+    same numbers as float64 to single precision."""
+    rng = np.random.default_rng(5)
+    charge = rng.uniform(0.0, 3.0e4, (6, 8))
+    sub = rng.uniform(0.0, 50.0, (6, 8, 3, 3))
+    shift = BoundaryShift.create(1.5e-6, radius_pix=2, depth_pix=0.5)
+    ex, ey = edge_rates(jnp.asarray(sub))
+    moved = np.asarray(shift.moved(jnp.asarray(charge), ex, ey))
+    ex_t, ey_t = edge_rates(jnp.asarray(sub.transpose(1, 0, 3, 2)))
+    assert np.allclose(ey_t, ex.T) and np.allclose(ex_t, ey.T)
+    moved_t = np.asarray(shift.moved(jnp.asarray(charge.T), ex_t, ey_t))
+    assert np.allclose(moved_t, moved.T, rtol=1e-12, atol=1e-9)
+    single = shift.moved(
+        jnp.asarray(charge, jnp.float32), ex.astype(jnp.float32), ey.astype(jnp.float32)
+    )
+    assert single.dtype == jnp.float32
+    assert np.allclose(single, moved, rtol=1e-4, atol=1e-4 * np.abs(moved).max())
+
+
+def test_large_shifts_are_bounded_and_bad_shapes_refused():
+    """A shift is bounded smoothly at one strip (1/3 pixel), the identity for physical
+    ones; a field radius outside 1..8, a negative or non-finite depth are refused."""
+    from amigo.model.detector.boundary import MAX_SHIFT_PIX
+
+    charge = np.zeros((1, 2))
+    charge[0, 1] = 1.0e4
+    edges = edge_rates(jnp.full((1, 2, 3, 3), 5.0))
+    small = BoundaryShift.create(2.0e-6, radius_pix=1, depth_pix=0.0)  # 0.02 pixel
+    assert float(small.moved(jnp.asarray(charge), *edges)[0, 0]) == pytest.approx(
+        0.02 * 45.0, rel=2e-3
+    )
+    huge = BoundaryShift.create(1.0e-3, radius_pix=1, depth_pix=0.0)  # 10 pixels
+    moved = float(huge.moved(jnp.asarray(charge), *edges)[0, 0])
+    assert moved == pytest.approx(MAX_SHIFT_PIX * 45.0, rel=1e-6)
+    for radius, depth in ((0, 0.5), (9, 0.5), (2.5, 0.5), (2, -0.1), (2, float("nan"))):
+        with pytest.raises(ValueError):
+            BoundaryShift.create(1e-6, radius_pix=radius, depth_pix=depth)
 
 
 def test_coefficients_are_the_normal_field_of_a_point_charge():
@@ -125,6 +171,43 @@ def test_a_base_model_with_the_physical_account_saves_and_loads(tmp_path):
     assert (loaded.ramp.network.radius_pix, loaded.ramp.network.depth_pix) == (2, 0.25)
     assert float(loaded.ramp.network.strength) == pytest.approx(2.5)
     assert float(loaded.ramp.network.anisotropy) == pytest.approx(0.9)
+    # A damaged shape record: one line naming the file, not a traceback later.
+    import json
+
+    from amigo.errors import InputError
+
+    with np.load(tmp_path / "boundary.npz") as data:
+        arrays = dict(data)
+    key = next(k for k in arrays if arrays[k].dtype.kind == "U")
+    record = json.loads(str(arrays[key]))
+    record["boundary_shift"]["radius_pix"] = 0
+    arrays[key] = np.asarray(json.dumps(record))
+    np.savez(tmp_path / "bad.npz", **arrays)
+    with pytest.raises(InputError, match=r"bad\.npz.*boundary_shift"):
+        load_base_model(tmp_path / "bad.npz")
+
+
+def test_the_fit_options_map_to_the_physical_account(tmp_path):
+    """--detector boundary puts the account in the network's place and names it; a model
+    file holding the account keeps its own strength and shape, named by what it holds."""
+    from amigo.fitting.ramp_fit import RampDetector
+    from amigo.model.base import BaseModel, BaseModelConfig, save_base_model
+    from amigo.pipeline._fit import _fit_model
+
+    config = BaseModelConfig(filters=("F480M",), n_wavelengths=3, pupil_npix=64)
+    network = save_base_model(BaseModel.create(config), tmp_path / "net.npz")
+    fitted = _fit_model(network, "boundary", "calslope")
+    assert fitted.detector == "boundary" and isinstance(fitted.base.ramp.network, BoundaryShift)
+    assert RampDetector(fitted.base, {}).mode == "boundary"
+    assert _fit_model(network, None, "calslope").detector == "full"
+    assert _fit_model(network, "linear", "calslope").base.linear
+    own = BoundaryShift.create(2.5e-6, radius_pix=2, depth_pix=0.0)
+    held = save_base_model(BaseModel.create(config).with_network(own), tmp_path / "own.npz")
+    for detector in (None, "boundary"):
+        kept = _fit_model(held, detector, "calslope")
+        assert kept.detector == "boundary"
+        assert float(kept.base.ramp.network.strength) == pytest.approx(2.5)
+        assert kept.base.ramp.network.radius_pix == 2
 
 
 def test_the_base_model_scales_and_names_the_physical_account():

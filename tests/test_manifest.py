@@ -102,6 +102,25 @@ def test_manifest_mistakes_are_one_line_naming_the_manifest(files, text, problem
     assert not out.exists()  # nothing started
 
 
+def test_a_level2_target_under_the_physical_account_is_refused_before_any_runs(tmp_path, capsys):
+    """--detector boundary measures its strength in group differences: a level-2 target
+    is refused with the others' checks, before the first target runs."""
+    folder = tmp_path / "in"
+    folder.mkdir()
+    for name in ("a_cal.fits", "b_cal.fits"):
+        write_level2(folder / name, np.ones((80, 80)))
+    manifest = _write(
+        folder / "targets.toml",
+        '[[target]]\nsci = ["a_cal.fits"]\ncal = ["b_cal.fits"]\ndetector = "boundary"\n',
+    )
+    out = tmp_path / "out"
+    assert amigo_status(["run", "--manifest", str(manifest), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "target a" in err[0] and "a_cal.fits" in err[0], err
+    assert "--detector boundary needs calslope files" in err[0]
+    assert not out.exists()
+
+
 def test_a_manifest_reads_paths_relative_to_itself_and_merges_options(files):
     from amigo.io.manifest import read_manifest
 

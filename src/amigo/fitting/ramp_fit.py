@@ -616,7 +616,8 @@ def fit_through_detector(
     if migration is not None:
         step(
             f"{label}: charge migration {migration[0]:.2f} +- {migration[1]:.2f} of the "
-            f"network's{': applied' if rescaled else ''}"
+            f"{'network' if detector.mode == 'full' else 'starting strength'}'s"
+            f"{': applied' if rescaled else ''}"
         )
     changes: list[float] = []
     refit = dataclasses.replace(

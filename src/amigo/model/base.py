@@ -849,12 +849,14 @@ def _load_base_model(path: Path, data) -> BaseModel:
     shape = record.get("boundary_shift")
     if record.get("network", True) and isinstance(shape, dict):
         try:
-            radius, depth = int(shape["radius_pix"]), float(shape["depth_pix"])
-        except (KeyError, TypeError, ValueError):
-            raise InputError(path, f"unreadable boundary_shift record {shape!r}") from None
-        skeleton = skeleton.with_network(
-            BoundaryShift.create(0.0, radius_pix=radius, depth_pix=depth)
-        )
+            account = BoundaryShift.create(
+                0.0, radius_pix=shape["radius_pix"], depth_pix=float(shape["depth_pix"])
+            )
+        except (KeyError, TypeError, ValueError) as error:
+            raise InputError(
+                path, f"unreadable boundary_shift record {shape!r} ({error})"
+            ) from None
+        skeleton = skeleton.with_network(account)
     elif record.get("network", True):
         # The network's shapes only: the stored weights replace them, and drawing
         # random ones would compile the random-number programs in every process.

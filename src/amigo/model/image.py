@@ -108,8 +108,8 @@ class Instrument(eqx.Module):
         :class:`~amigo.model.base.BaseModel`: its mask (fitted hole positions), wavefront
         and defocus of that filter, its linear detector (jitter, geometry) and its IPC
         kernel. The base model's ramp and read models are not part of it: they act
-        on calslope data through :mod:`amigo.fitting.ramp_fit`; ``detector`` (``"full"`` or
-        ``"linear"``) only names the one in use."""
+        on calslope data through :mod:`amigo.fitting.ramp_fit`; ``detector`` (``"full"``,
+        ``"linear"`` or ``"boundary"``) only names the one in use."""
         optics = base.optics(filter_name, base.pupil_cache())
         # Images see the base model's own IPC kernel (its read model applies it to ramps).
         linear = eqx.tree_at(

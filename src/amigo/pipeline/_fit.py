@@ -130,7 +130,8 @@ def fit(
 
     ``sci``, ``cal``: level-2 images or calslope files (not both kinds). ``model``: a base
     model (``.npz``) or instrument file (default: the shipped model for the data's
-    level); ``detector``: ``"full"`` or ``"linear"`` (default: as docs/fit.md says);
+    level); ``detector``: ``"full"``, ``"linear"`` or ``"boundary"`` (default: as
+    docs/fit.md says);
     ``knots``, ``knot_spacing``: the uv grid of the latent visibilities;
     ``max_iterations``, ``polish``: optimiser bounds; ``wavefront_prior``: nm rms prior on
     the calibrators' wavefront; ``superbias``: calslope darks giving each pixel's reset
@@ -314,7 +315,8 @@ def _superbias(paths: tuple[Path, ...], level: str):
 
 
 def _check_inputs(sci: tuple[Path, ...], cal: tuple[Path, ...], detector: str | None) -> str:
-    """Validate the kinds of the inputs; return ``"calslope"`` or ``"level2"``."""
+    """Validate the kinds of the inputs (and ``--detector`` against them); return
+    ``"calslope"`` or ``"level2"``."""
     from amigo.io.jwst import LEVEL2_KINDS, data_kind
 
     kinds = {path: data_kind(path) for path in (*sci, *cal)}
@@ -322,14 +324,24 @@ def _check_inputs(sci: tuple[Path, ...], cal: tuple[Path, ...], detector: str | 
         if kind == "uncal":
             raise InputError(path, "is a raw ramp (uncal): run 'amigo process' first")
     check_one_level(kinds)
-    first, kind = next(iter(kinds.items()))
-    if kind in LEVEL2_KINDS and detector == "boundary":
-        # Its strength is measured in the group differences of calslope files
-        # (RampDetector.calibrate_migration); a level-2 image has none to measure it in.
-        raise InputError(
-            first, "is a level-2 image: --detector boundary needs calslope files (raw ramps)"
-        )
-    return "level2" if kind in LEVEL2_KINDS else "calslope"
+    check_detector_level(kinds, detector)
+    return "level2" if next(iter(kinds.values())) in LEVEL2_KINDS else "calslope"
+
+
+def check_detector_level(kinds: dict[Path, str], detector: str | None) -> None:
+    """``--detector boundary`` needs raw ramps or their calslope files: its strength is
+    measured in the group differences (:meth:`RampDetector.calibrate_migration`), which a
+    level-2 image does not have. :class:`~amigo.errors.InputError` naming the first
+    level-2 input (``kinds``: :func:`amigo.io.jwst.data_kind` of each input)."""
+    from amigo.io.jwst import LEVEL2_KINDS
+
+    if detector != "boundary":
+        return
+    for path, kind in kinds.items():
+        if kind in LEVEL2_KINDS:
+            raise InputError(
+                path, "is a level-2 image: --detector boundary needs calslope files (raw ramps)"
+            )
 
 
 #: The detector models of ``--detector``.
@@ -394,7 +406,8 @@ class FitModel:
         Filter -> image-level :class:`~amigo.model.image.Instrument`.
     base
         The base model whose ramp and read models sit in front of calslope fits (with
-        its network for ``full``, without for ``linear``), or ``None`` (images fitted as
+        its network for ``full``, without for ``linear``, with the physical account for
+        ``boundary``), or ``None`` (images fitted as
         they are: level-2 files, or calslope files with an instrument file).
     detector
         ``"full"``, ``"linear"`` or ``"boundary"`` (``fit_summary.json``).
@@ -475,14 +488,18 @@ def _fit_model(model: Path | None, detector: str | None, level: str) -> FitModel
     if level == "level2" and detector != "full":
         mode, ramp = "linear", None
     else:
-        mode = detector or "full"
-        ramp = {
-            "full": base,
-            "linear": base.with_linear_detector(),
-            # The physical account in place of the network: its strength is measured
-            # in every filter's data (RampFit.calibrate_migration).
-            "boundary": base.with_network(BoundaryShift.create()),
-        }[mode]
+        ramp = base
+        if detector == "boundary" and not isinstance(base.ramp.network, BoundaryShift):
+            # The physical account in the network's place: its strength is measured in
+            # every filter's data (RampDetector.calibrate_migration).
+            ramp = base.with_network(BoundaryShift.create())
+        elif detector == "linear":
+            ramp = base.with_linear_detector()
+        # Named by what the ramp holds (a model file may hold the physical account).
+        held = ramp.ramp.network
+        mode = (
+            "linear" if held is None else "boundary" if isinstance(held, BoundaryShift) else "full"
+        )
         if level == "level2":
             ramp = ramp.for_level2()  # dark, flat and linearity already corrected
     return FitModel(

@@ -17,6 +17,7 @@ from amigo.errors import InputError, ReportedInputError
 from amigo.pipeline._detect import DetectResult, check_rmax, check_sampler_device, detect
 from amigo.pipeline._fit import (
     FitResult,
+    check_detector_level,
     check_model_options,
     check_one_level,
     check_roles,
@@ -136,6 +137,7 @@ def check_before_work(
     check_sampler_device()
     kinds = {Path(p): data_kind(p) for p in (*sci, *cal)}
     check_one_level(kinds)
+    check_detector_level(kinds, detector)
     return kinds
 
 

@@ -105,6 +105,7 @@ from amigo.model.base import (
     save_base_model,
     write_leaves,
 )
+from amigo.model.detector.boundary import BoundaryShift
 from amigo.model.detector.ramp import ChargeMigrationNetwork
 from amigo.model.detector.reset import Superbias
 from amigo.model.optics.model import strong_types
@@ -175,6 +176,13 @@ class Trainer:
             config = initial.config
             if initial.linear and settings.steps > 0:
                 raise InputError(where, "has no network to fine-tune (a linear model)")
+            if isinstance(initial.ramp.network, BoundaryShift):
+                # Its checkpoints and later stages rebuild a network; not supported yet.
+                raise InputError(
+                    where,
+                    "holds the physical charge-migration account (--detector boundary), "
+                    "which amigo train cannot fine-tune yet",
+                )
             if tuple(config.shape) != tuple(data.cal[0].shape):
                 raise InputError(
                     where, f"models {config.shape} pixels, the data have {data.cal[0].shape}"

@@ -1,7 +1,8 @@
 """Charge migration from first principles: pixel boundaries moved by the collected charge.
 
-An alternative to the network of :mod:`amigo.model.detector.ramp` with three numbers
-instead of 8,640 weights (``amigo fit --detector boundary``). Photo-electrons arriving
+An alternative to the network of :mod:`amigo.model.detector.ramp` with two numbers (a
+strength and an anisotropy) and a fixed field shape instead of 8,640 weights (``amigo
+fit --detector boundary``). Photo-electrons arriving
 near the boundary between two pixels are pushed away from the pixel that already holds
 more charge: the boundary moves into the brighter pixel, by an amount proportional to the
 component of the collected charge's field normal to it, and the electrons arriving in
@@ -15,12 +16,14 @@ of a point charge at each pixel's centre, a depth ``h`` below the collecting sur
 ``c[n, m] = (m + 1/2) / ((m + 1/2)^2 + n^2 + h^2)^(3/2)``, normalised to one at
 ``n = m = 0``. The electrons moved per unit time are ``s`` times the photon rate per
 pixel width at the boundary, taken from the two sub-pixel strips on either side of it.
-Rows alike, with ``strength * anisotropy``.
+Rows alike, with ``strength * anisotropy``. The shift is bounded smoothly at
+:data:`MAX_SHIFT_PIX` (``b tanh(s / b)``, one strip): physical shifts are a few
+hundredths of a pixel, and the edge-density estimate means nothing beyond a strip.
 
 Why a second account: at the depth of deep programmes the network's account of a
 simulated brighter-fatter effect depends on where the star falls within a pixel
 (``benchmarks/bfe_phase.py``: its strength varies by +-6 % with the pixel phase and it
-leaves about 2.5 % of the effect's chi2), and a science star and its calibrator at
+leaves 3-6 % of the effect's chi2), and a science star and its calibrator at
 different phases then differ by more than the noise (docs/detect.md). The strength is
 measured in every fit (``amigo fit``'s migration amplitude), so no training is needed.
 
@@ -46,6 +49,12 @@ DEFAULT_RADIUS_PIX = 3
 DEFAULT_DEPTH_PIX = 0.5
 #: The strength is stored in these units so the fitted number is of order one.
 STRENGTH_UNIT = 1.0e-6
+#: Bound of a boundary's shift (pixels): the width of the 1/3-pixel strip whose rate
+#: stands for the density at the boundary.
+MAX_SHIFT_PIX = 1.0 / 3.0
+#: Largest field radius accepted (pixels): the field sum is unrolled over (2 R + 1) R
+#: terms.
+MAX_RADIUS_PIX = 8
 
 
 def field_coefficients(radius_pix: int, depth_pix: float) -> np.ndarray:
@@ -105,9 +114,20 @@ class BoundaryShift(eqx.Module):
         radius_pix: int = DEFAULT_RADIUS_PIX,
         depth_pix: float = DEFAULT_DEPTH_PIX,
     ) -> BoundaryShift:
+        """From a strength in pixels per electron; ``ValueError`` for a field shape
+        outside ``1 <= radius_pix <=`` :data:`MAX_RADIUS_PIX` and ``0 <= depth_pix``
+        (finite), or a strength or anisotropy that is not finite."""
+        if isinstance(radius_pix, bool) or int(radius_pix) != radius_pix:
+            raise ValueError(f"radius_pix must be a whole number of pixels, not {radius_pix!r}")
+        if not 1 <= int(radius_pix) <= MAX_RADIUS_PIX:
+            raise ValueError(f"radius_pix must lie in 1..{MAX_RADIUS_PIX}, not {radius_pix}")
+        if not (np.isfinite(depth_pix) and depth_pix >= 0):
+            raise ValueError(f"depth_pix must be finite and >= 0, not {depth_pix}")
+        if not (np.isfinite(strength_pix_per_e) and np.isfinite(anisotropy)):
+            raise ValueError("the strength and the anisotropy must be finite")
         return cls(
-            strength=jnp.asarray(strength_pix_per_e / STRENGTH_UNIT),
-            anisotropy=jnp.asarray(anisotropy),
+            strength=jnp.asarray(strength_pix_per_e / STRENGTH_UNIT, float),
+            anisotropy=jnp.asarray(anisotropy, float),
             radius_pix=int(radius_pix),
             depth_pix=float(depth_pix),
         )
@@ -127,8 +147,8 @@ class BoundaryShift(eqx.Module):
         given the ``charge`` already collected. Sums to zero."""
         c = field_coefficients(self.radius_pix, self.depth_pix)
         unit = (self.strength * STRENGTH_UNIT).astype(charge.dtype)
-        shift_x = unit * field_sum_x(charge, c)
-        shift_y = unit * self.anisotropy.astype(charge.dtype) * field_sum_x(charge.T, c).T
+        shift_x = _bounded(unit * field_sum_x(charge, c))
+        shift_y = _bounded(unit * self.anisotropy.astype(charge.dtype) * field_sum_x(charge.T, c).T)
         flow_x = shift_x * edge_x  # from column x + 1 into column x
         flow_y = shift_y * edge_y  # from row y + 1 into row y
         zero_col = jnp.zeros((charge.shape[0], 1), charge.dtype)
@@ -136,3 +156,10 @@ class BoundaryShift(eqx.Module):
         gain = jnp.concatenate([flow_x, zero_col], 1) - jnp.concatenate([zero_col, flow_x], 1)
         gain = gain + jnp.concatenate([flow_y, zero_row], 0)
         return gain - jnp.concatenate([zero_row, flow_y], 0)
+
+
+def _bounded(shift: Array) -> Array:
+    """``b tanh(s / b)`` with ``b =`` :data:`MAX_SHIFT_PIX`: within 0.3 % of ``s`` below
+    0.03 pixel (the largest shifts of a 20,000 e- core at 1.8e-6 pix/e-), never past
+    ``b``."""
+    return MAX_SHIFT_PIX * jnp.tanh(shift / MAX_SHIFT_PIX)

@@ -319,14 +319,15 @@ class RampModel(eqx.Module):
         step = to_subpixels(illuminance_e) * self.intra_pixel()[None, None] / self.n_substeps
         step = step.astype(dtype)
         ny, nx = step.shape[:2]
-        if isinstance(self.network, BoundaryShift):
-            edge_x, edge_y = edge_rates(step)
+        # The physical account's photon rates at the boundaries: the same every step.
+        edges = edge_rates(step) if isinstance(self.network, BoundaryShift) else None
 
         def advance(charge: Array, _: None) -> tuple[Array, Array]:
             if self.network is None:
                 collected = step.sum(axis=(2, 3))
             elif isinstance(self.network, BoundaryShift):
-                collected = step.sum(axis=(2, 3)) + self.network.moved(charge, edge_x, edge_y)
+                assert edges is not None
+                collected = step.sum(axis=(2, 3)) + self.network.moved(charge, *edges)
             else:
                 kernels = migration_kernels(self.network(charge), self.max_shift_pix)
                 collected = transport(step, kernels)
