@@ -143,6 +143,29 @@ def test_same_seed_identical_files_other_seed_different(default_run, tmp_path):
         assert (tmp_path / "c" / f"{STEM}{suffix}").read_bytes() != first
 
 
+def test_a_noise_seed_keeps_the_telescope_and_detector_and_draws_other_noise(default_run, tmp_path):
+    """--noise-seed: the instrument state and the detector's per-pixel maps of --seed,
+    other noise; a noise seed equal to the seed draws the same counts as none."""
+    path, folder = default_run
+    out = tmp_path / "n"
+    assert (
+        run_cli("simulate", str(path), "--out", str(out), "--seed", "7", "--noise-seed", "9") == 0
+    )
+    same = tmp_path / "s"
+    assert (
+        run_cli("simulate", str(path), "--out", str(same), "--seed", "7", "--noise-seed", "7") == 0
+    )
+    first = json.loads((folder / "a" / f"{STEM}_truth.json").read_text())
+    other = json.loads((out / f"{STEM}_truth.json").read_text())
+    assert other["seed"] == 7 and other["noise_seed"] == 9 and first["noise_seed"] is None
+    assert other["detector"] == first["detector"]
+    assert other["instrument_state"] == first["instrument_state"]
+    data = fits.getdata(folder / "a" / f"{STEM}_uncal.fits", "SCI")
+    assert not np.array_equal(fits.getdata(out / f"{STEM}_uncal.fits", "SCI"), data)
+    assert np.array_equal(fits.getdata(same / f"{STEM}_uncal.fits", "SCI"), data)
+    assert fits.getheader(out / f"{STEM}_uncal.fits")["SIMNSEED"] == 9
+
+
 def _last_group(folder):
     return fits.getdata(folder / f"{STEM}_uncal.fits", "SCI")[0, -1].astype(float)
 

@@ -1,4 +1,5 @@
-"""``amigo simulate SCENARIO --out DIR [--seed N] [--full]``: simulated raw AMI ramps."""
+"""``amigo simulate SCENARIO --out DIR [--seed N] [--noise-seed M] [--full]``: simulated
+raw AMI ramps."""
 
 from __future__ import annotations
 
@@ -19,6 +20,13 @@ import click
     help="Master random seed: the same seed gives identical files.",
 )
 @click.option(
+    "--noise-seed",
+    default=None,
+    type=click.IntRange(min=0),
+    help="Draw the exposures' noise (photons, reads, cosmic rays) from this seed, keeping "
+    "the telescope and detector that --seed draws [default: all from --seed].",
+)
+@click.option(
     "--full",
     is_flag=True,
     help="Simulate the program's numbers of integrations (the paper's photon "
@@ -32,7 +40,14 @@ import click
     help="Simulate only the exposure(s) whose file stem starts with STEM "
     "(repeatable); the others' random streams are still reserved.",
 )
-def command(scenario: str, out_dir: str, seed: int, full: bool, only: tuple[str, ...]) -> None:
+def command(
+    scenario: str,
+    out_dir: str,
+    seed: int,
+    noise_seed: int | None,
+    full: bool,
+    only: tuple[str, ...],
+) -> None:
     """Simulate raw ramps of SCENARIO (a built-in name or a TOML file).
 
     Built-in scenarios: cal4481, com1093, go1843 (copy their TOML from amigo/data/scenarios
@@ -40,5 +55,5 @@ def command(scenario: str, out_dir: str, seed: int, full: bool, only: tuple[str,
     """
     from amigo.pipeline import simulate
 
-    for item in simulate(scenario, out_dir, seed=seed, full=full, only=only):
+    for item in simulate(scenario, out_dir, seed=seed, full=full, only=only, noise_seed=noise_seed):
         click.echo(f"{item.uncal}\t{item.truth}")

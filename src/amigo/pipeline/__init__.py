@@ -108,12 +108,14 @@ def simulate(
     seed: int = 0,
     full: bool = False,
     only: Sequence[str] = (),
+    noise_seed: int | None = None,
 ) -> list[Any]:
     """Simulate raw ramps of a scenario (a built-in name: ``cal4481``, ``com1093``,
     ``go1843``, ``demo``; or a TOML file), as ``amigo simulate``: ``out/<stem>_uncal.fits``
     and ``out/<stem>_truth.json`` per exposure. ``full``: the program's numbers of
-    integrations; ``only``: stems (prefixes) of the exposures to write. Returns the
-    written exposures (``.uncal``, ``.truth``: paths)."""
+    integrations; ``only``: stems (prefixes) of the exposures to write; ``noise_seed``:
+    the exposures' noise from this seed, the telescope and detector from ``seed``.
+    Returns the written exposures (``.uncal``, ``.truth``: paths)."""
     from amigo.errors import InputError
     from amigo.simulation.run import simulate_scenario
     from amigo.simulation.scenarios import load_scenario
@@ -129,4 +131,6 @@ def simulate(
         def select(spec: Any) -> bool:
             return any(spec.stem(loaded.program).startswith(p) for p in only)
 
-    return simulate_scenario(loaded, os.fspath(out), seed=seed, full=full, select=select)
+    return simulate_scenario(
+        loaded, os.fspath(out), seed=seed, full=full, select=select, noise_seed=noise_seed
+    )

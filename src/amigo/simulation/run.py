@@ -92,6 +92,7 @@ def simulate_exposure(
     full: bool,
     seed: int,
     start_mjd_offset_s: float,
+    noise_seed: int | None = None,
 ) -> SimulatedExposure:
     """Simulate one exposure and write its uncal and truth files."""
     stem = spec.stem(scenario.program)
@@ -150,6 +151,11 @@ def simulate_exposure(
             "SIMSEED": (int(seed), "amigo simulate seed"),
             "SIMFULL": (bool(full), "T if --full (the program's integrations)"),
             "SIMROLE": (spec.role, "science, calibrator or flat"),
+            **(
+                {}
+                if noise_seed is None
+                else {"SIMNSEED": (int(noise_seed), "amigo simulate noise seed")}
+            ),
         },
     )
     sci = sci_header(
@@ -188,6 +194,7 @@ def simulate_exposure(
         "scenario": scenario.name,
         "scenario_source": scenario.source,
         "seed": int(seed),
+        "noise_seed": None if noise_seed is None else int(noise_seed),
         "full": bool(full),
         "uncal": uncal_path.name,
         "exposure": {
@@ -294,6 +301,7 @@ def simulate_scenario(
     illumination: Illumination | None = None,
     detector: DetectorConfig | None = None,
     select: Callable[[ExposureSpec], bool] | None = None,
+    noise_seed: int | None = None,
 ) -> list[SimulatedExposure]:
     """Simulate every exposure of a scenario into ``out_dir``.
 
@@ -315,13 +323,23 @@ def simulate_scenario(
     select
         Only simulate the exposures for which this returns True (the random streams of
         the others are still spawned, so results do not depend on the selection).
+    noise_seed
+        Draw the exposures' random streams (photon and read noise, cosmic rays) from
+        this seed instead, keeping the telescope and the detector that ``seed`` draws:
+        the same sky through the same instrument with other noise (e.g. to measure the
+        scatter of a fit against its errors). ``None``: from ``seed``, as before.
     """
-    if int(seed) < 0:
+    if int(seed) < 0 or (noise_seed is not None and int(noise_seed) < 0):
         raise ValueError("seed must be a non-negative integer")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     root = np.random.SeedSequence(int(seed))
     state_seq, detector_seq, *exposure_seqs = root.spawn(2 + len(scenario.exposures))
+    if noise_seed is not None:
+        # Spawned alike, so that noise_seed == seed gives the same files as no noise seed.
+        exposure_seqs = np.random.SeedSequence(int(noise_seed)).spawn(2 + len(scenario.exposures))[
+            2:
+        ]
     state = draw_instrument_state(
         np.random.default_rng(state_seq), scenario.spread, scenario.filters
     )
@@ -350,6 +368,7 @@ def simulate_scenario(
                     full=full,
                     seed=seed,
                     start_mjd_offset_s=offset_s,
+                    noise_seed=noise_seed,
                 )
             )
         offset_s += exposure_duration_s(nints, spec.ngroups) + EXPOSURE_GAP_S
