@@ -23,7 +23,8 @@ import click
     "--noise-seed",
     default=None,
     type=click.IntRange(min=0),
-    help="Draw the exposures' noise (photons, reads, cosmic rays) from this seed, keeping "
+    help="Draw the exposures' noise (photon and dark shot noise, reset, read and 1/f noise, "
+    "cosmic rays) from this seed, keeping "
     "the telescope and detector that --seed draws [default: all from --seed].",
 )
 @click.option(

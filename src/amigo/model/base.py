@@ -422,7 +422,8 @@ class BaseModel(eqx.Module):
         network = self.ramp.network
         if network is None:
             raise ValueError("the linear detector has no charge migration to scale")
-        if isinstance(network, BoundaryShift):  # exactly proportional: its strength
+        if isinstance(network, BoundaryShift):  # its strength exactly (the charge moved to
+            # within the shift's guard, src/amigo/model/detector/boundary.py)
             return self.with_network(network.scaled(scale))
         last = network.layers[-1].weight
         return eqx.tree_at(lambda m: m.ramp.network.layers[-1].weight, self, last * scale)
@@ -847,12 +848,14 @@ def _load_base_model(path: Path, data) -> BaseModel:
     config = BaseModelConfig.from_json(record.get("config", {}))
     skeleton = BaseModel.create(config, linear=True)
     shape = record.get("boundary_shift")
-    if record.get("network", True) and isinstance(shape, dict):
+    if record.get("network", True) and shape is not None:
+        if not isinstance(shape, dict):
+            raise InputError(path, f"unreadable boundary_shift record {shape!r}")
         try:
             account = BoundaryShift.create(
                 0.0, radius_pix=shape["radius_pix"], depth_pix=float(shape["depth_pix"])
             )
-        except (KeyError, TypeError, ValueError) as error:
+        except (KeyError, TypeError, ValueError, OverflowError) as error:
             raise InputError(
                 path, f"unreadable boundary_shift record {shape!r} ({error})"
             ) from None

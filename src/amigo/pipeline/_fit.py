@@ -500,6 +500,13 @@ def _fit_model(model: Path | None, detector: str | None, level: str) -> FitModel
         mode = (
             "linear" if held is None else "boundary" if isinstance(held, BoundaryShift) else "full"
         )
+        if level == "level2" and mode == "boundary":
+            # As check_detector_level: its strength is measured in group differences.
+            raise InputError(
+                model,
+                "holds the physical charge-migration account, which needs calslope files "
+                "(raw ramps), not level-2 images",
+            )
         if level == "level2":
             ramp = ramp.for_level2()  # dark, flat and linearity already corrected
     return FitModel(

@@ -324,13 +324,15 @@ def simulate_scenario(
         Only simulate the exposures for which this returns True (the random streams of
         the others are still spawned, so results do not depend on the selection).
     noise_seed
-        Draw the exposures' random streams (photon and read noise, cosmic rays) from
-        this seed instead, keeping the telescope and the detector that ``seed`` draws:
+        Draw the exposures' random streams (photon and dark shot noise, reset, read and
+        1/f noise, cosmic rays) from this seed instead, keeping the telescope and the detector that ``seed`` draws:
         the same sky through the same instrument with other noise (e.g. to measure the
         scatter of a fit against its errors). ``None``: from ``seed``, as before.
     """
-    if int(seed) < 0 or (noise_seed is not None and int(noise_seed) < 0):
+    if int(seed) < 0:
         raise ValueError("seed must be a non-negative integer")
+    if noise_seed is not None and int(noise_seed) < 0:
+        raise ValueError("noise_seed must be a non-negative integer")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     root = np.random.SeedSequence(int(seed))
