@@ -59,7 +59,6 @@ from amigo.fitting.params import FitParams
 from amigo.io.calslope import CalSlope
 from amigo.likelihood.pixels import ImageData
 from amigo.model.base import BaseModel
-from amigo.model.detector.boundary import BoundaryShift
 from amigo.model.detector.dark_residual import HALO_FRACTION, pattern_amplitude
 from amigo.model.detector.reset import Superbias, with_first_group
 from amigo.model.image import FilterSetup, Instrument
@@ -329,9 +328,7 @@ class RampDetector:
     def mode(self) -> str:
         """``"full"`` with the charge-migration network, ``"boundary"`` with the physical
         account in its place, ``"linear"`` without."""
-        if self.base.linear:
-            return "linear"
-        return "boundary" if isinstance(self.base.ramp.network, BoundaryShift) else "full"
+        return self.base.detector_mode
 
     def check_dark_patterns(self, fit: FilterFit, params: FitParams) -> list[str]:
         """Measure, in each level-2 image the model's read offsets apply to, the amplitude

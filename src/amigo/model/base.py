@@ -395,6 +395,14 @@ class BaseModel(eqx.Module):
         """True when the charge-migration network is off (linear charge accumulation)."""
         return self.ramp.network is None
 
+    @property
+    def detector_mode(self) -> str:
+        """What ``--detector`` names this ramp: ``"linear"`` (no charge migration),
+        ``"boundary"`` (the physical account) or ``"full"`` (the network)."""
+        if self.linear:
+            return "linear"
+        return "boundary" if isinstance(self.ramp.network, BoundaryShift) else "full"
+
     def with_config(self, **changes: Any) -> BaseModel:
         """The same parameters under other optics settings: ``pupil_npix``,
         ``n_wavelengths`` or ``defocus_method`` (how finely the image is computed; the

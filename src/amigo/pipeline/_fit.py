@@ -496,10 +496,7 @@ def _fit_model(model: Path | None, detector: str | None, level: str) -> FitModel
         elif detector == "linear":
             ramp = base.with_linear_detector()
         # Named by what the ramp holds (a model file may hold the physical account).
-        held = ramp.ramp.network
-        mode = (
-            "linear" if held is None else "boundary" if isinstance(held, BoundaryShift) else "full"
-        )
+        mode = ramp.detector_mode
         if level == "level2" and mode == "boundary":
             # As check_detector_level: its strength is measured in group differences.
             raise InputError(

@@ -325,9 +325,9 @@ def simulate_scenario(
         the others are still spawned, so results do not depend on the selection).
     noise_seed
         Draw the exposures' random streams (photon and dark shot noise, reset, read and
-        1/f noise, cosmic rays) from this seed instead, keeping the telescope and the detector that ``seed`` draws:
-        the same sky through the same instrument with other noise (e.g. to measure the
-        scatter of a fit against its errors). ``None``: from ``seed``, as before.
+        1/f noise, cosmic rays) from this seed instead, keeping the telescope and the
+        detector that ``seed`` draws: the same sky through the same instrument with other
+        noise (e.g. to measure the scatter of a fit against its errors). ``None``: from ``seed``, as before.
     """
     if int(seed) < 0:
         raise ValueError("seed must be a non-negative integer")
@@ -338,10 +338,10 @@ def simulate_scenario(
     root = np.random.SeedSequence(int(seed))
     state_seq, detector_seq, *exposure_seqs = root.spawn(2 + len(scenario.exposures))
     if noise_seed is not None:
-        # Spawned alike, so that noise_seed == seed gives the same files as no noise seed.
-        exposure_seqs = np.random.SeedSequence(int(noise_seed)).spawn(2 + len(scenario.exposures))[
-            2:
-        ]
+        # Spawned alike, so that noise_seed == seed draws the same noise as no noise seed.
+        _, _, *exposure_seqs = np.random.SeedSequence(int(noise_seed)).spawn(
+            2 + len(scenario.exposures)
+        )
     state = draw_instrument_state(
         np.random.default_rng(state_seq), scenario.spread, scenario.filters
     )
