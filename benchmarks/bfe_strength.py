@@ -18,8 +18,9 @@ as much charge as the network (the least-squares ratio of the patterns at 1e-6).
 A network that learned a physical brighter-fatter effect correlates with it and keeps its
 strength as the flux grows (the effect is linear in the charge). ~20 s on 2 CPU cores.
 
-``--offsets`` prints the phase table instead (the simulator-trained network, the star
-moved by each sub-pixel offset): the network's strength at each, and the chi2 of the
+``--offsets`` prints the phase table instead (the simulator-trained network, or with
+``--account boundary`` amigo's physical account, the star moved by each sub-pixel
+offset): the network's strength at each, and the chi2 of the
 physics and of what the network leaves of it (scaled by one strength for every offset)
 at the depth of ``--nints`` integrations. docs/detector.md, "The charge migration at
 each pixel phase".
@@ -58,13 +59,19 @@ def compare(
     ngroups: int,
     flux: float,
     star: tuple[float, float] = STAR_SCI,
+    account: str = "network",
 ) -> dict:
     """One row: the model's network against the physics at 1e-6 pix/e-, the star at
     ``star`` (1-based science pixels). Also returns the two patterns and the charge
-    (``network``, ``physics``, ``charge``: (80, 80) electrons) for the phase table."""
+    (``network``, ``physics``, ``charge``: (80, 80) electrons) for the phase table.
+    ``account="boundary"``: amigo's physical account (``--detector boundary``, its
+    default shape at 1e-6 pix/e-) in the network's place."""
     from amigo.model.base import load_base_model
+    from amigo.model.detector.boundary import BoundaryShift
 
     base = load_base_model(model_path)
+    if account == "boundary":
+        base = base.with_network(BoundaryShift.create(1.0e-6))
     maps = isim.load_detector_maps(model_path)
     integration_s = ngroups * GROUP_TIME_S
     electrons = RATE_E_S * integration_s * flux
@@ -91,14 +98,22 @@ def compare(
     }
 
 
-def phase_table(isim, model_path: Path, psf: np.ndarray, ngroups: int, offsets, nints: int):
+def phase_table(
+    isim,
+    model_path: Path,
+    psf: np.ndarray,
+    ngroups: int,
+    offsets,
+    nints: int,
+    account: str = "network",
+):
     """Rows for the star at each sub-pixel offset (pixels) from ``STAR_SCI``: the
     network's strength there, and what is left of the physics once the network is scaled
     by one strength for all offsets (the least-squares one over them), as chi2 at the
     depth of ``nints`` integrations (Poisson variance of the last read, summed over the
     subarray); ``chi2_pattern`` is the scaled physics' own chi2 at that depth."""
     rows = [
-        compare(isim, model_path, psf, ngroups, 1.0, (STAR_SCI[0] + dx, STAR_SCI[1] + dy))
+        compare(isim, model_path, psf, ngroups, 1.0, (STAR_SCI[0] + dx, STAR_SCI[1] + dy), account)
         for dx, dy in offsets
     ]
     num = sum(float(np.sum(r["network"] * r["physics"])) for r in rows)
@@ -123,6 +138,13 @@ def main() -> None:
         help='sub-pixel star offsets "dx,dy;dx,dy" (pixels): the phase table instead',
     )
     parser.add_argument("--nints", type=int, default=7046, help="depth of the phase table")
+    parser.add_argument(
+        "--account",
+        choices=("network", "boundary"),
+        default="network",
+        help="the phase table's account of the migration: the simulator-trained network, "
+        "or the physical account of --detector boundary",
+    )
     args = parser.parse_args()
     from amigo.model.base import default_model_path, level2_model_path
 
@@ -141,7 +163,13 @@ def main() -> None:
         for filter_name in args.filters.split(","):
             psf = isim.polychromatic_psf(filter_name, 4500.0, amplitude, opd, 12.0)
             common, rows = phase_table(
-                isim, default_model_path(), psf, NGROUPS[filter_name], offsets, args.nints
+                isim,
+                default_model_path(),
+                psf,
+                NGROUPS[filter_name],
+                offsets,
+                args.nints,
+                args.account,
             )
             for r in rows:
                 cells = [filter_name, str(r["offset"]), f"{r['strength']:.3f}", f"{common:.3f}"]
