@@ -354,7 +354,14 @@ def test_fine_tuning_learns_a_per_pixel_dark_current(cache):
     start = eqx.tree_at(lambda m: m.read.dark_e_per_group, truth, jnp.zeros((16, 16)))
     # A slow network: a fast one, trained on the calibrators only, first bends itself to
     # mimic the missing dark charge and so drags the flats' model away (seen here).
-    settings = TrainSettings(steps=10, n_batches=1, init="truth-without-dark", network_lr=1e-4)
+    # The population prior at this detector's own pixel-to-pixel scatter (20 e-/group).
+    settings = TrainSettings(
+        steps=10,
+        n_batches=1,
+        init="truth-without-dark",
+        network_lr=1e-4,
+        dark_current_prior=20.0,
+    )
     trainer = Trainer(TrainingData(cal, flats, []), settings, cache=cache, initial=start)
     first = trainer.epoch()
     for _ in range(9):
@@ -364,3 +371,43 @@ def test_fine_tuning_learns_a_per_pixel_dark_current(cache):
     assert np.corrcoef(learned.ravel(), dark.ravel())[0, 1] > 0.8
     assert losses["cal"] < 0.4 * first["cal"]
     assert losses["flat"] < first["flat"]
+
+
+def test_the_dark_current_prior_holds_the_stars_pixels_and_not_the_background(cache):
+    """The population prior on the dark current (training on calslope files): a pixel
+    the calibrators light brightly cannot tell a few electrons per group of dark from a
+    misfit, and stays near the population's median; a background pixel's dark is
+    measured by its data, and the prior hardly moves it. Checked against the closed form
+    of one Fisher-preconditioned step: the step is ``-(g + P (d - m)) / (F + P)``."""
+    truth = BaseModel.create(SMALL, linear=True)
+    # Read noise as a mean of many integrations leaves (0.05 DN): the background pixels'
+    # dark is then well measured, the star's photon noise hides it.
+    source = PointSourceParams(jnp.array([0.0, 0.0]), jnp.asarray(4e5))
+    cal = [_synthetic(truth, source, 4, 0.05, 0, cache)]
+    settings = TrainSettings(steps=1, n_batches=1, dark_current_prior=1.0)
+    trainer = Trainer(TrainingData(cal, [], []), settings, SMALL, cache)
+    rng = np.random.default_rng(2)
+    dark = jnp.asarray(3.0 + 0.5 * rng.normal(size=(16, 16)), jnp.float32)
+    base = eqx.tree_at(lambda m: m.read.dark_e_per_group, trainer.state.base, dark)
+    zero = jax.tree.map(jnp.zeros_like, base)
+    fisher = dark_fisher(base, trainer.state.cal_params[0], cal[0], cache)
+    f = np.asarray(fisher.read.dark_e_per_group)
+    fisher_tree = eqx.tree_at(lambda m: m.read.dark_e_per_group, zero, jnp.asarray(f))
+    grad, prec = trainer._dark_current_prior(base, zero, fisher_tree)
+    used = np.asarray(cal[0].used) > 0
+    centre = np.median(np.asarray(dark)[used])
+    np.testing.assert_allclose(
+        np.asarray(grad.read.dark_e_per_group), np.asarray(dark) - centre, rtol=1e-5
+    )
+    np.testing.assert_allclose(np.asarray(prec.read.dark_e_per_group), f + 1.0, rtol=1e-6)
+    # The step from the data's optimum (zero gradient) under the prior: the brightest
+    # pixels go most of the way to the median, the faintest keep most of their value.
+    step = -np.asarray(grad.read.dark_e_per_group) / np.asarray(prec.read.dark_e_per_group)
+    moved = (np.asarray(dark) + step - centre) / (np.asarray(dark) - centre)
+    np.testing.assert_allclose(moved[used], (f / (f + 1.0))[used], rtol=1e-4)
+    # The star's core (the brightest tenth, f ~ 0.07-0.27) and the faintest tenth
+    # (f ~ 1.6-5.5 per (e-/group)^2).
+    bright = used & (f <= np.percentile(f[used], 10))
+    faint = used & (f >= np.percentile(f[used], 90))
+    assert np.all(moved[bright] < 0.25)
+    assert np.all(moved[faint] > 0.6)

@@ -145,6 +145,16 @@ _FILES = click.Path(dir_okay=False, path_type=Path)
     "sensitivity around 1 (what the pipeline's flat leaves).",
 )
 @click.option(
+    "--dark-current-prior",
+    "dark_current_prior",
+    default=0.13,
+    show_default=True,
+    type=click.FloatRange(min=0),
+    help="Calslope training: width (electrons per group) of the Gaussian population prior "
+    "on each pixel's dark current around the calibrators' median dark (0: none); keeps "
+    "the star's bright pixels from taking a misfit for dark current.",
+)
+@click.option(
     "--dark-prior",
     "dark_prior",
     default=None,
@@ -206,6 +216,7 @@ def command(
     pupil_npix: int | None,
     defocus_method: str | None,
     sensitivity_prior: float,
+    dark_current_prior: float,
     dark_prior: float | None,
     stripes: bool,
     drift_modes: int,
@@ -250,6 +261,7 @@ def command(
             pupil_npix=pupil_npix,
             defocus_method=defocus_method,
             sensitivity_prior=sensitivity_prior,
+            dark_current_prior=dark_current_prior,
             dark_prior=dark_prior,
             stripes=stripes,
             drift_modes=drift_modes,

@@ -44,6 +44,17 @@ class TrainSettings:
     residual sensitivity around one when training on level-2 images (the pipeline's flat
     is good to about a per cent; unused otherwise).
 
+    ``dark_current_prior``: training on calslope files: standard deviation (electrons
+    per group) of the Gaussian population prior on each pixel's dark current around the
+    median dark of the calibrators' pixels; 0: none. The calibrators' bright pixels cannot
+    tell a dark current of a few electrons per group from a misfit of the charge migration
+    or the optics (thousands of electrons per group of photons), and without the prior
+    their dark absorbs it where the training's dithers put the star, and calibrates
+    wrongly at other pixel phases (docs/detector.md, "The dark current in the star's
+    pixels"); in background pixels the data outweigh it. The default is the robust
+    pixel-to-pixel scatter (1.4826 MAD) of the dark the shipped model had learnt without
+    it, over the calibrators' pixels (0.133).
+
     ``dark_prior_dn``: level-2 training: width (DN) of the prior on the per-group read
     offsets the pipeline's dark subtraction left (:func:`solve_dark_residual`); 0: none
     solved.
@@ -74,6 +85,7 @@ class TrainSettings:
     seed: int = 0
     diagonal: bool = False
     sensitivity_prior: float = 0.01
+    dark_current_prior: float = 0.13
     dark_prior_dn: float = DEFAULT_PRIOR_DN
     stripes: bool = True
     drift_modes: int = 0

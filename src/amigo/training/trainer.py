@@ -574,6 +574,8 @@ class Trainer:
             fisher = self._precision()["dark"]
             if self.data.level2:
                 g_dark, fisher = self._sensitivity_prior(base, g_dark, fisher)
+            elif self.settings.dark_current_prior > 0:
+                g_dark, fisher = self._dark_current_prior(base, g_dark, fisher)
             dark, dark_opt = dark_opt.update(split(base, mask), g_dark, fisher)
             if self.data.level2:
                 dark = self._without_common_mode(split(base, mask), dark)
@@ -632,6 +634,22 @@ class Trainer:
         f = fisher.ramp.flat
         fisher = eqx.tree_at(
             lambda m: m.ramp.flat, fisher, jnp.where(jnp.isinf(f), f, f + precision)
+        )
+        return grad, fisher
+
+    def _dark_current_prior(self, base: BaseModel, grad: BaseModel, fisher: BaseModel):
+        """Add the population prior ``(d - m)^2 / (2 sigma^2)`` on each pixel's dark
+        current ``d`` (electrons per group) to its gradient and Fisher diagonal; ``m`` is
+        the median dark over the calibrators' pixels now (robust to the pixels the prior
+        is there for), held fixed within the step."""
+        precision = 1.0 / self.settings.dark_current_prior**2
+        dark = base.read.dark_e_per_group
+        centre = jnp.median(dark[seen_by(self.data.cal)])
+        pulled = grad.read.dark_e_per_group + precision * (dark - centre)
+        grad = eqx.tree_at(lambda m: m.read.dark_e_per_group, grad, pulled)
+        f = fisher.read.dark_e_per_group
+        fisher = eqx.tree_at(
+            lambda m: m.read.dark_e_per_group, fisher, jnp.where(jnp.isinf(f), f, f + precision)
         )
         return grad, fisher
 
