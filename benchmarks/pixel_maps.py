@@ -83,7 +83,8 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--centre", default="40,40", help="the training star's x,y (pixels)")
     args = parser.parse_args()
-    centre = tuple(float(v) for v in args.centre.split(","))
+    x, y = (float(v) for v in args.centre.split(","))
+    centre = (x, y)
     truth = truth_maps(args.seed)
     for path in args.model:
         print(f"\n{path} against the simulator's seed-{args.seed} detector")
