@@ -400,14 +400,53 @@ def test_the_dark_current_prior_holds_the_stars_pixels_and_not_the_background(ca
         np.asarray(grad.read.dark_e_per_group), np.asarray(dark) - centre, rtol=1e-5
     )
     np.testing.assert_allclose(np.asarray(prec.read.dark_e_per_group), f + 1.0, rtol=1e-6)
-    # The step from the data's optimum (zero gradient) under the prior: the brightest
-    # pixels go most of the way to the median, the faintest keep most of their value.
-    step = -np.asarray(grad.read.dark_e_per_group) / np.asarray(prec.read.dark_e_per_group)
-    moved = (np.asarray(dark) + step - centre) / (np.asarray(dark) - centre)
-    np.testing.assert_allclose(moved[used], (f / (f + 1.0))[used], rtol=1e-4)
-    # The star's core (the brightest tenth, f ~ 0.07-0.27) and the faintest tenth
-    # (f ~ 1.6-5.5 per (e-/group)^2).
+    # A pixel no calibrator constrains (infinite Fisher: it never moves) stays so.
+    f_inf = f.copy()
+    f_inf[0, 0] = np.inf
+    inf_tree = eqx.tree_at(lambda m: m.read.dark_e_per_group, zero, jnp.asarray(f_inf))
+    _, prec_inf = trainer._dark_current_prior(base, zero, inf_tree)
+    assert np.isinf(np.asarray(prec_inf.read.dark_e_per_group)[0, 0])
+    # Where the prior outweighs the data it sets the step: the star's brightest tenth
+    # (f ~ 0.07-0.27 per (e-/group)^2) is pulled most of the way to the median, the
+    # faintest tenth (f ~ 1.6-5.5) much less.
     bright = used & (f <= np.percentile(f[used], 10))
     faint = used & (f >= np.percentile(f[used], 90))
-    assert np.all(moved[bright] < 0.25)
-    assert np.all(moved[faint] > 0.6)
+    weight = 1.0 / (f + 1.0)  # the prior's share of a Newton step from the data's optimum
+    assert np.all(weight[bright] > 0.75) and np.all(weight[faint] < 0.4)
+
+
+@pytest.mark.slow
+def test_a_training_step_pulls_the_stars_dark_to_the_population(cache):
+    """One network-on ``train_step`` of calslope data: with the prior, the dark current
+    of the star's bright pixels moves towards the calibrators' median; without it, the
+    data's gradient alone moves it. A checkpoint written before the setting existed
+    resumes (it ran without the prior's key: at the default)."""
+    truth = BaseModel.create(SMALL, jax.random.PRNGKey(1), network_init_scale=0.01)
+    source = PointSourceParams(jnp.array([0.0, 0.0]), jnp.asarray(4e5))
+    cal = [_synthetic(truth, source, 4, 0.05, 0, cache)]
+    rng = np.random.default_rng(4)
+    # A misfit-like dark: the data say zero; the start holds 0.5 +- 2 e-/group.
+    start_dark = jnp.asarray(0.5 + 2.0 * rng.normal(size=(16, 16)), jnp.float32)
+    start = eqx.tree_at(lambda m: m.read.dark_e_per_group, truth, start_dark)
+
+    def one_step(width: float) -> np.ndarray:
+        settings = TrainSettings(steps=1, n_batches=1, init="start", dark_current_prior=width)
+        trainer = Trainer(TrainingData(cal, [], []), settings, cache=cache, initial=start)
+        trainer.compute_fisher()
+        trainer.train_step([0], use_network=True)
+        return np.asarray(trainer.state.base.read.dark_e_per_group)
+
+    free, held = one_step(0.0), one_step(0.05)
+    centre = np.median(np.asarray(start_dark))
+    assert not np.allclose(free, held)
+    # With a width of 0.05 the prior's precision (400) outweighs every pixel's data:
+    # the whole map closes on the median.
+    assert np.abs(held - centre).mean() < 0.5 * np.abs(free - centre).mean()
+
+    # Resuming: settings stored without the key count at their default.
+    settings = TrainSettings(steps=1, n_batches=1)
+    trainer = Trainer(TrainingData(cal, [], []), settings, SMALL, cache)
+    stored = {k: v for k, v in dataclasses.asdict(settings).items() if k != "dark_current_prior"}
+    stored["stage_steps"] = list(stored["stage_steps"])
+    assert trainer._same_settings(stored)
+    assert not trainer._same_settings({**stored, "dark_current_prior": 0.5})

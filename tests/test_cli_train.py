@@ -9,6 +9,7 @@ also proves that no traceback reaches the terminal.
 
 from __future__ import annotations
 
+import hashlib
 import os
 import subprocess
 import sys
@@ -144,7 +145,9 @@ def test_train_writes_a_model_with_its_record_and_resumes(files, capsys):
     )
     tuned_path = files["folder"] / "tuned.npz"
     tuned_args = [*args[:7], "--out", str(tuned_path), "--steps", "1", "--batches", "1"]
-    status, stderr = train_here(capsys, *tuned_args, "--init", str(older), *optics)
+    status, stderr = train_here(
+        capsys, *tuned_args, "--init", str(older), *optics, "--dark-current-prior", "0.5"
+    )
     assert status == 0, stderr
     tuned_config = load_base_model(tuned_path).config
     assert (tuned_config.pupil_npix, tuned_config.defocus_method) == (192, "angular_spectrum")
@@ -154,6 +157,10 @@ def test_train_writes_a_model_with_its_record_and_resumes(files, capsys):
     assert tuned_record["initial_model"]["date"] == "older"
     assert tuned_record["initial_model"]["optics"]["pupil_npix"] == 256
     assert tuned_record["settings"]["init"] == str(older)
+    assert tuned_record["settings"]["dark_current_prior"] == 0.5
+    # The starting file is named by its digest too (its path may be overwritten later).
+    digest = hashlib.sha256(older.read_bytes()).hexdigest()
+    assert tuned_record["initial_model"]["sha256"] == digest
     assert tuned_record["history"]["stage"] == [1]
     # One Adam step moves each weight by at most about the learning rate (3e-3): the
     # network is the initial model's, not new random weights.

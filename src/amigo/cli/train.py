@@ -152,7 +152,8 @@ _FILES = click.Path(dir_okay=False, path_type=Path)
     type=click.FloatRange(min=0),
     help="Calslope training: width (electrons per group) of the Gaussian population prior "
     "on each pixel's dark current around the calibrators' median dark (0: none); keeps "
-    "the star's bright pixels from taking a misfit for dark current.",
+    "the star's bright pixels from taking a misfit for dark current. The default is the "
+    "simulated detector's scatter: for a real detector give its dark reference file's.",
 )
 @click.option(
     "--dark-prior",

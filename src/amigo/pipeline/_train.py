@@ -7,6 +7,7 @@ file and draws its loss curve beside it.
 
 from __future__ import annotations
 
+import hashlib
 import os
 import zipfile
 from collections.abc import Sequence
@@ -212,7 +213,15 @@ def _initial_summary(path: Path, metadata: dict[str, Any]) -> dict[str, Any]:
     keys = ("date", "command", "trained_on", "steps_done", "amigo_version", "dtype")
     config = metadata.get("config", {})
     optics = {k: config[k] for k in OPTICS_SETTINGS if k in config}
-    return {"path": str(path), **{k: metadata[k] for k in keys if k in metadata}, "optics": optics}
+    # The file's digest names it after its path has been overwritten (a shipped model
+    # fine-tuned into its own place).
+    digest = hashlib.sha256(path.read_bytes()).hexdigest()
+    return {
+        "path": str(path),
+        "sha256": digest,
+        **{k: metadata[k] for k in keys if k in metadata},
+        "optics": optics,
+    }
 
 
 def _warn_about_memory_maps() -> None:

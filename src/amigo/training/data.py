@@ -50,8 +50,8 @@ class TrainSettings:
     tell a dark current of a few electrons per group from a misfit of the charge migration
     or the optics (thousands of electrons per group of photons), and without the prior
     their dark absorbs it where the training's dithers put the star, and calibrates
-    wrongly at other pixel phases (docs/detector.md, "The dark current in the star's
-    pixels"); in background pixels the data outweigh it. The default is the robust
+    wrongly at other pixel phases (docs/detector.md, "Training", the dark current's
+    population prior); in background pixels the data outweigh it. The default is the robust
     pixel-to-pixel scatter (1.4826 MAD) of the dark the shipped model had learnt without
     it, over the calibrators' pixels (0.133).
 

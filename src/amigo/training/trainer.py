@@ -167,6 +167,8 @@ class Trainer:
     ) -> None:
         self.data = data
         self.settings = settings
+        # The calibrators' pixels, where the dark current's prior takes its median (once).
+        self._cal_pixels: np.ndarray | None = None
         # Batches are data-parallel over these (default: every device JAX sees).
         self.mesh = data_mesh(devices)
         if (initial is None) != (settings.init is None):
@@ -644,7 +646,9 @@ class Trainer:
         is there for), held fixed within the step."""
         precision = 1.0 / self.settings.dark_current_prior**2
         dark = base.read.dark_e_per_group
-        centre = jnp.median(dark[seen_by(self.data.cal)])
+        if self._cal_pixels is None:
+            self._cal_pixels = seen_by(self.data.cal)
+        centre = jnp.median(dark[self._cal_pixels])
         pulled = grad.read.dark_e_per_group + precision * (dark - centre)
         grad = eqx.tree_at(lambda m: m.read.dark_e_per_group, grad, pulled)
         f = fisher.read.dark_e_per_group
@@ -861,6 +865,19 @@ class Trainer:
         }
         write_leaves(path, (self.state, self.fisher), record)
 
+    def _same_settings(self, stored: dict[str, Any]) -> bool:
+        """Whether a checkpoint's settings are these. A setting added since the checkpoint
+        was written counts at its default (what that training ran with); the dark
+        current's prior does nothing in level-2 training, so its value does not count
+        there."""
+        current = _tuples_to_lists(asdict(self.settings))
+        defaults = _tuples_to_lists(asdict(TrainSettings()))
+        stored = {**{k: v for k, v in defaults.items() if k not in stored}, **stored}
+        if self.data.level2:
+            current.pop("dark_current_prior")
+            stored.pop("dark_current_prior")
+        return current == stored
+
     def load_checkpoint(self, path: Path) -> None:
         """Continue from a checkpoint written by :meth:`save_checkpoint` for the same
         data and settings (:class:`InputError` otherwise)."""
@@ -868,7 +885,7 @@ class Trainer:
             record = read_record(path, data, CHECKPOINT_FORMAT)
             if not same_data(record["data"], self.data.describe()):
                 raise InputError(path, "checkpoint was written for other training data")
-            if _tuples_to_lists(asdict(self.settings)) != record["settings"]:
+            if not self._same_settings(record["settings"]):
                 raise InputError(path, "checkpoint was written with other training settings")
             config = _tuples_to_lists(self.state.base.config.to_json())
             if "config" in record and record["config"] != config:
