@@ -420,7 +420,7 @@ def test_a_training_step_pulls_the_stars_dark_to_the_population(cache):
     """One network-on ``train_step`` of calslope data: with the prior, the dark current
     of the star's bright pixels moves towards the calibrators' median; without it, the
     data's gradient alone moves it. A checkpoint written before the setting existed
-    resumes (it ran without the prior's key: at the default)."""
+    resumes with the prior off, as it was trained."""
     truth = BaseModel.create(SMALL, jax.random.PRNGKey(1), network_init_scale=0.01)
     source = PointSourceParams(jnp.array([0.0, 0.0]), jnp.asarray(4e5))
     cal = [_synthetic(truth, source, 4, 0.05, 0, cache)]
@@ -443,10 +443,13 @@ def test_a_training_step_pulls_the_stars_dark_to_the_population(cache):
     # the whole map closes on the median.
     assert np.abs(held - centre).mean() < 0.5 * np.abs(free - centre).mean()
 
-    # Resuming: settings stored without the key count at their default.
-    settings = TrainSettings(steps=1, n_batches=1)
-    trainer = Trainer(TrainingData(cal, [], []), settings, SMALL, cache)
-    stored = {k: v for k, v in dataclasses.asdict(settings).items() if k != "dark_current_prior"}
+    # Resuming: a checkpoint written before the setting existed trained without the
+    # prior, so it resumes with --dark-current-prior 0 and is refused, by name, with the
+    # default.
+    without = TrainSettings(steps=1, n_batches=1, dark_current_prior=0.0)
+    stored = {k: v for k, v in dataclasses.asdict(without).items() if k != "dark_current_prior"}
     stored["stage_steps"] = list(stored["stage_steps"])
-    assert trainer._same_settings(stored)
-    assert not trainer._same_settings({**stored, "dark_current_prior": 0.5})
+    trainer = Trainer(TrainingData(cal, [], []), without, SMALL, cache)
+    assert trainer._settings_differ(stored) == []
+    default = Trainer(TrainingData(cal, [], []), TrainSettings(steps=1, n_batches=1), SMALL, cache)
+    assert default._settings_differ(stored) == ["dark_current_prior"]

@@ -865,18 +865,17 @@ class Trainer:
         }
         write_leaves(path, (self.state, self.fisher), record)
 
-    def _same_settings(self, stored: dict[str, Any]) -> bool:
-        """Whether a checkpoint's settings are these. A setting added since the checkpoint
-        was written counts at its default (what that training ran with); the dark
-        current's prior does nothing in level-2 training, so its value does not count
-        there."""
+    def _settings_differ(self, stored: dict[str, Any]) -> list[str]:
+        """The settings in which a checkpoint's differ from these (none: it resumes). A
+        setting added since the checkpoint was written counts at the value that does what
+        the code did before it (:data:`SETTINGS_BEFORE_THEY_EXISTED`); the dark current's
+        prior does nothing in level-2 training, so its value does not count there."""
         current = _tuples_to_lists(asdict(self.settings))
-        defaults = _tuples_to_lists(asdict(TrainSettings()))
-        stored = {**{k: v for k, v in defaults.items() if k not in stored}, **stored}
+        stored = {**SETTINGS_BEFORE_THEY_EXISTED, **stored}
         if self.data.level2:
             current.pop("dark_current_prior")
             stored.pop("dark_current_prior")
-        return current == stored
+        return sorted(k for k in current.keys() | stored.keys() if current.get(k) != stored.get(k))
 
     def load_checkpoint(self, path: Path) -> None:
         """Continue from a checkpoint written by :meth:`save_checkpoint` for the same
@@ -885,8 +884,12 @@ class Trainer:
             record = read_record(path, data, CHECKPOINT_FORMAT)
             if not same_data(record["data"], self.data.describe()):
                 raise InputError(path, "checkpoint was written for other training data")
-            if not self._same_settings(record["settings"]):
-                raise InputError(path, "checkpoint was written with other training settings")
+            differ = self._settings_differ(record["settings"])
+            if differ:
+                raise InputError(
+                    path,
+                    f"checkpoint was written with other training settings ({', '.join(differ)})",
+                )
             config = _tuples_to_lists(self.state.base.config.to_json())
             if "config" in record and record["config"] != config:
                 raise InputError(path, "checkpoint was written for another model configuration")
@@ -906,6 +909,11 @@ class Trainer:
         self.rng.bit_generator.state = record["rng"]
         self.stripes = record.get("stripes", {})
         self._apply_stripes()
+
+
+#: Settings added to :class:`TrainSettings` after checkpoints were first written, at the
+#: value that trains as the code did before them (a checkpoint without the key ran so).
+SETTINGS_BEFORE_THEY_EXISTED: dict[str, Any] = {"dark_current_prior": 0.0}
 
 
 def _drifting(params: Any) -> bool:
