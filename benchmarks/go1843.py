@@ -15,6 +15,12 @@ asserted. The full run writes about 1.4 GB of ramps; on a 2-core CPU it took 6.8
 2026-11-30 (simulation 3.9, ``amigo run`` 2.9 without NUTS). ``--scenario FILE``
 simulates an edited copy of ``amigo/data/scenarios/go1843.toml`` instead (docs/detect.md:
 the calibrator moved to the science star's groups and pixel offset).
+
+``--noise-seeds M [M ...]`` repeats the whole run for each noise draw of the same
+telescope and detector (``amigo simulate --seed S --noise-seed M``; each in
+``--out/noise_M``, its raw ramps deleted once processed unless ``--keep-ramps``), then
+prints every draw's offsets in units of the reported errors and their rms over the
+draws: whether the errors are honest (rms 1) needs draws, not one run.
 """
 
 from __future__ import annotations
@@ -27,6 +33,9 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+#: Offsets of one reported companion from its truth, in units of its reported errors.
+Offsets = dict[str, float]
 
 
 def _run(args: list[str]) -> float:
@@ -56,37 +65,49 @@ def _truth(raw: Path) -> tuple[list[Path], list[Path], list[dict]]:
     return sci, cal, companions
 
 
+def _slopes(uncal: Path, out: Path) -> Path:
+    """The raw ramps if they are there, else what ``amigo run`` made of them in ``out``."""
+    slopes = out / uncal.name.replace("_uncal.fits", "_calslope.fits")
+    return uncal if uncal.exists() or not slopes.exists() else slopes
+
+
 def _angle(a: float, b: float) -> float:
     return (a - b + 180.0) % 360.0 - 180.0
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, default=Path("go1843_benchmark"))
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--quick", action="store_true")
-    parser.add_argument("--no-hmc", action="store_true")
-    parser.add_argument(
-        "--scenario", default="go1843", help="the scenario to simulate (a name or a TOML file)"
-    )
-    parser.add_argument(
-        "--report", action="store_true", help="only print the table of an earlier run in --out"
-    )
-    args = parser.parse_args()
-    raw = args.out / "raw"
-    times = {}
-    if not args.report and not any(raw.glob("*_uncal.fits")):
-        simulate = ["simulate", args.scenario, "--out", str(raw), "--seed", str(args.seed)]
-        times["simulate"] = _run(simulate + ([] if args.quick else ["--full"]))
-    sci, cal, truth = _truth(raw)
-    if not args.report:
-        run = ["run", "--sci", *map(str, sci), "--cal", *map(str, cal), "--out", str(args.out)]
-        times["amigo run"] = _run(run + (["--no-hmc"] if args.no_hmc else []))
+def _simulate_and_run(out: Path, args: argparse.Namespace, noise_seed: int | None) -> dict:
+    """Simulate (unless ``out/raw`` holds ramps) and ``amigo run`` into ``out``; times in s.
 
-    doc = json.loads((args.out / "companions.json").read_text())
+    A run whose ``companions.json`` exists is not repeated (a killed series of draws
+    resumes where it stopped) unless ``--rerun``."""
+    raw = out / "raw"
+    times: dict[str, float] = {}
+    if args.report or ((out / "companions.json").exists() and not args.rerun):
+        return times
+    if not any(raw.glob("*_uncal.fits")):
+        simulate = ["simulate", args.scenario, "--out", str(raw), "--seed", str(args.seed)]
+        if noise_seed is not None:
+            simulate += ["--noise-seed", str(noise_seed)]
+        times["simulate"] = _run(simulate + ([] if args.quick else ["--full"]))
+    sci, cal, _ = _truth(raw)
+    # A draw rerun after its ramps were deleted starts from its calslope files.
+    sci, cal = ([_slopes(p, out) for p in files] for files in (sci, cal))
+    run = ["run", "--sci", *map(str, sci), "--cal", *map(str, cal), "--out", str(out)]
+    times["amigo run"] = _run(run + (["--no-hmc"] if args.no_hmc else []))
+    if noise_seed is not None and not args.keep_ramps:
+        # The truth files stay (the report reads them); the ramps are 1.4 GB a draw.
+        for path in raw.glob("*_uncal.fits"):
+            path.unlink()
+    return times
+
+
+def _report(out: Path, label: str, times: dict[str, float]) -> dict[str, Offsets | None]:
+    """Print the table of one run; return each true companion's offsets (None: not found)."""
+    _, _, truth = _truth(out / "raw")
+    doc = json.loads((out / "companions.json").read_text())
     found = doc["companions"]
     filters = doc["filters"]
-    print(f"\nGO 1843-like, seed {args.seed}, {'quick' if args.quick else 'full'} depth")
+    print(f"\nGO 1843-like, {label}")
     print("sigma_scale:", ", ".join(f"{f} {doc['sigma_scale'][f]:.2f}" for f in filters))
     print(
         "photon rule (dmag):",
@@ -96,11 +117,13 @@ def main() -> None:
     print(header + " | sigma |")
     print("|" + "---|" * (4 + len(filters)))
     unmatched = list(found)
+    offsets: dict[str, Offsets | None] = {}
     for k, t in enumerate(truth):
         # Each true companion takes the nearest reported one not taken yet.
         name = "B" if k == 0 else "c"
         truth_row = f"| {name} truth | {t['sep_mas']:.1f} | {t['pa_deg'] % 360:.1f} | "
         print(truth_row + " | ".join(f"{t['dmag'][f]:.2f}" for f in filters) + " | |")
+        offsets[name] = None
         if not unmatched:
             print(f"| {name} found | not found | | " + " | " * len(filters))
             continue
@@ -109,17 +132,17 @@ def main() -> None:
             key=lambda c: np.hypot(c["dra_mas"] - t["dra_mas"], c["ddec_mas"] - t["ddec_mas"]),
         )
         unmatched.remove(c)
+        z = {
+            "sep": (c["sep_mas"] - t["sep_mas"]) / c["sep_err_mas"],
+            "PA": _angle(c["pa_deg"], t["pa_deg"]) / c["pa_err_deg"],
+        }
+        z.update({f: (c["dmag"][f] - t["dmag"][f]) / c["dmag_err"][f] for f in filters})
+        offsets[name] = z
         cells = [
-            f"{c['sep_mas']:.1f} +- {c['sep_err_mas']:.1f} "
-            f"({(c['sep_mas'] - t['sep_mas']) / c['sep_err_mas']:+.1f} sigma)",
-            f"{c['pa_deg']:.1f} +- {c['pa_err_deg']:.1f} "
-            f"({_angle(c['pa_deg'], t['pa_deg']) / c['pa_err_deg']:+.1f} sigma)",
+            f"{c['sep_mas']:.1f} +- {c['sep_err_mas']:.1f} ({z['sep']:+.1f} sigma)",
+            f"{c['pa_deg']:.1f} +- {c['pa_err_deg']:.1f} ({z['PA']:+.1f} sigma)",
         ]
-        for f in filters:
-            err = c["dmag_err"][f]
-            cells.append(
-                f"{c['dmag'][f]:.2f} +- {err:.2f} ({(c['dmag'][f] - t['dmag'][f]) / err:+.1f})"
-            )
+        cells += [f"{c['dmag'][f]:.2f} +- {c['dmag_err'][f]:.2f} ({z[f]:+.1f})" for f in filters]
         print(
             f"| {name} found ({c['method']}) | "
             + " | ".join(cells)
@@ -127,7 +150,65 @@ def main() -> None:
         )
     rejected = [(r["sep_mas"], r["reason"]) for r in doc.get("rejected_candidates", [])]
     print(f"other companions reported: {len(unmatched)}; rejected candidates: {rejected}")
-    print("times:", ", ".join(f"{k} {v / 60:.1f} min" for k, v in times.items()))
+    if times:
+        print("times:", ", ".join(f"{k} {v / 60:.1f} min" for k, v in times.items()))
+    return offsets
+
+
+def _summary(draws: dict[int, dict[str, Offsets | None]]) -> None:
+    """Every draw's offsets (sigma) and, per quantity, their rms and mean over the draws."""
+    for name in ("B", "c"):
+        found = {m: d[name] for m, d in draws.items() if d.get(name) is not None}
+        print(f"\n{name}: found in {len(found)} of {len(draws)} draws")
+        if not found:
+            continue
+        keys = list(next(iter(found.values())))
+        print("| noise seed | " + " | ".join(keys) + " |")
+        print("|" + "---|" * (1 + len(keys)))
+        for m, z in found.items():
+            print(f"| {m} | " + " | ".join(f"{z[k]:+.2f}" for k in keys) + " |")
+        values = np.array([[z[k] for k in keys] for z in found.values()])
+        rms = np.sqrt(np.mean(values**2, axis=0))
+        print("| rms | " + " | ".join(f"{v:.2f}" for v in rms) + " |")
+        print("| mean | " + " | ".join(f"{v:+.2f}" for v in values.mean(axis=0)) + " |")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=Path("go1843_benchmark"))
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--noise-seeds",
+        type=int,
+        nargs="+",
+        help="draw the noise anew for each (same telescope and detector), one run each",
+    )
+    parser.add_argument(
+        "--keep-ramps", action="store_true", help="keep each noise draw's raw ramps"
+    )
+    parser.add_argument(
+        "--rerun", action="store_true", help="run amigo again where a draw has its products"
+    )
+    parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--no-hmc", action="store_true")
+    parser.add_argument(
+        "--scenario", default="go1843", help="the scenario to simulate (a name or a TOML file)"
+    )
+    parser.add_argument(
+        "--report", action="store_true", help="only print the table of an earlier run in --out"
+    )
+    args = parser.parse_args()
+    depth = "quick" if args.quick else "full"
+    if not args.noise_seeds:
+        times = _simulate_and_run(args.out, args, None)
+        _report(args.out, f"seed {args.seed}, {depth} depth", times)
+        return
+    draws = {}
+    for m in args.noise_seeds:
+        out = args.out / f"noise_{m}"
+        times = _simulate_and_run(out, args, m)
+        draws[m] = _report(out, f"seed {args.seed}, noise seed {m}, {depth} depth", times)
+    _summary(draws)
 
 
 if __name__ == "__main__":
