@@ -65,6 +65,11 @@ def _truth(raw: Path) -> tuple[list[Path], list[Path], list[dict]]:
     return sci, cal, companions
 
 
+def _name(k: int) -> str:
+    """HD 206893's companions are B and c; a third (another scenario's) is #3."""
+    return ("B", "c")[k] if k < 2 else f"#{k + 1}"
+
+
 def _slopes(uncal: Path, out: Path) -> Path:
     """The raw ramps if they are there, else what ``amigo run`` made of them in ``out``."""
     slopes = out / uncal.name.replace("_uncal.fits", "_calslope.fits")
@@ -93,7 +98,8 @@ def _simulate_and_run(out: Path, args: argparse.Namespace, noise_seed: int | Non
     # A draw rerun after its ramps were deleted starts from its calslope files.
     sci, cal = ([_slopes(p, out) for p in files] for files in (sci, cal))
     run = ["run", "--sci", *map(str, sci), "--cal", *map(str, cal), "--out", str(out)]
-    times["amigo run"] = _run(run + (["--no-hmc"] if args.no_hmc else []))
+    run += ["--no-hmc"] if args.no_hmc else []
+    times["amigo run"] = _run(run + args.run_args.split())
     if noise_seed is not None and not args.keep_ramps:
         # The truth files stay (the report reads them); the ramps are 1.4 GB a draw.
         for path in raw.glob("*_uncal.fits"):
@@ -120,7 +126,7 @@ def _report(out: Path, label: str, times: dict[str, float]) -> dict[str, Offsets
     offsets: dict[str, Offsets | None] = {}
     for k, t in enumerate(truth):
         # Each true companion takes the nearest reported one not taken yet.
-        name = "B" if k == 0 else "c"
+        name = _name(k)
         truth_row = f"| {name} truth | {t['sep_mas']:.1f} | {t['pa_deg'] % 360:.1f} | "
         print(truth_row + " | ".join(f"{t['dmag'][f]:.2f}" for f in filters) + " | |")
         offsets[name] = None
@@ -157,7 +163,7 @@ def _report(out: Path, label: str, times: dict[str, float]) -> dict[str, Offsets
 
 def _summary(draws: dict[int, dict[str, Offsets | None]]) -> None:
     """Every draw's offsets (sigma) and, per quantity, their rms and mean over the draws."""
-    for name in ("B", "c"):
+    for name in dict.fromkeys(n for d in draws.values() for n in d):
         found = {m: d[name] for m, d in draws.items() if d.get(name) is not None}
         print(f"\n{name}: found in {len(found)} of {len(draws)} draws")
         if not found:
@@ -190,6 +196,7 @@ def main() -> None:
         "--rerun", action="store_true", help="run amigo again where a draw has its products"
     )
     parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--run-args", default="", help="more options for amigo run, as one string")
     parser.add_argument("--no-hmc", action="store_true")
     parser.add_argument(
         "--scenario", default="go1843", help="the scenario to simulate (a name or a TOML file)"
