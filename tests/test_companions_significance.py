@@ -17,8 +17,10 @@ from amigo.companions import observables as obs
 from amigo.companions.grid import inner_working_angle_mas, sigma_from_chi2
 from amigo.companions.search import SearchSettings, detect
 from amigo.companions.significance import (
-    MAX_COLOUR_MAG_PER_UM,
+    MAX_BLUE_COLOUR_MAG_PER_UM,
+    MAX_RED_COLOUR_MAG_PER_UM,
     effective_trials,
+    inside_working_angle,
     log_chi2_sf,
     significance,
     spectrum_test,
@@ -62,29 +64,69 @@ def test_trials_are_resolution_elements_in_the_annulus():
     assert effective_trials(50.0, 70.0) == 1.0
 
 
+def test_a_candidate_is_inside_the_working_angle_only_beyond_two_of_its_errors():
+    """A candidate fitted at 90 +- 8 mas may be a companion at 103 mas (93-mas inner
+    working angle): a detection; one at 56 +- 9 mas is not."""
+    assert not inside_working_angle(90.0, 8.0, 93.0)
+    assert not inside_working_angle(100.0, 0.0, 93.0)
+    assert inside_working_angle(56.0, 9.0, 93.0)
+    assert inside_working_angle(76.0, 8.0, 93.0)  # 2.1 sigma inside
+
+
 def test_a_smooth_spectrum_passes_and_a_broken_one_fails():
     rng = np.random.default_rng(0)
     # A companion 1.5 mag per micron redder than its star, 2 % errors: consistent.
     truth = 0.02 * 10 ** (0.4 * 1.5 * (WAVELENGTHS_UM - 4.3))
     errors = 0.02 * truth
-    p_values = [
-        spectrum_test(truth + rng.normal(0, errors), errors, WAVELENGTHS_UM).p_value
-        for _ in range(200)
-    ]
-    # Under the model the p-values are uniform: about 0.1 % below 1e-3.
-    assert np.mean(np.array(p_values) < 1e-3) < 0.02
-    assert np.mean(np.array(p_values) < 0.5) == pytest.approx(0.5, abs=0.1)
+    p_values = np.array(
+        [
+            spectrum_test(truth + rng.normal(0, errors), errors, WAVELENGTHS_UM).p_value
+            for _ in range(200)
+        ]
+    )
+    # The truth lies inside the cone of admitted spectra: noisy contrasts around it need
+    # no constraint (p = 1) unless the noise crosses a wall; never a false rejection.
+    assert np.mean(p_values < 1e-3) == 0.0
+    assert np.mean(p_values > 0.999) > 0.5
     fitted = spectrum_test(truth, errors, WAVELENGTHS_UM)
+    assert fitted.chi2 == pytest.approx(0.0, abs=1e-9)
     assert fitted.colour_mag_per_um == pytest.approx(-1.5, abs=0.02)  # brighter in the red
     # The spurious candidate of the issue: dmag 25.1 / 0.24 / 3.8 (F380M / F430M / F480M).
     broken = 10 ** (-0.4 * np.array([25.1, 0.24, 3.8]))
     test = spectrum_test(broken, 0.05 * broken + 1e-3, WAVELENGTHS_UM)
     assert not test.consistent and test.p_value < 1e-10
-    # Two filters: any pair fits, unless the colour exceeds the steepest one admitted.
-    pair = np.array([0.01, 0.01 * 10 ** (-0.4 * 0.8 * MAX_COLOUR_MAG_PER_UM)])
-    assert spectrum_test(pair, 0.01 * pair, WAVELENGTHS_UM[[0, 2]]).consistent
-    pair = np.array([0.01, 0.01 * 10 ** (-0.4 * 2.0 * MAX_COLOUR_MAG_PER_UM)])
-    assert not spectrum_test(pair, 0.01 * pair, WAVELENGTHS_UM[[0, 2]]).consistent
+    # Two filters: any pair fits, unless the colour exceeds the steepest one admitted,
+    # towards the blue (the companion fainter in the red) or the red.
+    gap = WAVELENGTHS_UM[2] - WAVELENGTHS_UM[0]
+    for bound, sign in ((MAX_BLUE_COLOUR_MAG_PER_UM, -1.0), (MAX_RED_COLOUR_MAG_PER_UM, 1.0)):
+        pair = np.array([0.01, 0.01 * 10 ** (sign * 0.4 * 0.8 * bound * gap)])
+        assert spectrum_test(pair, 0.01 * pair, WAVELENGTHS_UM[[0, 2]]).consistent
+        pair = np.array([0.01, 0.01 * 10 ** (sign * 0.4 * 1.2 * bound * gap)])
+        assert not spectrum_test(pair, 0.01 * pair, WAVELENGTHS_UM[[0, 2]]).consistent
+
+
+def test_a_cool_companion_peaking_in_f430m_is_a_spectrum_and_a_dip_is_not():
+    """HD 206893 c's contrasts (9.14 / 8.32 / 8.07 mag) are no exponential in wavelength
+    (the test before 2026-12-01 rejected them at these errors), nor is a T dwarf's peak
+    between the methane and carbon monoxide bands; flux missing in the middle filter
+    only is no spectrum."""
+    c = 10 ** (-0.4 * np.array([9.14, 8.32, 8.07]))
+    for relative in (0.15, 0.05, 0.02):
+        assert spectrum_test(c, relative * c, WAVELENGTHS_UM).chi2 == pytest.approx(0, abs=1e-6)
+    peak = 10 ** (-0.4 * np.array([10.0, 8.0, 8.6]))
+    assert spectrum_test(peak, 0.05 * peak, WAVELENGTHS_UM).consistent
+    # The simulated c found at 8.4 sigma, once rejected: 10.01 +- 0.52 / 8.28 +- 0.15 /
+    # 8.60 +- 0.29 mag.
+    dmag, dmag_err = np.array([10.01, 8.28, 8.60]), np.array([0.52, 0.15, 0.29])
+    found = 10 ** (-0.4 * dmag)
+    assert spectrum_test(found, found * 0.4 * np.log(10) * dmag_err, WAVELENGTHS_UM).consistent
+    dip = np.array([1e-3, 0.0, 1e-3])
+    assert spectrum_test(dip, np.full(3, 1e-4), WAVELENGTHS_UM).p_value < 1e-9
+    # The order of the filters given does not matter.
+    order = [2, 0, 1]
+    assert spectrum_test(dip[order], np.full(3, 1e-4), WAVELENGTHS_UM[order]).p_value < 1e-9
+    rising = spectrum_test(peak[order], 0.05 * peak[order], WAVELENGTHS_UM[order])
+    assert rising.consistent
 
 
 @pytest.mark.slow

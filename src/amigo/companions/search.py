@@ -47,9 +47,11 @@ from amigo.companions.limits import ContrastCurve, contrast_limits, photon_limit
 from amigo.companions.observables import KIND_NAMES, Dataset
 from amigo.companions.posterior import ESS_TARGET, Posterior, Priors, sample_posterior
 from amigo.companions.significance import (
+    IWA_SIGMA,
     Significance,
     SpectrumTest,
     effective_trials,
+    inside_working_angle,
     significance,
     spectrum_test,
 )
@@ -463,12 +465,13 @@ def _rejected(
     spectrum = spectrum_test(contrasts, errors, context.wavelengths_um)
     where = f"(dRA, dDec) = ({estimate.dra_mas:.0f}, {estimate.ddec_mas:.0f}) mas"
     dmags = ", ".join(f"{f} {m:.2f}" for f, m in estimate.dmag.items())
-    if estimate.sep_mas < context.iwa_mas:
+    if inside_working_angle(estimate.sep_mas, estimate.sep_err_mas, context.iwa_mas):
         reason = "inner_working_angle"
         note = (
-            f"a {sig.sigma:.1f}-sigma candidate at {where} is {estimate.sep_mas:.1f} mas from "
-            f"the star, inside the inner working angle ({context.iwa_mas:.0f} mas), where "
-            "a companion cannot be told from a calibration error: not a detection"
+            f"a {sig.sigma:.1f}-sigma candidate at {where} is {estimate.sep_mas:.1f} +- "
+            f"{estimate.sep_err_mas:.1f} mas from the star, inside the inner working angle "
+            f"({context.iwa_mas:.0f} mas) by more than {IWA_SIGMA:g} sigma, where a "
+            "companion cannot be told from a calibration error: not a detection"
         )
     elif not spectrum.consistent:
         reason = "spectrum"
@@ -693,6 +696,16 @@ def _detect(given: Dataset, settings: SearchSettings) -> DetectionResult:
             )
             for i in range(k)
         ]
+
+    for companion in companions:
+        e = companion.estimate
+        if e.sep_mas < context.iwa_mas:
+            notes.append(
+                f"companion {companion.id} is fitted at {e.sep_mas:.1f} +- {e.sep_err_mas:.1f} "
+                f"mas, inside the inner working angle ({context.iwa_mas:.0f} mas) but within "
+                f"{IWA_SIGMA:g} sigma of it: a detection, whose separation and contrast are "
+                "degenerate there (a closer companion is a brighter one)"
+            )
 
     # Limits on the companion-subtracted data, with the fitted error scales.
     step("contrast limits on the companion-subtracted data")

@@ -19,14 +19,24 @@ does not explain. Three tests turn a peak into a detection (``amigo detect``):
 2. **Inner working angle.** Inside ``lambda / (2 B_max)`` a companion's separation and
    contrast are degenerate (its phases grow as ``c r^2``) and indistinguishable from a
    small calibration error of the primary's visibilities: a candidate that the joint fit
-   moves there is reported as such, never as a detection.
-3. **A stellar spectrum.** A real companion's contrast changes smoothly across the AMI
-   filters (3.8-4.8 um). The per-filter contrasts ``c_f`` (with their errors) are fitted
-   with ``a exp(s (lambda_f - lambda_0))`` for any ``a >= 0`` and a colour ``|s|`` up to
-   :data:`MAX_COLOUR_MAG_PER_UM` (a late T dwarf against an A star is about 2 mag per
-   micron across [3.6]-[4.5]); a chi2 with a tail probability below
-   :data:`SPECTRUM_P_MIN` marks contrasts that no star or brown dwarf has, such as
-   dmag 25 in one filter and 0.2 in the next.
+   moves there by more than :data:`IWA_SIGMA` of its separation's errors is reported as
+   such, never as a detection (:func:`inside_working_angle`).
+3. **A physical spectrum.** A real companion's contrast changes smoothly across the AMI
+   filters (3.8-4.8 um), but not necessarily monotonically: a cool companion's flux
+   peaks between the methane band at 3.3 um and carbon monoxide's at 4.6 um, so F430M
+   may be its brightest filter. The per-filter contrasts ``c_f`` (with their errors) are
+   fitted by any non-negative spectrum ``m_f`` with at most one peak across the filters
+   (rising to it and falling after it, in order of wavelength) whose colour between any
+   two filters is at most :data:`MAX_RED_COLOUR_MAG_PER_UM` towards the red and
+   :data:`MAX_BLUE_COLOUR_MAG_PER_UM` towards the blue (``m_f / m_g <= 10^(0.4 s |lambda_f
+   - lambda_g|)``): for each place of the peak the constraints are linear, a
+   convex cone, and the fit a least-squares projection on it. A chi2 with a tail
+   probability below :data:`SPECTRUM_P_MIN` marks contrasts that no star, brown dwarf
+   or planet has, such as dmag 25 in one filter and 0.2 in the next, or no flux in one
+   filter between two that have it. (Until 2026-12-01 the spectrum had to be an
+   exponential in wavelength, ``a exp(s (lambda - lambda_0))`` with the colour up to 3 mag
+   per micron: HD 206893 c's own contrasts, 9.14 / 8.32 / 8.07 mag in F380M / F430M /
+   F480M, are not one, and a simulated c found at 8.4 sigma was rejected.)
 """
 
 from __future__ import annotations
@@ -34,10 +44,27 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import special, stats
+from scipy import optimize, special, stats
 
-#: Steepest companion-to-star colour admitted, in magnitudes per micron of wavelength.
-MAX_COLOUR_MAG_PER_UM = 3.0
+#: Steepest companion-to-star colours admitted between two filters, in magnitudes per
+#: micron of wavelength: brighter towards the red (a companion cooler than its star) and
+#: fainter towards the red. Across [3.6]-[4.5] a late T dwarf against an A star is about
+#: 2 mag per micron redder and the reddest Y dwarfs about 4 (WISE 0855-0714: [3.6] - [4.5]
+#: = 3.5 mag over 0.9 um), steeper still locally between two neighbouring AMI filters on
+#: the methane band's edge, hence 5. Two stars on the Rayleigh-Jeans tail have nearly
+#: the same colours, and a companion fainter towards the red needs an absorption band
+#: (carbon monoxide at 4.6 um in F480M: a fraction of a magnitude), hence 3, the bound
+#: both ways had until 2026-12-01.
+MAX_RED_COLOUR_MAG_PER_UM = 5.0
+MAX_BLUE_COLOUR_MAG_PER_UM = 3.0
+#: A candidate is inside the inner working angle, and not a detection, when its
+#: separation is below it by more than this many of its errors. The separation is a
+#: noisy estimate: a companion just outside is fitted inside in a good fraction of noise
+#: draws (a 4-mag companion at 103 mas, 10 mas outside F480M's 93 mas, in 3 of 12;
+#: docs/detect.md), and the data do not place it inside unless the separation's whole
+#: 2-sigma interval is (to first order, a chi2 rise of 4 from the best fit to the inner
+#: working angle). Until 2026-12-01: 0, the best fit alone.
+IWA_SIGMA = 2.0
 #: Tail probability below which per-filter contrasts are inconsistent with a spectrum.
 SPECTRUM_P_MIN = 1e-3
 
@@ -94,11 +121,17 @@ def significance(dchi2: float, dof: int, trials: float) -> Significance:
     )
 
 
+def inside_working_angle(sep_mas: float, sep_err_mas: float, iwa_mas: float) -> bool:
+    """Whether a candidate at ``sep_mas +- sep_err_mas`` lies inside the inner working
+    angle ``iwa_mas`` by more than :data:`IWA_SIGMA` of its errors (not a detection)."""
+    return sep_mas + IWA_SIGMA * sep_err_mas < iwa_mas
+
+
 @dataclass(frozen=True)
 class SpectrumTest:
-    """The fit of per-filter contrasts by a smooth spectrum: its chi2, degrees of
-    freedom, tail probability and best colour (mag per micron, positive: fainter in the
-    red)."""
+    """The fit of per-filter contrasts by a physical spectrum: its chi2, degrees of
+    freedom, tail probability and the fitted spectrum's colour from the bluest filter to
+    the reddest (mag per micron, positive: fainter in the red; 0 where it has no flux)."""
 
     chi2: float
     dof: int
@@ -113,28 +146,79 @@ class SpectrumTest:
 def spectrum_test(
     contrasts: np.ndarray, errors: np.ndarray, wavelengths_um: np.ndarray
 ) -> SpectrumTest:
-    """Test contrasts ``c_f +- sigma_f`` at ``wavelengths_um`` (F,) against
-    ``a exp(s (lambda - lambda_0))``, ``a >= 0``, ``|s|`` up to the steepest colour.
+    """Test contrasts ``c_f +- sigma_f`` at ``wavelengths_um`` (F,) against every
+    non-negative spectrum with at most one peak whose colours between any two filters are
+    within :data:`MAX_RED_COLOUR_MAG_PER_UM` and :data:`MAX_BLUE_COLOUR_MAG_PER_UM`.
 
-    The colour is searched on a fine grid, ``a`` solved by weighted least squares for
-    each. Degrees of freedom: ``F - 2`` for three or more filters; with two filters any
-    pair of positive contrasts fits unless the colour bound binds, so one.
+    For each filter that may hold the peak, the constraints (``m_f >= 0``, ``m_f <= R_fg
+    m_g`` with ``R_fg`` the colour bound's flux ratio, and the order of the ``m`` on each
+    side of the peak) are linear, and the best spectrum is a weighted least-squares
+    projection on a convex cone (SLSQP, started from a flat spectrum, which every cone
+    holds); the best over the peaks is taken. Degrees of freedom: one. The distance to a
+    cone is distributed as a mixture of chi2 with 0 to F degrees of freedom; a real
+    companion's spectrum lies inside a cone, where contrasts within their errors need no
+    constraint at all, and a rejection needs a constraint that binds.
     """
     c = np.asarray(contrasts, dtype=float)
-    w = 1.0 / np.asarray(errors, dtype=float) ** 2
-    x = np.asarray(wavelengths_um, dtype=float) - float(np.mean(wavelengths_um))
+    sigma = np.asarray(errors, dtype=float)
+    lam = np.asarray(wavelengths_um, dtype=float)
     if c.size < 2:
         return SpectrumTest(0.0, 0, 1.0, 0.0)
-    s_max = 0.4 * np.log(10.0) * MAX_COLOUR_MAG_PER_UM  # magnitudes -> natural log
-    best = (np.inf, 0.0)
-    for s in np.linspace(-s_max, s_max, 241):
-        shape = np.exp(s * x)
-        a = max(float(np.sum(w * c * shape) / np.sum(w * shape**2)), 0.0)
-        chi2 = float(np.sum(w * (c - a * shape) ** 2))
-        if chi2 < best[0]:
-            best = (chi2, s)
-    dof = max(c.size - 2, 1)
-    p = float(np.exp(log_chi2_sf(best[0], dof)))
-    # The model's flux falls as exp(s x): in magnitudes the colour is -s / (0.4 ln 10).
-    colour = -best[1] / (0.4 * np.log(10.0))
-    return SpectrumTest(best[0], dof, p, float(colour))
+    order = np.argsort(lam)
+    # In units of the largest error (SLSQP's tolerances are absolute), by wavelength.
+    unit = float(np.max(sigma))
+    y, w, lam = c[order] / unit, (unit / sigma[order]) ** 2, lam[order]
+
+    def chi2(m: np.ndarray) -> float:
+        return float(np.sum(w * (y - m) ** 2))
+
+    flat = np.full(c.size, max(float(np.sum(w * y) / np.sum(w)), 0.0))
+    best = flat
+    for peak in range(c.size):
+        rows = _cone_rows(lam, peak)
+        result = optimize.minimize(
+            chi2,
+            flat,
+            jac=lambda m: -2.0 * w * (y - m),
+            method="SLSQP",
+            constraints=[
+                {"type": "ineq", "fun": lambda m, a=rows: a @ m, "jac": lambda m, a=rows: a}
+            ],
+            options={"ftol": 1e-12, "maxiter": 200},
+        )
+        # SLSQP may end a hair outside its cone: such an end is not taken.
+        m = np.maximum(result.x, 0.0)
+        inside = np.all(rows @ m >= -1e-9 * max(1.0, float(np.max(m))))
+        if inside and chi2(m) < chi2(best):
+            best = m
+    value = chi2(best)
+    p = float(np.exp(log_chi2_sf(value, 1)))
+    span = float(lam[-1] - lam[0])
+    ends = best[[0, -1]]
+    colour = float(-2.5 * np.log10(ends[1] / ends[0]) / span) if np.all(ends > 0) else 0.0
+    return SpectrumTest(value, 1, p, colour)
+
+
+def _cone_rows(wavelengths_um: np.ndarray, peak: int) -> np.ndarray:
+    """Rows ``A`` of the cone ``A m >= 0`` of spectra at ``wavelengths_um`` (F,
+    ascending) peaking in filter ``peak``: every colour within the bound, the flux rising
+    up to the peak and falling after it, and no negative flux."""
+    n = wavelengths_um.size
+    gap = wavelengths_um[:, None] - wavelengths_um[None, :]  # lambda_f - lambda_g
+    # Largest m_f / m_g admitted: f redder than g (gap > 0), the companion brighter
+    # towards the red by at most the red bound; bluer, by at most the blue bound.
+    slope = np.where(gap > 0, MAX_RED_COLOUR_MAG_PER_UM, MAX_BLUE_COLOUR_MAG_PER_UM)
+    ratio = 10.0 ** (0.4 * slope * np.abs(gap))
+    rows = []
+    for f in range(n):
+        for g in range(n):
+            if f != g:
+                row = np.zeros(n)
+                row[f], row[g] = -1.0, ratio[f, g]  # R_fg m_g - m_f >= 0
+                rows.append(row)
+    for f in range(n - 1):
+        row = np.zeros(n)
+        # Before the peak m_{f+1} - m_f >= 0; from it on m_f - m_{f+1} >= 0.
+        row[f], row[f + 1] = (-1.0, 1.0) if f < peak else (1.0, -1.0)
+        rows.append(row)
+    return np.vstack([*rows, np.eye(n)])
