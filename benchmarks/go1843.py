@@ -1,6 +1,7 @@
 """HD 206893-like end to end: two faint companions from raw ramps (prints a table).
 
     python benchmarks/go1843.py [--out DIR] [--seed 0] [--quick] [--no-hmc] [--scenario FILE]
+                                [--noise-seeds M ...] [--run-args "OPTIONS"]
 
 ``amigo simulate go1843 --full`` writes raw ramps of the built-in GO 1843-like scenario
 (HD 206893 with B at 197.1 mas, delta-mag 8.33 / 7.98 / 7.49 in F380M / F430M / F480M,
@@ -20,7 +21,9 @@ the calibrator moved to the science star's groups and pixel offset).
 telescope and detector (``amigo simulate --seed S --noise-seed M``; each in
 ``--out/noise_M``, its raw ramps deleted once processed unless ``--keep-ramps``), then
 prints every draw's offsets in units of the reported errors and their rms over the
-draws: whether the errors are honest (rms 1) needs draws, not one run.
+draws: whether the errors are honest (rms 1) needs draws, not one run. ``--run-args``
+passes options to ``amigo run`` (``"--detector boundary"``; the demo's coarser grid for
+another scenario, docs/detect.md "Near the inner working angle").
 """
 
 from __future__ import annotations
