@@ -167,7 +167,11 @@ def _report(out: Path, label: str, times: dict[str, float]) -> dict[str, Offsets
 def _summary(draws: dict[int, dict[str, Offsets | None]]) -> None:
     """Every draw's offsets (sigma) and, per quantity, their rms and mean over the draws."""
     for name in dict.fromkeys(n for d in draws.values() for n in d):
-        found = {m: d[name] for m, d in draws.items() if d.get(name) is not None}
+        found: dict[int, Offsets] = {}
+        for m, d in draws.items():
+            z = d.get(name)
+            if z is not None:
+                found[m] = z
         print(f"\n{name}: found in {len(found)} of {len(draws)} draws")
         if not found:
             continue
