@@ -70,7 +70,7 @@ import functools
 import platform
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, replace
 from datetime import UTC, datetime
 from pathlib import Path
@@ -630,14 +630,7 @@ class Trainer:
         """Add the Gaussian prior ``(s - 1)^2 / (2 sigma^2)`` on each pixel's residual
         sensitivity ``s`` to its gradient and Fisher diagonal (level-2 training)."""
         precision = 1.0 / self.settings.sensitivity_prior**2
-        flat = base.ramp.flat
-        grad = eqx.tree_at(lambda m: m.ramp.flat, grad, grad.ramp.flat + precision * (flat - 1.0))
-        # Pixels no calibrator sees had an infinite Fisher (never move): keep them so.
-        f = fisher.ramp.flat
-        fisher = eqx.tree_at(
-            lambda m: m.ramp.flat, fisher, jnp.where(jnp.isinf(f), f, f + precision)
-        )
-        return grad, fisher
+        return _with_map_prior(lambda m: m.ramp.flat, base, grad, fisher, 1.0, precision)
 
     def _dark_current_prior(self, base: BaseModel, grad: BaseModel, fisher: BaseModel):
         """Add the population prior ``(d - m)^2 / (2 sigma^2)`` on each pixel's dark
@@ -645,23 +638,23 @@ class Trainer:
         the median dark over the calibrators' pixels now (robust to the pixels the prior
         is there for), held fixed within the step."""
         precision = 1.0 / self.settings.dark_current_prior**2
-        dark = base.read.dark_e_per_group
+        centre = jnp.median(base.read.dark_e_per_group[self._calibrator_pixels()])
+        return _with_map_prior(
+            lambda m: m.read.dark_e_per_group, base, grad, fisher, centre, precision
+        )
+
+    def _calibrator_pixels(self) -> np.ndarray:
+        """The pixels the calibrators see (:func:`seen_by`), taken once: the data do not
+        change during training."""
         if self._cal_pixels is None:
             self._cal_pixels = seen_by(self.data.cal)
-        centre = jnp.median(dark[self._cal_pixels])
-        pulled = grad.read.dark_e_per_group + precision * (dark - centre)
-        grad = eqx.tree_at(lambda m: m.read.dark_e_per_group, grad, pulled)
-        f = fisher.read.dark_e_per_group
-        fisher = eqx.tree_at(
-            lambda m: m.read.dark_e_per_group, fisher, jnp.where(jnp.isinf(f), f, f + precision)
-        )
-        return grad, fisher
+        return self._cal_pixels
 
     def _without_common_mode(self, before: BaseModel, after: BaseModel) -> BaseModel:
         """The sensitivity step less its mean over the calibrators' pixels: the mean
         sensitivity is degenerate with every exposure's flux, which carries it (pixels no
         calibrator sees have an infinite Fisher diagonal: their step is zero)."""
-        step = less_common_mode(after.ramp.flat - before.ramp.flat, seen_by(self.data.cal))
+        step = less_common_mode(after.ramp.flat - before.ramp.flat, self._calibrator_pixels())
         return eqx.tree_at(lambda m: m.ramp.flat, after, before.ramp.flat + step)
 
     def flat_step(self) -> float:
@@ -909,6 +902,23 @@ class Trainer:
         self.rng.bit_generator.state = record["rng"]
         self.stripes = record.get("stripes", {})
         self._apply_stripes()
+
+
+def _with_map_prior(
+    leaf: Callable[[BaseModel], Any],
+    base: BaseModel,
+    grad: BaseModel,
+    fisher: BaseModel,
+    centre: Any,
+    precision: float,
+) -> tuple[BaseModel, BaseModel]:
+    """``grad`` and ``fisher`` with the Gaussian prior ``precision (x - centre)^2 / 2`` on
+    each pixel of the map ``leaf(base)`` added: its gradient and its Fisher diagonal."""
+    grad = eqx.tree_at(leaf, grad, leaf(grad) + precision * (leaf(base) - centre))
+    # Pixels no calibrator sees had an infinite Fisher (never move): keep them so.
+    f = leaf(fisher)
+    fisher = eqx.tree_at(leaf, fisher, jnp.where(jnp.isinf(f), f, f + precision))
+    return grad, fisher
 
 
 #: Settings added to :class:`TrainSettings` after checkpoints were first written, at the
