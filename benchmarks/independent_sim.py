@@ -2,8 +2,8 @@
 
     python benchmarks/independent_sim.py --out DIR [--filters F480M,F430M,F380M]
         [--template-dir DIR] [--effects] [--seed 0] [--teff 4500] [--jitter-mas 12]
-        [--cal-flux 1.0] [--fit]
-        [--ramps [--bfe 1e-6] [--detector-maps MODEL.npz]]
+        [--cal-flux 1.0] [--fit [--no-simulate]]
+        [--ramps [--bfe 1e-6] [--detector-maps MODEL.npz] [--detectors full,linear,boundary]]
 
 Why (issue 21): amigo's own simulator shares code and conventions with its model, so a fit
 of it to the noise proves little. This script writes level-2 ``_cal.fits`` images of two
@@ -59,8 +59,10 @@ non-linearity, IPC kernel) is ideal unless ``--detector-maps`` names a base mode
 arrays are then read with NumPy as a laboratory's reference files would be: a base model
 can only be asked to fit the detector it was calibrated on; what is independent is the
 brighter-fatter physics, the optics, the geometry, the spectrum and the read-out.
-``--fit`` then runs ``amigo process``, ``amigo fit --detector full`` and ``--detector
-linear`` (and ``amigo detect --no-hmc`` on each) and prints their tables.
+``--fit`` then runs ``amigo process``, ``amigo fit --detector D`` for each D of
+``--detectors`` (default ``full,linear``; ``boundary`` the physical account) and
+``amigo detect --no-hmc`` on each, and prints their tables; ``--no-simulate`` fits the
+files an earlier run left in ``--out``.
 
 Files: the template's headers (a real COM 1093 ``_cal`` file of the same filter) with
 TARGPROP/TARGNAME replaced, SCI (DN/s), ERR, DQ (the template's reference-row and
@@ -784,9 +786,14 @@ def _detection_table(detections: list[tuple], filters: list[str], what: str) -> 
         )
 
 
-def process_and_fit(out: Path, filters: list[str], model: Path | None) -> None:
-    """``amigo process`` the raw ramps, then ``amigo fit`` with the full and the linear
-    detector (``--model model`` where given); prints a table per exposure."""
+def process_and_fit(
+    out: Path,
+    filters: list[str],
+    model: Path | None,
+    detectors: tuple[str, ...] = ("full", "linear"),
+) -> None:
+    """``amigo process`` the raw ramps, then ``amigo fit`` with each of ``detectors``
+    (``--detector``; ``--model model`` where given); prints a table per exposure."""
     processed = out / "calslope"
     uncal = sorted(str(p) for p in out.glob("indep_*_uncal.fits"))
     start = time.perf_counter()
@@ -799,7 +806,7 @@ def process_and_fit(out: Path, filters: list[str], model: Path | None) -> None:
           "| migration amplitude | fit (s) |")  # fmt: skip
     print("|---|---|---|---|---|---|---|---|")
     detections = []
-    for detector in ("full", "linear"):
+    for detector in detectors:
         fit_dir = out / f"fit_ramps_{detector}"
         start = time.perf_counter()
         _amigo("fit", "--sci", *sci, "--cal", *cal, "--out", str(fit_dir), "--force",
@@ -840,6 +847,9 @@ def main() -> None:
     parser.add_argument("--jitter-mas", type=float, default=12.0)
     parser.add_argument("--fit", action="store_true", help="then amigo fit and detect them")
     parser.add_argument(
+        "--no-simulate", action="store_true", help="fit the files already in --out (with --fit)"
+    )
+    parser.add_argument(
         "--ramps", action="store_true", help="raw ramps (_uncal) with a brighter-fatter effect"
     )
     parser.add_argument("--bfe", type=float, default=BFE_STRENGTH_PIX_PER_E)
@@ -852,10 +862,17 @@ def main() -> None:
         default=None,
         help="a base-model .npz whose pixel calibration the simulated detector has",
     )
+    parser.add_argument(
+        "--detectors",
+        default="full,linear",
+        help="with --ramps --fit: the amigo fit --detector values to run (full,linear,boundary)",
+    )
     args = parser.parse_args()
-    simulate(args)
+    if not args.no_simulate:
+        simulate(args)
     if args.fit and args.ramps:
-        process_and_fit(args.out, args.filters.split(","), args.detector_maps)
+        detectors = tuple(args.detectors.split(","))
+        process_and_fit(args.out, args.filters.split(","), args.detector_maps, detectors)
     elif args.fit:
         fit_and_detect(args.out, args.filters.split(","))
 
