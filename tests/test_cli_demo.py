@@ -3,7 +3,8 @@
 The demo's binary is AB Dor-like (329 mas, PA 280.5 deg east of north, delta-mag 4.38 in
 F480M); the companion must be found where it was simulated, within the errors amigo
 reports (with a little room for the model's systematics, which the reported sigma_scale
-absorbs). The fit goes through the shipped base model's full detector (the default).
+absorbs). The fit goes through the shipped base model's detector with the physical account
+of the charge migration in its network's place (the default for raw ramps).
 """
 
 from __future__ import annotations
@@ -36,7 +37,7 @@ def test_demo_finds_the_simulated_companion(tmp_path, monkeypatch, capsys):
     summary = json.loads((out / "fit_summary.json").read_text())
     assert [e["role"] for e in summary["exposures"]] == ["science", "calibrator"]
     assert "SIMULATED" in summary["model"]
-    assert summary["detector"] == "full"
+    assert summary["detector"] == "boundary"
     assert summary["filters"]["F480M"]["detector"]["converged"]
     # The detector geometry and jitter are fitted and reported per exposure, with errors;
     # the simulator turns the image clockwise, as the SIAF does (docs/geometry.md).

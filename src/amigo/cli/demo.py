@@ -4,7 +4,8 @@ Simulates the built-in ``demo`` scenario (an AB Dor-like binary, 329 mas at PA 2
 delta-mag 4.38 in F480M, and a calibrator; raw ramps with the simulator's physical
 detector, seed 0, the same simulated telescope and detector the shipped base model was
 trained on, see docs/detector.md), then runs ``amigo run`` on it with the shipped base
-model and its full detector model, and prints the companion found
+model (its detector with the physical account of the charge migration, the default for
+raw ramps), and prints the companion found
 next to the simulated truth. Simulated files go to ``DIR/raw``; everything else is
 written as by ``amigo run`` under ``DIR``.
 """
@@ -51,7 +52,7 @@ def command(out: Path, no_hmc: bool) -> int:
         cal,
         out,
         model=None,  # raw ramps: the shipped base model
-        detector=None,  # the default: the base model's full detector (network on)
+        detector=None,  # the default: the base model with the physical charge migration
         knots=DEMO_KNOTS,
         knot_spacing=DEMO_KNOT_SPACING_M,
         hmc=not no_hmc,

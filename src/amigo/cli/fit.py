@@ -71,13 +71,13 @@ _MODEL_OPTIONS = [
         "--detector",
         type=click.Choice(["full", "linear", "boundary"]),
         default=None,
-        help="Detector model: 'full' (the base model's charge-migration network; the "
-        "default for calslope files and for level-2 images under a model trained on "
-        "level-2 images; for level-2 images its ramp goes through the JWST pipeline's "
-        "slope estimator) or 'linear' (network off; the default for level-2 images "
-        "under any other model, fitted as they are) or 'boundary' (the network replaced "
-        "by pixel boundaries moved by the charge's field, its strength measured in each "
-        "filter's data; docs/detector.md).",
+        help="Detector model: 'boundary' (the default for calslope files: the base "
+        "model with its charge-migration network replaced by pixel boundaries moved by "
+        "the charge's field, its strength measured in each filter's data; "
+        "docs/detector.md), 'full' (the base model's charge-migration network; the "
+        "default for level-2 images under a model trained on level-2 images, whose ramp "
+        "then goes through the JWST pipeline's slope estimator) or 'linear' (network "
+        "off; the default for level-2 images under any other model, fitted as they are).",
     ),
     click.option(
         "--knots",

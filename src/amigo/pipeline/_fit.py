@@ -427,8 +427,9 @@ class FitModel:
 
 
 def _fit_model(model: Path | None, detector: str | None, level: str) -> FitModel:
-    """Resolve the options: calslope files default to the shipped base model with its
-    network; level-2 images to the shipped model trained on real level-2 calibrators
+    """Resolve the options: calslope files default to the shipped base model with the
+    physical charge-migration account in its network's place (``boundary``; ``full``
+    keeps the network); level-2 images to the shipped model trained on real level-2 calibrators
     (:func:`amigo.model.base.level2_model_path`; the nominal instrument where none is
     shipped) with its ramp seen through the pipeline's slope estimator
     (:class:`amigo.fitting.ramp_fit.Level2Input`; a model trained on ramps, or the nominal
@@ -485,6 +486,14 @@ def _fit_model(model: Path | None, detector: str | None, level: str) -> FitModel
         # detector: on held-out real images it fits closer to the noise than the same
         # optics with the linear detector (docs/detector.md).
         detector = "full"
+    if level == "calslope" and detector is None and not base.linear:
+        # Raw ramps default to the physical account of the charge migration, its strength
+        # measured in each filter's data: on ramps written by independent code it fits
+        # every exposure closer to the noise than the simulator-trained network, with one
+        # strength for every filter, and on the HD 206893-like scenario its companion
+        # positions are honest where the network's are biased (docs/detector.md,
+        # docs/fidelity.md, docs/detect.md). ``--detector full`` keeps the network.
+        detector = "boundary"
     if level == "level2" and detector != "full":
         mode, ramp = "linear", None
     else:
