@@ -188,8 +188,9 @@ def test_a_base_model_with_the_physical_account_saves_and_loads(tmp_path):
 
 
 def test_the_fit_options_map_to_the_physical_account(tmp_path):
-    """--detector boundary puts the account in the network's place and names it; a model
-    file holding the account keeps its own strength and shape, named by what it holds."""
+    """--detector boundary (the default for calslope files) puts the account in the
+    network's place and names it; a model file holding the account keeps its own strength
+    and shape, named by what it holds."""
     from amigo.fitting.ramp_fit import RampDetector
     from amigo.model.base import BaseModel, BaseModelConfig, save_base_model
     from amigo.pipeline._fit import _fit_model
@@ -199,7 +200,11 @@ def test_the_fit_options_map_to_the_physical_account(tmp_path):
     fitted = _fit_model(network, "boundary", "calslope")
     assert fitted.detector == "boundary" and isinstance(fitted.base.ramp.network, BoundaryShift)
     assert RampDetector(fitted.base, {}).mode == "boundary"
-    assert _fit_model(network, None, "calslope").detector == "full"
+    # Raw ramps default to the account (since 2026-12-01); --detector full keeps the network.
+    default = _fit_model(network, None, "calslope")
+    assert default.detector == "boundary" and isinstance(default.base.ramp.network, BoundaryShift)
+    assert float(default.base.ramp.network.strength) == pytest.approx(1.8)
+    assert _fit_model(network, "full", "calslope").detector == "full"
     assert _fit_model(network, "linear", "calslope").base.linear
     own = BoundaryShift.create(2.5e-6, radius_pix=2, depth_pix=0.0)
     held = save_base_model(BaseModel.create(config).with_network(own), tmp_path / "own.npz")

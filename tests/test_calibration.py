@@ -453,3 +453,40 @@ def test_a_training_step_pulls_the_stars_dark_to_the_population(cache):
     assert trainer._settings_differ(stored) == []
     default = Trainer(TrainingData(cal, [], []), TrainSettings(steps=1, n_batches=1), SMALL, cache)
     assert default._settings_differ(stored) == ["dark_current_prior"]
+
+
+def test_fine_tuning_beside_the_physical_account_learns_its_strength(cache, tmp_path):
+    """``detector="boundary"``: the network's place holds the physical account, whose
+    strength Adam moves towards the data's (a model started at 1.8e-6 pixel per electron,
+    data made at 3e-6), and a checkpoint brings it back."""
+    from amigo.model.detector.boundary import BoundaryShift
+
+    linear = BaseModel.create(SMALL, linear=True)
+    truth = linear.with_network(BoundaryShift.create(3.0e-6))
+    cal = [
+        _synthetic(truth, PointSourceParams(jnp.array(p), jnp.asarray(4e5)), 4, 4.0, i, cache)
+        for i, p in enumerate([[0.02, 0.0], [-0.01, 0.02]])
+    ]
+    flats = [_synthetic(truth, FlatParams(jnp.asarray(3e4)), 4, 4.0, 9, cache, flat=True)]
+    settings = TrainSettings(steps=8, n_batches=1, init="linear", detector="boundary")
+    # A model holding the network is refused the account's training the other way round.
+    with pytest.raises(InputError, match="train it with --detector boundary"):
+        Trainer(TrainingData(cal, flats, []), dataclasses.replace(settings, detector="full"), cache=cache,
+                initial=linear.with_network(BoundaryShift.create()))  # fmt: skip
+    # The linear model gets the account at its starting strength.
+    trainer = Trainer(TrainingData(cal, flats, []), settings, cache=cache, initial=linear)
+    account = trainer.state.base.ramp.network
+    assert isinstance(account, BoundaryShift)
+    assert float(account.strength) == pytest.approx(1.8)
+    first = trainer.epoch()
+    for _ in range(7):
+        losses = trainer.epoch()
+    strength = float(trainer.state.base.ramp.network.strength)
+    # Adam moves it ~BOUNDARY_LR per step, towards the truth's 3.0.
+    assert 1.8 + 0.08 < strength < 1.8 + 8 * 0.02 * 1.5
+    assert losses["cal"] < first["cal"]
+    path = tmp_path / "boundary.ckpt.npz"
+    trainer.save_checkpoint(path)
+    again = Trainer(TrainingData(cal, flats, []), settings, cache=cache, initial=linear)
+    again.load_checkpoint(path)
+    assert float(again.state.base.ramp.network.strength) == pytest.approx(strength)

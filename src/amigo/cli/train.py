@@ -190,6 +190,16 @@ _FILES = click.Path(dir_okay=False, path_type=Path)
     type=click.FloatRange(min=0, min_open=True),
     help="Width (rms nm) of the Gaussian prior on each drift coefficient around zero.",
 )
+@click.option(
+    "--detector",
+    "detector",
+    default="full",
+    show_default=True,
+    type=click.Choice(["full", "boundary"]),
+    help="The charge migration's account trained beside the per-pixel maps: 'full' (the "
+    "network) or 'boundary' (the physical account's strength and anisotropy, as amigo "
+    "fit --detector boundary uses it; calslope files only).",
+)
 @click.option("--float64", "float64", is_flag=True, help="Train in float64 (default float32).")
 @click.option(
     "--provenance",
@@ -222,6 +232,7 @@ def command(
     stripes: bool,
     drift_modes: int,
     drift_prior: float,
+    detector: str,
     float64: bool,
     provenance_file: Path | None,
 ) -> None:
@@ -267,6 +278,7 @@ def command(
             stripes=stripes,
             drift_modes=drift_modes,
             drift_prior=drift_prior,
+            detector=detector,
             float64=float64,
             provenance=provenance,
         )

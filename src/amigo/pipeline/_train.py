@@ -64,6 +64,7 @@ def train(
     stripes: bool = True,
     drift_modes: int = 0,
     drift_prior: float = 5.0,
+    detector: str = "full",
     float64: bool = False,
     provenance: dict[str, Any] | None = None,
 ) -> TrainResult:
@@ -133,6 +134,7 @@ def train(
             stripes=stripes,
             drift_modes=drift_modes,
             drift_prior_nm=drift_prior,
+            detector=detector,
             **({} if dark_prior is None else {"dark_prior_dn": dark_prior}),
         )
         model, metadata = train_model(

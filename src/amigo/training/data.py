@@ -68,6 +68,12 @@ class TrainSettings:
     a Gaussian prior of ``drift_prior_nm`` around zero
     (:class:`~amigo.likelihood.slopes.PointSourceParams`): the static optics learn what
     the exposures share, not one exposure's wavefront of the moment.
+
+    ``detector``: the account of the charge migration trained beside the maps: ``"full"``
+    (the network) or ``"boundary"`` (the physical account,
+    :class:`~amigo.model.detector.boundary.BoundaryShift`: its strength and anisotropy,
+    by Adam at :data:`~amigo.training.trainer.BOUNDARY_LR`, kept across stages; calslope
+    training only).
     """
 
     steps: int = 200
@@ -90,6 +96,7 @@ class TrainSettings:
     stripes: bool = True
     drift_modes: int = 0
     drift_prior_nm: float = 5.0
+    detector: str = "full"
 
     def stages(self) -> list[int]:
         if self.init is not None:

@@ -174,17 +174,27 @@ class Trainer:
         if (initial is None) != (settings.init is None):
             raise ValueError("settings.init names the initial model: give both or neither")
         where = "--cal" if initial is None else settings.init
+        if settings.detector not in ("full", "boundary"):
+            raise InputError("--detector", f"must be full or boundary, not {settings.detector!r}")
+        if settings.detector == "boundary" and data.level2:
+            # As amigo fit: the account's strength is seen in the group differences.
+            raise InputError(
+                "--detector", "boundary needs calslope files (raw ramps), not level-2 images"
+            )
         if initial is not None:
             config = initial.config
-            if initial.linear and settings.steps > 0:
-                raise InputError(where, "has no network to fine-tune (a linear model)")
-            if isinstance(initial.ramp.network, BoundaryShift):
-                # Its checkpoints and later stages rebuild a network; not supported yet.
+            holds = isinstance(initial.ramp.network, BoundaryShift)
+            if holds and settings.detector != "boundary":
                 raise InputError(
                     where,
-                    "holds the physical charge-migration account (--detector boundary), "
-                    "which amigo train cannot fine-tune yet",
+                    "holds the physical charge-migration account: train it with --detector "
+                    "boundary",
                 )
+            if settings.detector == "boundary" and not holds:
+                # The maps are fine-tuned beside the account, from its starting strength.
+                initial = initial.with_network(BoundaryShift.create())
+            if initial.linear and settings.steps > 0:
+                raise InputError(where, "has no network to fine-tune (a linear model)")
             if tuple(config.shape) != tuple(data.cal[0].shape):
                 raise InputError(
                     where, f"models {config.shape} pixels, the data have {data.cal[0].shape}"
@@ -248,12 +258,16 @@ class Trainer:
             cal_opt=FisherMomentum.init(cal, s.exposure_lr, s.momentum),
             flat_opt=FisherMomentum.init(flats, s.exposure_lr, s.momentum),
             val_opt=FisherMomentum.init(val, s.exposure_lr, s.momentum),
-            adam_state=optax.adam(s.network_lr).init(eqx.filter(network, eqx.is_array)),
+            adam_state=optax.adam(self._account_lr()).init(eqx.filter(network, eqx.is_array)),
             best_base=base.with_network(network),
             best_loss=jnp.asarray(np.inf),
         )
 
-    def _fresh_network(self, base: BaseModel, stage: int) -> ChargeMigrationNetwork:
+    def _fresh_network(self, base: BaseModel, stage: int) -> ChargeMigrationNetwork | BoundaryShift:
+        """A new account of the charge migration: the network from the seed and
+        ``stage``'s random weights, or the physical account at its starting strength."""
+        if self.settings.detector == "boundary":
+            return BoundaryShift.create()
         c = base.config
         key = jax.random.fold_in(jax.random.PRNGKey(self.settings.seed), stage)
         return ChargeMigrationNetwork(
@@ -263,6 +277,11 @@ class Trainer:
             charge_scale_e=c.charge_scale_e,
             init_scale=self.settings.network_init_scale,
         )
+
+    def _account_lr(self) -> float:
+        """Adam's learning rate of the charge migration's account: the network's
+        ``network_lr``, or :data:`BOUNDARY_LR` for the physical account."""
+        return BOUNDARY_LR if self.settings.detector == "boundary" else self.settings.network_lr
 
     # -------------------------------------------------------------- warm-up
     def warm_up(self, iterations: int = 3) -> None:
@@ -586,9 +605,7 @@ class Trainer:
         if use_network and base.ramp.network is not None:
             weights = eqx.filter(base.ramp.network, eqx.is_array)
             g_net = eqx.filter(grad_base.ramp.network, eqx.is_array)
-            updates, adam_state = optax.adam(self.settings.network_lr).update(
-                g_net, adam_state, weights
-            )
+            updates, adam_state = optax.adam(self._account_lr()).update(g_net, adam_state, weights)
             base = base.with_network(eqx.apply_updates(base.ramp.network, updates))
         base = eqx.tree_at(
             lambda m: m.detector.jitter_arcsec, base, jnp.abs(base.detector.jitter_arcsec)
@@ -732,6 +749,10 @@ class Trainer:
         mask = physical_mask(source)
         base = merge(state.base, split(source, mask), mask)
         keep = stage == 1 and self.settings.init is not None
+        # The physical account is not restarted: a restart would only forget its strength.
+        keep = keep or (
+            self.settings.detector == "boundary" and state.base.ramp.network is not None
+        )
         network = state.base.ramp.network if keep else self._fresh_network(base, stage)
         s = self.settings
         self.state = eqx.tree_at(
@@ -739,12 +760,16 @@ class Trainer:
             state,
             (
                 base.with_network(network),
-                optax.adam(s.network_lr).init(eqx.filter(network, eqx.is_array)),
+                optax.adam(self._account_lr()).init(eqx.filter(network, eqx.is_array)),
                 FisherMomentum.init(ravel_pytree(split(base, mask))[0], s.physical_lr, s.momentum),
             ),
         )
-        if keep:
+        if keep and self.settings.detector == "boundary":
+            report_step(f"train: stage {stage}: the physical charge-migration account continues")
+        elif keep:
             report_step(f"train: stage 1: fine-tuning the network of {self.settings.init}")
+        elif self.settings.detector == "boundary":
+            report_step(f"train: stage {stage}: the physical charge-migration account on")
         else:
             report_step(f"train: stage {stage}: network restarted from new weights (seed {stage})")
 
@@ -923,7 +948,14 @@ def _with_map_prior(
 
 #: Settings added to :class:`TrainSettings` after checkpoints were first written, at the
 #: value that trains as the code did before them (a checkpoint without the key ran so).
-SETTINGS_BEFORE_THEY_EXISTED: dict[str, Any] = {"dark_current_prior": 0.0}
+SETTINGS_BEFORE_THEY_EXISTED: dict[str, Any] = {"dark_current_prior": 0.0, "detector": "full"}
+
+#: Adam's learning rate of the physical account's strength (units of
+#: :data:`~amigo.model.detector.boundary.STRENGTH_UNIT`, 1e-6 pixel per electron) and
+#: anisotropy: Adam moves a parameter by about this much per step, so 200 steps can span
+#: the simulator's 1.4-2.1e-6 to JWST's 3-5.5e-6 (docs/fidelity.md), and the last steps'
+#: noise is a few 1e-8 pixel per electron, a per cent of the strength.
+BOUNDARY_LR = 0.02
 
 
 def _drifting(params: Any) -> bool:
