@@ -203,7 +203,9 @@ def run_amigo(sci: list[Path], cal: list[Path], out: Path, model: Path | None) -
     seps = np.array([float(r["sep_mas"]) for r in curve])
     limits = {
         name: {s: float(np.interp(s, seps, [float(r[column]) for r in curve])) for s in LIMIT_SEPS}
-        for name, column in (("absil", "absil_dmag"), ("ruffio", "ruffio_dmag"))
+        for name, column in (("absil", "absil_dmag"), ("ruffio", "ruffio_dmag"),
+                             ("absil all", "absil_all_dmag"))
+        if curve and curve[0].get(column)
     }  # fmt: skip
     with fits.open(out / "detect" / "contrast_maps.fits") as hdul:
         hdu = hdul[f"ABSIL_{which.upper()}"]

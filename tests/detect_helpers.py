@@ -100,10 +100,14 @@ def write_sim_calvis(
     pa_aper_deg: float = 172.3,
     target: str = "SIM-STAR",
     splodge_radius_m: float = 0.0,
+    silent_rows: int = 0,
 ) -> Path:
     """A calvis file of one filter with companions ``(dRA mas, dDec mas, flux ratio)``.
 
     ``splodge_radius_m > 0`` samples each splodge at 7 uv points (see :func:`uv_points`).
+    ``silent_rows``: that many more observables that no sky moves (zero rows of the
+    matrix, pure noise), drawn from their own generator: the others are those of the
+    same call without them.
     """
     bins = niriss.filter_bins(filter_name, 5)
     uv, owner = uv_points(splodge_radius_m)
@@ -123,6 +127,13 @@ def write_sim_calvis(
     values = d @ log_vis + errors * rng.normal(size=d.shape[0])
     n_amp = len(uv) - niriss.N_HOLES
     kinds = ["amplitude"] * n_amp + ["phase"] * (d.shape[0] - n_amp)
+    if silent_rows:
+        extra = np.random.default_rng(99)
+        d = np.vstack([d, np.zeros((silent_rows, d.shape[1]))])
+        noise = np.full(silent_rows, error)
+        values = np.concatenate([values, noise * extra.normal(size=silent_rows)])
+        errors = np.concatenate([errors, noise])
+        kinds += ["phase"] * silent_rows
     return write_calvis(
         path,
         values=values,

@@ -162,7 +162,19 @@ def test_calvis_end_to_end(tmp_path, capsys):
         "absil_dmag_std",
         "photon_limit_dmag",
         "sep_lambda_d",
+        "absil_all_dmag",
+        "absil_dof",
+        "n_obs",
     }
+    # The Absil test counts the observables a companion can move: here (21 uv points,
+    # 29 kernel observables a filter) all of them, and so the same limit as on all.
+    for row in rows:
+        assert (
+            int(row["absil_dof"])
+            == int(row["n_obs"])
+            == 29 * (2 if row["filter"] == "combined" else 1)
+        )
+        assert float(row["absil_all_dmag"]) == pytest.approx(float(row["absil_dmag"]), abs=1e-3)
     check_contrast_maps(out, rows, companion)
     # The same search again keeps the products (companions.json, written last, records
     # the inputs and options); another option or input is another search.

@@ -16,6 +16,10 @@ contrast estimate ``c`` (signed) and its error ``s``.
   two-sided normal tail of ``n``. Using the local quadratic form of chi2 in ``c'`` the
   limit is ``c + sqrt(c^2 + K s^2)``, ``K = (t_n / N - 1) chi2_0``, ``t_n`` the chi2
   quantile. It grows with the number of observables and is more conservative than Ruffio.
+  amigo counts the observables a companion in the searched field can move: the residuals
+  projected on that field's signal subspace (:mod:`amigo.companions.subspace`; ``k`` ~
+  150 of ~930 DISCOs per F480M exposure within 450 mas), whose chi2 has ``k`` degrees of
+  freedom; the test on every observable (``N``) is kept beside it as ``absil_all``.
 * **Photon rule of thumb** (paper, after Ireland 2013 and JDox): contrast ~
   ``sqrt(100 / N_photons)``, i.e. ``dmag = 2.5 log10(sqrt(N_p / 100))``.
 
@@ -43,14 +47,13 @@ from scipy import special, stats
 
 from amigo.companions.grid import ContrastMap, GridResult
 from amigo.companions.models import MAS_TO_RAD
+from amigo.companions.subspace import COMBINED, SignalSpace
 from amigo.niriss import PUPIL_DIAMETER_M
 
 #: Confidence of a "3-sigma" upper limit, Phi(3) (one-sided).
 THREE_SIGMA = float(stats.norm.cdf(3.0))
 #: Flux ratio used in place of limits that are not positive (no information).
 CONTRAST_CEILING = 1.0
-#: Name of the curve of all filters together.
-COMBINED = "combined"
 
 
 def lambda_over_d_mas(wavelength_m: float) -> float:
@@ -166,6 +169,11 @@ class ContrastCurve:
     n_sigma: float
     photon_limit_dmag: float | None = None
     wavelength_m: float = float("nan")
+    #: The Absil test on every observable (``N`` degrees of freedom), azimuthal mean.
+    absil_all_dmag: np.ndarray | None = None
+    #: Degrees of freedom of the Absil test (the signal subspace's ``k``) and ``N``.
+    absil_dof: int | None = None
+    n_obs: int | None = None
 
     @property
     def sep_lambda_d(self) -> np.ndarray:
@@ -179,12 +187,16 @@ def contrast_limits(
     bin_width_mas: float | None = None,
     photon_counts: Mapping[str, float] | None = None,
     wavelengths_m: Mapping[str, float] | None = None,
+    signal_spaces: Mapping[str, SignalSpace] | None = None,
 ) -> list[ContrastCurve]:
     """Ruffio and Absil limits per filter from a grid search on companion-subtracted data,
     then (with more than one filter) those of all filters combined (:func:`combine_filters`).
 
     ``photon_counts`` and ``wavelengths_m`` are per filter; the combined curve sums the
     photons (when every filter has a count) and takes the mean of the wavelengths.
+    ``signal_spaces`` (per filter and combined,
+    :func:`amigo.companions.subspace.signal_spaces`): the Absil test counts the
+    residuals' chi2 in each one's signal subspace; a curve without one, every observable.
     """
     grid = result.grid
     width = bin_width_mas or grid.step_mas
@@ -198,6 +210,7 @@ def contrast_limits(
             photons[COMBINED] = float(sum(photons[f] for f in names))
         if all(f in waves for f in names):
             waves[COMBINED] = float(np.mean([waves[f] for f in names]))
+    spaces = dict(signal_spaces or {})
     curves = []
     for m in maps:
         valid = grid.valid(m.iwa_mas) & np.isfinite(m.sigma)
@@ -206,9 +219,18 @@ def contrast_limits(
             edges = np.array([m.iwa_mas, grid.rmax_mas])
         confidence = float(stats.norm.cdf(n_sigma))
         ruffio = to_dmag(ruffio_upper_limit(m.contrast, m.sigma, confidence))
-        absil = to_dmag(absil_limit(m.contrast, m.sigma, m.chi2_background, m.n_obs, n_sigma))
+        every = to_dmag(absil_limit(m.contrast, m.sigma, m.chi2_background, m.n_obs, n_sigma))
+        space = spaces.get(m.filter_name)
+        absil = (
+            every
+            if space is None
+            else to_dmag(
+                absil_limit(m.contrast, m.sigma, space.chi2_background, space.dof, n_sigma)
+            )
+        )
         centres, r_mean, r_std, count = azimuthal_profile(grid.radius_mas, ruffio, valid, edges)
         _, a_mean, a_std, _ = azimuthal_profile(grid.radius_mas, absil, valid, edges)
+        _, all_mean, _, _ = azimuthal_profile(grid.radius_mas, every, valid, edges)
         keep = count > 0
         n_photons = photons.get(m.filter_name)
         curves.append(
@@ -226,6 +248,9 @@ def contrast_limits(
                     photon_limit_dmag(n_photons) if n_photons and np.isfinite(n_photons) else None
                 ),
                 wavelength_m=float(waves.get(m.filter_name, np.nan)),
+                absil_all_dmag=all_mean[keep],
+                absil_dof=m.n_obs if space is None else space.dof,
+                n_obs=m.n_obs,
             )
         )
     return curves

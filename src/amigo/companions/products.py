@@ -96,6 +96,11 @@ def companions_document(result: DetectionResult, inputs: list[str]) -> dict[str,
             "dmag_3sigma_std": [_r(x, 3) for x in curve.ruffio_dmag_std],
             "absil_dmag_3sigma": [_r(x, 3) for x in curve.absil_dmag],
             "absil_dmag_3sigma_std": [_r(x, 3) for x in curve.absil_dmag_std],
+            "absil_dof": curve.absil_dof,
+            "n_obs": curve.n_obs,
+            "absil_all_dmag_3sigma": (
+                None if curve.absil_all_dmag is None else [_r(x, 3) for x in curve.absil_all_dmag]
+            ),
             "method": "ruffio2018",
         }
 
@@ -202,6 +207,9 @@ CSV_COLUMNS = (
     "absil_dmag_std",
     "photon_limit_dmag",
     "sep_lambda_d",
+    "absil_all_dmag",
+    "absil_dof",
+    "n_obs",
 )
 
 
@@ -225,6 +233,9 @@ def write_contrast_csv(path: str | os.PathLike[str], result: DetectionResult) ->
                     f"{curve.absil_dmag_std[i]:.3f}",
                     photon,
                     f"{curve.sep_lambda_d[i]:.3f}",
+                    "" if curve.absil_all_dmag is None else f"{curve.absil_all_dmag[i]:.3f}",
+                    "" if curve.absil_dof is None else str(curve.absil_dof),
+                    "" if curve.n_obs is None else str(curve.n_obs),
                 ]
             )
     write_text(path, buffer.getvalue())

@@ -55,6 +55,7 @@ from amigo.companions.significance import (
     significance,
     spectrum_test,
 )
+from amigo.companions.subspace import signal_spaces
 from amigo.orientation import separation_pa
 from amigo.progress import step
 
@@ -718,11 +719,20 @@ def _detect(given: Dataset, settings: SearchSettings) -> DetectionResult:
         diameter,
     )
     photons = _photon_counts(dataset)
+    spaces = signal_spaces(
+        dataset,
+        grid,
+        None if final_fit is None else final_fit.offsets_mas,
+        None if final_fit is None else final_fit.contrasts,
+        group_scales,
+        diameter,
+    )
     limits = contrast_limits(
         residual,
         settings.limit_sigma,
         photon_counts=photons,
         wavelengths_m=_mean_wavelengths(dataset),
+        signal_spaces=spaces,
     )
     return DetectionResult(
         dataset=given,
