@@ -150,12 +150,13 @@ def _amigo(*args: str | Path) -> float:
 
 
 def _limits(detect: Path, filter_name: str) -> dict[str, np.ndarray]:
-    """One filter's curve: separations (mas) and 3-sigma delta-mag, Ruffio and Absil."""
+    """One filter's curve: separations (mas) and 3-sigma delta-mag, Ruffio, Absil (on the
+    companion's signal subspace) and Absil on every observable."""
     rows = [r for r in csv.DictReader((detect / "contrast_limits.csv").open())]
     rows = [r for r in rows if r["filter"] == filter_name]
     return {
         key: np.array([float(r[key]) for r in rows])
-        for key in ("sep_mas", "ruffio_dmag", "absil_dmag")
+        for key in ("sep_mas", "ruffio_dmag", "absil_dmag", "absil_all_dmag")
     }
 
 
@@ -287,11 +288,11 @@ def _report(args, rows, companions, simulated, processed) -> None:
     # The limits scale with each fit's sigma_scale (fitted to its DISCOs' scatter): the
     # gain at equal scales is the part the errors themselves explain.
     scales = 2.5 * np.log10(rows["slopes"]["sigma_scale"] / rows["first group"]["sigma_scale"])
-    for key in ("ruffio_dmag", "absil_dmag"):
+    for key in ("ruffio_dmag", "absil_dmag", "absil_all_dmag"):
         gain = float(np.mean(b[key][band] - a[key][band]))
         to_rule = float(np.mean(b[key][band])) - rows["first group"]["photon"]
         print(
-            f"{key.split('_')[0]:>6}, 150-400 mas: first group deeper by {gain:.3f} mag, "
+            f"{key.removesuffix('_dmag'):>9}, 150-400 mas: first group deeper by {gain:.3f} mag, "
             f"{gain - scales:.3f} at equal sigma_scale (photon rule {rule_gain:.3f}); "
             f"vs the all-photon rule {to_rule:+.3f} mag"
         )
