@@ -710,7 +710,9 @@ def _detect(given: Dataset, settings: SearchSettings) -> DetectionResult:
 
     # Limits on the companion-subtracted data, with the fitted error scales.
     step("contrast limits on the companion-subtracted data")
-    residual = contrast_grid(
+    # The same scene (the fitted companions, the error scales) for both: the maps and the
+    # subspace's chi2 are of one set of residuals.
+    subtracted = (
         dataset,
         grid,
         None if final_fit is None else final_fit.offsets_mas,
@@ -718,15 +720,9 @@ def _detect(given: Dataset, settings: SearchSettings) -> DetectionResult:
         group_scales,
         diameter,
     )
+    residual = contrast_grid(*subtracted)
     photons = _photon_counts(dataset)
-    spaces = signal_spaces(
-        dataset,
-        grid,
-        None if final_fit is None else final_fit.offsets_mas,
-        None if final_fit is None else final_fit.contrasts,
-        group_scales,
-        diameter,
-    )
+    spaces = signal_spaces(*subtracted)
     limits = contrast_limits(
         residual,
         settings.limit_sigma,
