@@ -187,7 +187,7 @@ class _Background(eqx.Module):
     denominators: tuple[jax.Array, ...]
 
 
-def _axis_phasors(block: Observables, axis_mas: np.ndarray, column: int) -> np.ndarray:
+def axis_phasors(block: Observables, axis_mas: np.ndarray, column: int) -> np.ndarray:
     """exp(-2 pi i b_axis * axis / lambda): (n_axis, n_uv, n_wl), in NumPy (the grid's
     axes change size from one search step to the next, and eager JAX would compile its
     operations again for every size)."""
@@ -369,9 +369,9 @@ def _filter_scene(
         background=_Background(tuple(t[0] for t in terms), tuple(t[1] for t in terms)),
         residuals=tuple(t[2] for t in terms),
         x_phasors=tuple(
-            _axis_phasors(b, grid.x_mas, 0) * np.asarray(b.weights)[None] for b in blocks
+            axis_phasors(b, grid.x_mas, 0) * np.asarray(b.weights)[None] for b in blocks
         ),
-        y_phasors=tuple(jnp.asarray(_axis_phasors(b, grid.y_mas, 1)) for b in blocks),
+        y_phasors=tuple(jnp.asarray(axis_phasors(b, grid.y_mas, 1)) for b in blocks),
         groups=np.concatenate([np.asarray(view.groups[i]) for i in index]),
         n_obs=sum(dataset.blocks[i].n_obs for i in index),
         iwa_mas=inner_working_angle_mas([dataset.blocks[i] for i in index]),

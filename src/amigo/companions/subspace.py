@@ -34,16 +34,14 @@ from dataclasses import dataclass, field
 import jax.numpy as jnp
 import numpy as np
 
-from amigo.companions.grid import Grid, inner_working_angle_mas
-from amigo.companions.models import disc_visibility, point_phasors, scene_visibility
+from amigo.companions.grid import Grid, axis_phasors, inner_working_angle_mas
+from amigo.companions.models import disc_visibility, scene_visibility
 from amigo.companions.observables import Dataset, Observables
 
 #: Name of the subspace of all filters together (the combined curve's).
 COMBINED = "combined"
 #: Fraction of a companion's whitened signal energy kept at every searched position.
 SIGNAL_ENERGY_KEPT = 0.999
-#: Positions whose phasors are evaluated at once (each a (uv points, wavelengths) array).
-POSITIONS_PER_CHUNK = 256
 
 
 @dataclass(frozen=True)
@@ -74,35 +72,55 @@ def signal_vectors(
 ) -> np.ndarray:
     """(n_pos, sum of the blocks' n_obs) whitened first-order signal ``w`` of a
     companion at each of ``offsets_mas`` (n_pos, 2) sky offsets (mas), per unit flux
-    ratio, the blocks' observables concatenated (unit error scales)."""
+    ratio, the blocks' observables concatenated (unit error scales).
+
+    The band-averaged phasors factorise over the two sky axes (as the grid's do,
+    :func:`~amigo.companions.grid.axis_phasors`): one complex exponential per distinct
+    offset on each axis, then a product summed over the band for each position, row by
+    row of equal ``y``. In NumPy: the number of positions changes with the search's
+    radius and inner working angle, and eager JAX would compile for every shape.
+    """
+    offsets = np.asarray(offsets_mas, float).reshape(-1, 2)
+    x_axis, x_index = np.unique(offsets[:, 0], return_inverse=True)
+    y_axis, y_index = np.unique(offsets[:, 1], return_inverse=True)
+    rows = [np.flatnonzero(y_index == j) for j in range(y_axis.size)]
     parts = []
     for block in blocks:
-        uv, wl, w = (jnp.asarray(x) for x in (block.uv_m, block.wavelengths_m, block.weights))
+        uv, wl, w = (jnp.asarray(a) for a in (block.uv_m, block.wavelengths_m, block.weights))
         primary = (
-            disc_visibility(uv, wl, w, primary_diameter_mas)
+            np.asarray(disc_visibility(uv, wl, w, primary_diameter_mas))
             if primary_diameter_mas > 0
-            else jnp.ones(block.n_uv)
+            else np.ones(block.n_uv)
         )
-        # In chunks of positions: the phasors are (positions, uv points, wavelengths).
-        d_log = np.concatenate(
-            [
-                np.asarray(point_phasors(uv, wl, w, jnp.asarray(chunk)) / primary - 1.0)
-                for chunk in np.array_split(
-                    np.asarray(offsets_mas, float), max(1, len(offsets_mas) // POSITIONS_PER_CHUNK)
-                )
-            ]
-        )
-        d_raw = np.concatenate([d_log.real, d_log.imag], axis=1) @ block.design.T
-        exp_rows = np.asarray(block.exp_rows)
-        if np.any(exp_rows):
-            # V2 = exp(2 log|V|): the chain rule's factor is the primary's own V2.
-            d_raw = np.where(
-                exp_rows, np.asarray(block.raw(primary.astype(complex))) * d_raw, d_raw
-            )
-        if block.projection is not None:
-            d_raw = d_raw @ np.asarray(block.projection).T
-        parts.append(d_raw / np.asarray(block.errors))
+        x_phasors = axis_phasors(block, x_axis, 0) * np.asarray(block.weights)[None]
+        y_phasors = axis_phasors(block, y_axis, 1)
+        whiten = _signal_whitener(block, primary)
+        out = np.empty((offsets.shape[0], block.n_obs))
+        for j, row in enumerate(rows):
+            # sum_l w_l exp_x[i, u, l] exp_y[j, u, l]: (positions of the row, n_uv)
+            phasors = np.einsum("iul,ul->iu", x_phasors[x_index[row]], y_phasors[j])
+            out[row] = whiten(phasors / primary - 1.0)
+        parts.append(out)
     return np.concatenate(parts, axis=1)
+
+
+def _signal_whitener(block: Observables, primary: np.ndarray):
+    """``d log V`` (n, n_uv) complex -> the whitened observables' change (n, n_obs), the
+    block's linear chain (design, exponential rows, projection, errors) as NumPy arrays."""
+    design = np.asarray(block.design)
+    exp_rows = np.asarray(block.exp_rows)
+    # V2 = exp(2 log|V|): the chain rule's factor is the primary's own V2.
+    exp_factor = np.where(exp_rows, np.asarray(block.raw(jnp.asarray(primary, complex))), 1.0)
+    projection = None if block.projection is None else np.asarray(block.projection)
+    errors = np.asarray(block.errors)
+
+    def whiten(d_log: np.ndarray) -> np.ndarray:
+        d_raw = (np.concatenate([d_log.real, d_log.imag], axis=1) @ design.T) * exp_factor
+        if projection is not None:
+            d_raw = d_raw @ projection.T
+        return d_raw / errors
+
+    return whiten
 
 
 def signal_basis(
