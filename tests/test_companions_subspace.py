@@ -4,6 +4,8 @@ companion moves do not change the limit."""
 
 from __future__ import annotations
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from scipy import stats
@@ -11,6 +13,7 @@ from scipy import stats
 from amigo.companions import observables as obs
 from amigo.companions.grid import Grid, contrast_grid, inner_working_angle_mas
 from amigo.companions.limits import contrast_limits
+from amigo.companions.models import disc_visibility, point_phasors
 from amigo.companions.subspace import (
     SIGNAL_ENERGY_KEPT,
     signal_basis,
@@ -18,7 +21,7 @@ from amigo.companions.subspace import (
     signal_vectors,
 )
 from amigo.io.calvis import read_calvis
-from detect_helpers import binary_visibility, write_sim_calvis
+from detect_helpers import binary_visibility, write_sim_calvis, write_sim_oifits
 
 
 def _positions(grid: Grid, iwa_mas: float) -> np.ndarray:
@@ -139,3 +142,24 @@ def test_the_grey_companions_subspace_is_found_in_the_filters_coordinates(tmp_pa
     assert combined.chi2_background == pytest.approx(
         float(np.sum((brute.T @ residuals) ** 2)), rel=0.05
     )
+
+
+def test_signal_vectors_on_v2_and_closure_phases_about_a_resolved_star(tmp_path):
+    """OIFITS V2 (exponential rows) and closure phases (a projection) about a 40-mas
+    disc: the signal against a finite difference of the block's own residuals for a
+    disc plus a companion of flux ratio 1e-7, written out here."""
+    with jax.enable_x64(True):  # as amigo detect runs: a difference at 1e-7 needs it
+        block = obs.load(
+            write_sim_oifits(tmp_path / "s.oifits", np.random.default_rng(8), companion=None)
+        )
+        assert np.any(np.asarray(block.exp_rows))
+        diameter, c = 40.0, 1e-7
+        sky = np.array([[150.0, 40.0], [-90.0, -210.0]])
+        mine = signal_vectors([block], sky, primary_diameter_mas=diameter)
+        uv, wl, w = (jnp.asarray(a) for a in (block.uv_m, block.wavelengths_m, block.weights))
+        disc = disc_visibility(uv, wl, w, diameter)
+        for row, theta in zip(mine, sky, strict=True):
+            phasor = point_phasors(uv, wl, w, jnp.asarray(theta))
+            moved = block.residuals((disc + c * phasor) / (1.0 + c))
+            theirs = (np.asarray(moved) - np.asarray(block.residuals(disc + 0j))) / c
+            np.testing.assert_allclose(row, theirs, rtol=1e-4, atol=1e-4 * np.abs(theirs).max())

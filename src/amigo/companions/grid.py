@@ -24,6 +24,7 @@ in NumPy.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import equinox as eqx
@@ -390,6 +391,33 @@ def _background_terms(
         block.uv_m, block.wavelengths_m, block.weights, offsets_mas, contrasts, diameter
     )
     return numerator, denominator, block.residuals(numerator / denominator)
+
+
+def background_residuals(
+    dataset: Dataset,
+    index: Sequence[int],
+    offsets_mas: np.ndarray,
+    contrasts: np.ndarray,
+    diameter: float,
+) -> np.ndarray:
+    """The whitened residuals (unit error scales) of blocks ``index`` under the
+    background scene (companions at ``offsets_mas`` (K, 2) with flux ratios ``contrasts``
+    (K,)), concatenated (sum of their n_obs,): the grid's own program on the padded view,
+    its real rows."""
+    view = program_view(dataset)
+    return np.concatenate(
+        [
+            np.asarray(
+                _background_terms(
+                    view.dataset.blocks[i],
+                    jnp.asarray(offsets_mas),
+                    jnp.asarray(contrasts),
+                    diameter,
+                )[2]
+            )[view.rows[i]]
+            for i in index
+        ]
+    )
 
 
 def _over_columns(function, scene: _FilterScene, grid: Grid, chunk_columns: int | None):

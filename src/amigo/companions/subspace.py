@@ -34,14 +34,21 @@ from dataclasses import dataclass, field
 import jax.numpy as jnp
 import numpy as np
 
-from amigo.companions.grid import Grid, axis_phasors, inner_working_angle_mas
-from amigo.companions.models import disc_visibility, scene_visibility
+from amigo.companions.grid import (
+    Grid,
+    axis_phasors,
+    background_residuals,
+    inner_working_angle_mas,
+)
+from amigo.companions.models import disc_visibility
 from amigo.companions.observables import Dataset, Observables
 
 #: Name of the subspace of all filters together (the combined curve's).
 COMBINED = "combined"
 #: Fraction of a companion's whitened signal energy kept at every searched position.
 SIGNAL_ENERGY_KEPT = 0.999
+#: Directions whose projections :func:`signal_basis` adds at once while it looks for k.
+BASIS_BLOCK = 32
 
 
 @dataclass(frozen=True)
@@ -107,10 +114,11 @@ def signal_vectors(
 def _signal_whitener(block: Observables, primary: np.ndarray):
     """``d log V`` (n, n_uv) complex -> the whitened observables' change (n, n_obs), the
     block's linear chain (design, exponential rows, projection, errors) as NumPy arrays."""
-    design = np.asarray(block.design)
-    exp_rows = np.asarray(block.exp_rows)
-    # V2 = exp(2 log|V|): the chain rule's factor is the primary's own V2.
-    exp_factor = np.where(exp_rows, np.asarray(block.raw(jnp.asarray(primary, complex))), 1.0)
+    design = block.design
+    # V2 = exp(2 log|V|): the chain rule's factor is the primary's own V2, exp of the
+    # linear map of its log visibility (a disc's is real: no phase).
+    log_primary = np.concatenate([np.log(np.abs(primary)), np.zeros(primary.size)])
+    exp_factor = np.where(np.asarray(block.exp_rows), np.exp(design @ log_primary), 1.0)
     projection = None if block.projection is None else np.asarray(block.projection)
     errors = np.asarray(block.errors)
 
@@ -134,16 +142,31 @@ def signal_basis(
     """
     gram = signals.T @ signals
     values, vectors = np.linalg.eigh(gram)
-    vectors = vectors[:, ::-1][:, values[::-1] > 0]
+    keep = values[::-1] > 0
+    values, vectors = values[::-1][keep], vectors[:, ::-1][:, keep]
     energy = np.sum(signals**2, axis=1)
     live = energy > 0
     if not np.any(live):
         return vectors[:, :0], 1.0
-    kept = np.cumsum((signals[live] @ vectors) ** 2, axis=1) / energy[live, None]
-    worst = kept.min(axis=0)  # (k,) the least-kept position with k directions
-    k = int(np.searchsorted(worst, energy_kept, side="left")) + 1
-    k = min(k, vectors.shape[1])
-    return vectors[:, :k], float(worst[k - 1])
+    rows, energy = signals[live], energy[live]
+    # The eigenvalues are the energies the directions keep summed over positions, so the
+    # least-kept position keeps at most their cumulative fraction: fewer directions than
+    # reach ``energy_kept`` on that sum cannot do. Projections start there (one less, for
+    # rounding), in blocks, instead of on all N directions.
+    start = int(np.searchsorted(np.cumsum(values) / np.sum(values), energy_kept))
+    start = max(0, min(start - 1, vectors.shape[1] - 1))
+    kept = np.sum((rows @ vectors[:, :start]) ** 2, axis=1) / energy
+    worst = np.empty(0)
+    for lo in range(start, vectors.shape[1], BASIS_BLOCK):
+        block = vectors[:, lo : lo + BASIS_BLOCK]
+        cumulative = kept[:, None] + np.cumsum((rows @ block) ** 2, axis=1) / energy[:, None]
+        worst = cumulative.min(axis=0)  # the least-kept position with lo + 1, lo + 2, ...
+        reached = np.flatnonzero(worst >= energy_kept)
+        if reached.size:
+            k = lo + int(reached[0]) + 1
+            return vectors[:, :k], float(worst[reached[0]])
+        kept = cumulative[:, -1]
+    return vectors, float(worst[-1]) if worst.size else 1.0
 
 
 def signal_spaces(
@@ -170,11 +193,8 @@ def signal_spaces(
         scales = np.concatenate(
             [np.asarray(group_scales, float)[dataset.group_index(i)] for i in index]
         )
-        residuals = np.concatenate(
-            [
-                np.asarray(b.residuals(_scene(b, offsets, fluxes[:, f], primary_diameter_mas)))
-                for b in blocks
-            ]
+        residuals = background_residuals(
+            dataset, index, offsets, fluxes[:, f], primary_diameter_mas
         )
         valid = grid.valid(inner_working_angle_mas(blocks))
         positions = np.stack([x[valid], y[valid]], axis=-1)
@@ -214,16 +234,4 @@ def combined_space(spaces: list[SignalSpace]) -> SignalSpace:
         valid=valid,
         signals=signals @ basis,
         residuals=basis.T @ residuals,
-    )
-
-
-def _scene(block: Observables, offsets: np.ndarray, fluxes: np.ndarray, diameter: float):
-    """The block's background scene visibility (n_uv,)."""
-    return scene_visibility(
-        jnp.asarray(block.uv_m),
-        jnp.asarray(block.wavelengths_m),
-        jnp.asarray(block.weights),
-        jnp.asarray(offsets),
-        jnp.asarray(fluxes),
-        diameter,
     )
