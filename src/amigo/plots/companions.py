@@ -209,9 +209,10 @@ def plot_corners(result: DetectionResult, out_dir: str | os.PathLike[str]) -> li
 
 
 def plot_contrast_limits(result: DetectionResult, path: str | os.PathLike[str]) -> Path:
-    # Fixed margins (room for the lambda/D axis and the title above), not a tight crop.
-    fig, ax = plt.subplots(figsize=(7, 4.5))
-    fig.subplots_adjust(left=0.1, right=0.97, bottom=0.11, top=0.83)
+    # Fixed margins (room for the lambda/D axis and the title above, the legend below:
+    # inside the axes it would hide the curves or the companions), not a tight crop.
+    fig, ax = plt.subplots(figsize=(7, 6.0))
+    fig.subplots_adjust(left=0.1, right=0.97, bottom=0.3, top=0.87)
     for i, curve in enumerate(result.limits):
         colour = _colour(curve.filter_name, i)
         ax.plot(
@@ -233,7 +234,9 @@ def plot_contrast_limits(result: DetectionResult, path: str | os.PathLike[str]) 
             color=colour,
             ls="--",
             lw=1,
-            label=f"{curve.filter_name} Absil {curve.n_sigma:g}σ",
+            # The test's degrees of freedom: the signal subspace's k of the N observables.
+            label=f"{curve.filter_name} Absil {curve.n_sigma:g}σ"
+            + (f" ({curve.absil_dof} of {curve.n_obs} dof)" if curve.absil_dof else ""),
         )
         if curve.photon_limit_dmag is not None:
             ax.axhline(
@@ -273,7 +276,7 @@ def plot_contrast_limits(result: DetectionResult, path: str | os.PathLike[str]) 
         top.set_xlabel(f"separation (λ/D at {wave * 1e6:.2f} µm, D = {PUPIL_DIAMETER_M:.2f} m)")
     ax.set_ylabel("contrast limit (delta mag)")
     ax.set_title("Contrast limits on the companion-subtracted data", fontsize=10)
-    ax.legend(fontsize=7, ncol=2)
+    ax.legend(fontsize=7, ncol=2, loc="upper center", bbox_to_anchor=(0.5, -0.14))
     ax.grid(alpha=0.3)
     return _save(fig, path, tight=False)
 
