@@ -348,7 +348,7 @@ class _FilterScene:
     iwa_mas: float  # the files' inner working angle
 
 
-def _filter_blocks(dataset: Dataset, f: int) -> list[int]:
+def filter_blocks(dataset: Dataset, f: int) -> list[int]:
     """Indices of the blocks of filter ``f``."""
     return [i for i in range(len(dataset.blocks)) if dataset.filter_index(i) == f]
 
@@ -356,7 +356,7 @@ def _filter_blocks(dataset: Dataset, f: int) -> list[int]:
 def _filter_scene(
     dataset: Dataset, f: int, grid: Grid, offsets: np.ndarray, flux: np.ndarray, diameter: float
 ) -> _FilterScene:
-    index = _filter_blocks(dataset, f)
+    index = filter_blocks(dataset, f)
     # The padded blocks: another target's files of the same buckets share the programs.
     # Padded rows' residuals and series are 0 and their group is none of the dataset's.
     view = program_view(dataset)
@@ -483,7 +483,7 @@ def grid_statistics(
     flux = np.zeros((0, dataset.n_filters)) if contrasts is None else np.asarray(contrasts, float)
     out: list[FilterStatistics | None] = []
     for f in range(dataset.n_filters):
-        if not all(dataset.blocks[i].linear for i in _filter_blocks(dataset, f)):
+        if not all(dataset.blocks[i].linear for i in filter_blocks(dataset, f)):
             out.append(None)  # contrast_grid builds this filter's scene and solves it exactly
             continue
         scene = _filter_scene(dataset, f, grid, offsets, flux, primary_diameter_mas)

@@ -18,7 +18,7 @@ contrast estimate ``c`` (signed) and its error ``s``.
   quantile. It grows with the number of observables and is more conservative than Ruffio.
   amigo counts the observables a companion in the searched field can move: the residuals
   projected on that field's signal subspace (:mod:`amigo.companions.subspace`; ``k`` =
-  109 of 928 DISCOs of a simulated F480M exposure within 450 mas, 362-401 within the
+  109 of 928 DISCOs of a simulated F480M exposure within 450 mas, 362-406 within the
   default 1000 mas), whose chi2 has ``k`` degrees of
   freedom; the test on every observable (``N``) is kept beside it as ``absil_all``.
 * **Photon rule of thumb** (paper, after Ireland 2013 and JDox): contrast ~

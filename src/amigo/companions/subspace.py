@@ -38,6 +38,7 @@ from amigo.companions.grid import (
     Grid,
     axis_phasors,
     background_residuals,
+    filter_blocks,
     inner_working_angle_mas,
 )
 from amigo.companions.models import disc_visibility
@@ -56,22 +57,25 @@ class SignalSpace:
     """One filter's signal subspace (or all filters', :func:`combined_space`) and the
     background's chi2 in it.
 
-    ``dof``: its dimension ``k``; ``n_obs``: the observables ``N``;
-    ``chi2_background``: the chi2 of the background scene's residuals projected on it
-    (with the search's error scales); ``kept``: the smallest fraction of a position's
-    signal energy it keeps; ``valid`` (n_y, n_x): the grid positions it was made for;
-    ``signals`` (n_valid, k) and ``residuals`` (k,): those positions' signals and the
-    residuals in its coordinates.
+    ``dof``: its dimension ``k``; ``n_obs``: the observables ``N``; ``kept``: the
+    smallest fraction of a position's signal energy it keeps; ``valid`` (n_y, n_x): the
+    grid positions it was made for; ``signals`` (n_valid, k) and ``residuals`` (k,):
+    those positions' signals and the background scene's residuals (with the search's
+    error scales) in its coordinates.
     """
 
     filter_name: str
     dof: int
     n_obs: int
-    chi2_background: float
     kept: float
     valid: np.ndarray = field(repr=False)
     signals: np.ndarray = field(repr=False)
     residuals: np.ndarray = field(repr=False)
+
+    @property
+    def chi2_background(self) -> float:
+        """The chi2 of the background scene's residuals projected on the subspace."""
+        return float(np.sum(self.residuals**2))
 
 
 def signal_vectors(
@@ -188,7 +192,7 @@ def signal_spaces(
     x, y = np.meshgrid(grid.x_mas, grid.y_mas)  # (n_y, n_x), as the maps
     spaces = {}
     for f, name in enumerate(dataset.filters):
-        index = [i for i in range(len(dataset.blocks)) if dataset.filter_index(i) == f]
+        index = filter_blocks(dataset, f)
         blocks = [dataset.blocks[i] for i in index]
         scales = np.concatenate(
             [np.asarray(group_scales, float)[dataset.group_index(i)] for i in index]
@@ -205,7 +209,6 @@ def signal_spaces(
             filter_name=name,
             dof=basis.shape[1],
             n_obs=residuals.size,
-            chi2_background=float(np.sum((basis.T @ (residuals / scales)) ** 2)),
             kept=kept,
             valid=valid,
             signals=signals @ basis,
@@ -229,7 +232,6 @@ def combined_space(spaces: list[SignalSpace]) -> SignalSpace:
         filter_name=COMBINED,
         dof=basis.shape[1],
         n_obs=sum(s.n_obs for s in spaces),
-        chi2_background=float(np.sum((basis.T @ residuals) ** 2)),
         kept=kept * min(s.kept for s in spaces),
         valid=valid,
         signals=signals @ basis,
