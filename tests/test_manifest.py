@@ -87,6 +87,11 @@ def _write(path: Path, text: str) -> Path:
             "target a: --rmax-mas must be a finite radius of at least 1",
         ),
         (
+            '[options]\nrmax_mas = 300\nstep_mas = 300\n[[target]]\nsci = ["a_cal.fits"]\n'
+            'cal = ["b_cal.fits"]\n',
+            "target a: --step-mas (300.0) must be a positive step smaller than --rmax-mas",
+        ),
+        (
             '[[target]]\nsci = ["a_cal.fits"]\ncal = ["b_cal.fits"]\n',
             "target a: ",  # the inputs' levels read from their headers: these are empty
         ),

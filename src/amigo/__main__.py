@@ -1,6 +1,6 @@
 """Allow ``python -m amigo``."""
 
-from amigo.cli import main
+from amigo.cli import console
 
 if __name__ == "__main__":
-    main()
+    console()

@@ -12,12 +12,13 @@ products (:mod:`amigo.pipeline.outcome`), 130 interrupted.
 
 from __future__ import annotations
 
+import atexit
 import importlib
 import os
 import signal
 import sys
 import threading
-from typing import Any
+from typing import Any, NoReturn
 
 import click
 
@@ -104,6 +105,57 @@ def main(argv: list[str] | None = None) -> Any:
     finally:
         if main_thread:
             signal.signal(signal.SIGTERM, previous)
+
+
+def console() -> NoReturn:
+    """Entry point of the ``amigo`` console script and of ``python -m amigo``: :func:`main`,
+    then out of the process without the interpreter's teardown.
+
+    A normal exit runs JAX's exit handler (its compiled programs and buffers released one
+    by one) and then frees every object the run made: 0.5 + 1.9 s of a 21-s simulated fit
+    in py-spy's samples, 2-core AMD EPYC, 2026-12-02, for a process that ends anyway. Every
+    product is written and closed by then (amigo.io.atomic), so what is skipped is only
+    memory handed back. Kept: the streams' buffers are flushed, threads still running are
+    waited for, and every other exit handler runs (logging's, a Dask cluster's). Callers in
+    Python call :func:`main`, whose ``SystemExit`` they can catch; ``AMIGO_DEBUG``'s
+    traceback leaves the usual way.
+    """
+    try:
+        main()
+        status = 0
+    except SystemExit as done:
+        status = _exit_status(done.code)
+    _leave(status)
+
+
+def _exit_status(code: object) -> int:
+    """The status ``sys.exit(code)`` would give: ``None`` 0, an int itself, anything else
+    printed to stderr and 1 (Python's own rule)."""
+    if code is None:
+        return 0
+    if isinstance(code, int):
+        return code
+    print(code, file=sys.stderr)
+    return 1
+
+
+def _leave(status: int) -> NoReturn:
+    """Exit with ``status`` after what a normal exit does that matters (see :func:`console`),
+    without JAX's clean-up and the interpreter's freeing of its objects."""
+    for thread in threading.enumerate():  # what the interpreter waits for at exit
+        if thread is not threading.current_thread() and not thread.daemon:
+            thread.join()
+    jax_api = sys.modules.get("jax._src.api")
+    clean_up = getattr(jax_api, "clean_up", None)
+    if clean_up is not None:
+        atexit.unregister(clean_up)
+    atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # a closed pipe or stream: nothing more to say
+            pass
+    os._exit(status)
 
 
 def _run(argv: list[str] | None) -> Any:

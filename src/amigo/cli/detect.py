@@ -14,6 +14,13 @@ rmax_option = click.option(
     show_default=True,
     help="Search radius (mas).",
 )
+#: ``--step-mas``, shared by ``detect`` and ``run``.
+step_option = click.option(
+    "--step-mas",
+    type=click.FloatRange(min=0.1),
+    default=None,
+    help="Grid step (mas); default lambda_min / (5 B_max).",
+)
 
 
 @click.command(name="detect")
@@ -33,12 +40,7 @@ rmax_option = click.option(
     show_default=True,
     help="Detection threshold (Gaussian-equivalent sigma).",
 )
-@click.option(
-    "--step-mas",
-    type=click.FloatRange(min=0.1),
-    default=None,
-    help="Grid step (mas); default lambda_min / (5 B_max).",
-)
+@step_option
 @click.option(
     "--max-companions",
     type=click.IntRange(min=0),

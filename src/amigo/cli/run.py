@@ -18,7 +18,7 @@ from pathlib import Path
 
 import click
 
-from amigo.cli.detect import rmax_option
+from amigo.cli.detect import rmax_option, step_option
 from amigo.cli.fit import exposures_option, model_options, superbias_option
 
 
@@ -58,6 +58,7 @@ from amigo.cli.fit import exposures_option, model_options, superbias_option
 @click.option("--out", "out", required=True, type=click.Path(path_type=Path), help="Output folder.")
 @model_options
 @rmax_option
+@step_option
 @click.option("--no-hmc", is_flag=True, help="Skip the NUTS posterior in the companion search.")
 @superbias_option(
     "Raw dark ramps (_uncal.fits) of the same detector: processed with the rest, they give "
@@ -80,6 +81,7 @@ def command(
     knot_spacing: float | None,
     rmax_mas: float,
     no_hmc: bool,
+    step_mas: float | None = None,
     superbias: tuple[Path, ...] = (),
     no_first_group: bool = False,
     force: bool = False,
@@ -121,6 +123,7 @@ def command(
             knots=knots,
             knot_spacing=knot_spacing,
             rmax_mas=rmax_mas,
+            step_mas=step_mas,
             hmc=not no_hmc,
             first_group=not no_first_group,
         )
@@ -143,6 +146,7 @@ def command(
         knots=knots,
         knot_spacing=knot_spacing,
         rmax_mas=rmax_mas,
+        step_mas=step_mas,
         hmc=not no_hmc,
         superbias=superbias,
         first_group=not no_first_group,

@@ -22,7 +22,7 @@ folder, and each target's products go to ``OUT/<name>/``::
 A target's inputs are raw ramps (``_uncal``: process, fit and detect, as ``amigo run``) or
 level-2 / calslope files (fit and detect); ``superbias`` (a list of dark files) is a
 target's own key. Options (:data:`OPTIONS`): ``model``, ``detector``, ``knots``,
-``knot_spacing``, ``rmax_mas``, ``hmc``, ``first_group``. A target's own keys override
+``knot_spacing``, ``rmax_mas``, ``step_mas``, ``hmc``, ``first_group``. A target's own keys override
 ``[options]``, which override the command line's.
 """
 
@@ -45,6 +45,7 @@ OPTIONS: dict[str, type] = {
     "knots": int,
     "knot_spacing": float,
     "rmax_mas": float,
+    "step_mas": float,
     "hmc": bool,
     "first_group": bool,
 }

@@ -45,13 +45,20 @@ class DetectResult:
 MIN_RMAX_MAS = 1.0
 
 
-def check_rmax(rmax_mas: float) -> None:
+def check_rmax(rmax_mas: float, step_mas: float | None = None) -> None:
     """:class:`~amigo.errors.InputError` for a search radius below :data:`MIN_RMAX_MAS`
-    (or not a number): checked before any work, by ``detect``, ``run`` and a manifest."""
+    (or not a number), or a grid step (``None``: the default) that is not a positive
+    number smaller than the radius: checked before any work, by ``detect``, ``run`` and a
+    manifest."""
     if not MIN_RMAX_MAS <= rmax_mas < float("inf"):
         raise InputError(
             None,
             f"--rmax-mas must be a finite radius of at least {MIN_RMAX_MAS:g} mas, not {rmax_mas}",
+        )
+    if step_mas is not None and not 0 < step_mas < rmax_mas:
+        raise InputError(
+            None,
+            f"--step-mas ({step_mas}) must be a positive step smaller than --rmax-mas ({rmax_mas})",
         )
 
 
@@ -104,7 +111,7 @@ def detect(
     Returns a :class:`DetectResult` (``.companions``, ``.document``, ``.result``).
     """
     options = dict(locals())  # the parameters, before any other name is bound
-    check_rmax(rmax_mas)
+    check_rmax(rmax_mas, step_mas)
     check_sampler_device()
     settings = {k: v for k, v in options.items() if k not in ("files", "out", "force")}
     files = [str(f) for f in files]
@@ -203,10 +210,6 @@ def _search(
         if not np.isfinite(block.n_photons):  # a calvis without NPHOT, an OIFITS without T3
             warn(f"{path}: no photon count: no photon-rule limit for {block.filter_name}")
     dataset = obs.Dataset.from_blocks(blocks)
-    if step_mas is not None and step_mas >= rmax_mas:
-        raise InputError(
-            None, f"--step-mas ({step_mas}) must be smaller than --rmax-mas ({rmax_mas})"
-        )
     settings = SearchSettings(
         rmax_mas=rmax_mas,
         step_mas=step_mas,

@@ -48,6 +48,7 @@ DEFAULTS: dict[str, Any] = {
     "knots": None,
     "knot_spacing": None,
     "rmax_mas": 1000.0,
+    "step_mas": None,
     "hmc": True,
     "first_group": True,
 }
@@ -225,7 +226,12 @@ def _fit_and_detect(target: Target, folder: Path, settings: Mapping[str, Any], f
     if not fitted.calvis:
         return fitted.status, None
     search = detect(
-        fitted.calvis, folder, rmax_mas=settings["rmax_mas"], hmc=settings["hmc"], force=force
+        fitted.calvis,
+        folder,
+        rmax_mas=settings["rmax_mas"],
+        step_mas=settings["step_mas"],
+        hmc=settings["hmc"],
+        force=force,
     )
     return fitted.status, search
 
@@ -248,7 +254,7 @@ def check_target(manifest: Path, target: Target, defaults: Mapping[str, Any]) ->
     try:
         kinds = check_before_work(
             target.sci, target.cal, o["model"], o["detector"], o["knots"], o["knot_spacing"],
-            o["rmax_mas"],
+            o["rmax_mas"], o["step_mas"],
         )  # fmt: skip
         if "uncal" in kinds.values() and set(kinds.values()) != {"uncal"}:
             raise InputError(None, MIXED_RAW)  # as run_target would, after the others ran

@@ -56,6 +56,7 @@ def run(
     knots: int | None = None,
     knot_spacing: float | None = None,
     rmax_mas: float = 1000.0,
+    step_mas: float | None = None,
     hmc: bool = True,
     superbias: Sequence[str | Path] = (),
     first_group: bool = True,
@@ -67,6 +68,7 @@ def run(
     same inputs (``force`` redoes all three); level-2 images and calslope files go
     straight to :func:`fit`. ``superbias``: raw dark ramps, processed
     with the rest, whose reset levels let the first group's photons into the fit.
+    ``step_mas``: the search grid's step (None: :func:`detect`'s default).
     ``keep_products``: as :func:`fit`'s."""
     from amigo.io.calslope import calslope_name
     from amigo.io.jwst import data_kind
@@ -77,7 +79,9 @@ def run(
     out = Path(out)
     check_roles(sci_paths, cal_paths, superbias_paths, first_group)
     one_science_target(sci_paths)
-    kinds = check_before_work(sci_paths, cal_paths, model, detector, knots, knot_spacing, rmax_mas)
+    kinds = check_before_work(
+        sci_paths, cal_paths, model, detector, knots, knot_spacing, rmax_mas, step_mas
+    )
     kinds.update({p: data_kind(p) for p in superbias_paths if p not in kinds})
     inputs = tuple(dict.fromkeys((*sci_paths, *cal_paths, *superbias_paths)))
     # Raw ramps are processed; level-2 images and calslope files are slopes already.
@@ -113,7 +117,7 @@ def run(
             return RunResult(processed, fitted, None)  # the warnings say why
         raise InputError(out, "amigo fit wrote no calvis file (no science exposure?)")
     step(f"run: searching {len(calvis)} calvis file(s) for companions")
-    found = detect(calvis, out, rmax_mas=rmax_mas, hmc=hmc, force=force)
+    found = detect(calvis, out, rmax_mas=rmax_mas, step_mas=step_mas, hmc=hmc, force=force)
     return RunResult(processed, fitted, found)
 
 
@@ -125,6 +129,7 @@ def check_before_work(
     knots: int | None,
     knot_spacing: float | None,
     rmax_mas: float,
+    step_mas: float | None = None,
 ) -> dict[Path, str]:
     """Every option and the inputs' levels, before any work (processing raw ramps takes
     minutes: a usage error found after it would be found late), for :func:`run` and for
@@ -133,7 +138,7 @@ def check_before_work(
     from amigo.io.jwst import data_kind
 
     check_model_options(model, detector, knots, knot_spacing)
-    check_rmax(rmax_mas)
+    check_rmax(rmax_mas, step_mas)
     check_sampler_device()
     kinds = {Path(p): data_kind(p) for p in (*sci, *cal)}
     check_one_level(kinds)
