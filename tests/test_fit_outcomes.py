@@ -174,14 +174,25 @@ def test_failures_are_reported_per_filter_and_runs_resume(inputs, tmp_path, monk
     assert {k: uninterrupted[k] for k in first} == first
     assert len(uninterrupted) == 4
 
-    # 2b. a new reading of the same inputs (READING_REVISION raised): nothing is kept
+    # 2b. a new reading of the same inputs (READING_REVISION raised): nothing is kept,
+    # every filter is fitted again (each fit stopped at its start: which filters were
+    # attempted is the point, not their products, and two fits were a minute of the suite)
     import amigo.pipeline._fit as fit_module
 
     revision = fit_module.READING_REVISION
     monkeypatch.setattr(fit_module, "READING_REVISION", revision + 1)
-    assert amigo_status(_args(inputs, out, flagged=True)) == 3
+    attempted = []
+
+    def stopped_at_start(fit, *args, **kwargs):
+        attempted.append(fit.setup.name)
+        raise np.linalg.LinAlgError("Singular matrix")
+
+    monkeypatch.setattr(FilterFit, "fit", stopped_at_start)
+    assert amigo_status(_args(inputs, out, flagged=True)) == 4
     assert "products up to date" not in capsys.readouterr().err
+    assert sorted(attempted) == ["F430M", "F480M"]
     monkeypatch.setattr(fit_module, "READING_REVISION", revision)
+    monkeypatch.setattr(FilterFit, "fit", real)
 
     # 3. killed after its first filter, then run again: the same bytes. Without the
     # flagged calibrator the fit of each filter is the same (same exposures fitted).

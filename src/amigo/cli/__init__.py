@@ -112,8 +112,9 @@ def console() -> NoReturn:
     then out of the process without the interpreter's teardown.
 
     A normal exit runs JAX's exit handler (its compiled programs and buffers released one
-    by one) and then frees every object the run made: 0.5 + 1.9 s of a 21-s simulated fit
-    in py-spy's samples, 2-core AMD EPYC, 2026-12-02, for a process that ends anyway. Every
+    by one) and then frees every object the run made: 2.0 s from the last product of a
+    simulated F480M fit to the process's end, 1.4-1.8 s after a detection (2-core AMD
+    EPYC, 2026-12-02; 0.1 s without), for a process that ends anyway. Every
     product is written and closed by then (amigo.io.atomic), so what is skipped is only
     memory handed back. Kept: the streams' buffers are flushed, threads still running are
     waited for, and every other exit handler runs (logging's, a Dask cluster's). Callers in
