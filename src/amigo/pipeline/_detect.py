@@ -45,7 +45,7 @@ class DetectResult:
 MIN_RMAX_MAS = 1.0
 
 
-def check_rmax(rmax_mas: float, step_mas: float | None = None) -> None:
+def check_search_grid(rmax_mas: float, step_mas: float | None = None) -> None:
     """:class:`~amigo.errors.InputError` for a search radius below :data:`MIN_RMAX_MAS`
     (or not a number), or a grid step (``None``: the default) that is not a positive
     number smaller than the radius: checked before any work, by ``detect``, ``run`` and a
@@ -111,7 +111,7 @@ def detect(
     Returns a :class:`DetectResult` (``.companions``, ``.document``, ``.result``).
     """
     options = dict(locals())  # the parameters, before any other name is bound
-    check_rmax(rmax_mas, step_mas)
+    check_search_grid(rmax_mas, step_mas)
     check_sampler_device()
     settings = {k: v for k, v in options.items() if k not in ("files", "out", "force")}
     files = [str(f) for f in files]

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from amigo.errors import InputError, ReportedInputError
-from amigo.pipeline._detect import DetectResult, check_rmax, check_sampler_device, detect
+from amigo.pipeline._detect import DetectResult, check_sampler_device, check_search_grid, detect
 from amigo.pipeline._fit import (
     FitResult,
     check_detector_level,
@@ -138,7 +138,7 @@ def check_before_work(
     from amigo.io.jwst import data_kind
 
     check_model_options(model, detector, knots, knot_spacing)
-    check_rmax(rmax_mas, step_mas)
+    check_search_grid(rmax_mas, step_mas)
     check_sampler_device()
     kinds = {Path(p): data_kind(p) for p in (*sci, *cal)}
     check_one_level(kinds)
