@@ -81,38 +81,45 @@ def pytest_runtest_logreport(report):
         reporter.write_line(f"[slow] {report.duration:7.1f} s {report.when:8} {report.nodeid}")
 
 
-#: Seconds each of the longest test files takes on one worker (2-core AMD EPYC,
-#: 2026-11-28, -n 2, measured with --junitxml at da978d4).
+#: Seconds each of the longest test files takes on one worker (2-core AMD EPYC without
+#: AVX-512, 2026-12-02, -n 2, summed from --durations=0 at 284fe3f).
 #: pytest-xdist (--dist loadfile) hands whole files to the two workers in collection
 #: order, so a long file collected last runs alone at the end while the other worker
 #: idles (the Dask manifest file, 513 s, did); collecting the longest first
 #: (longest-processing-time-first scheduling) keeps both busy to the end. Only the order
-#: depends on these figures: a stale or missing entry costs time, never a test.
+#: depends on these figures: a stale or missing entry costs time, never a test (the
+#: previous table, of 2026-11-28, had no entry for two files of 72 and 130 s and ranked
+#: the level-2 training file, 204 s, at 84 s).
 LONG_FILES_S = {
-    "test_fit_outcomes.py": 433,
-    "test_manifest.py": 336,
-    "test_cli_demo.py": 215,
-    "test_ramp_fit.py": 187,
-    "test_first_group_cli.py": 186,
-    "test_companions_search.py": 128,
-    "test_cli_train.py": 104,
-    "test_fit_synthetic.py": 96,
-    "test_fuzz_inputs.py": 89,
-    "test_train_sharding.py": 84,
-    "test_train_level2.py": 84,
-    "test_calibration.py": 77,
-    "test_dark_residual.py": 50,
-    "test_basemodel.py": 47,
-    "test_newton.py": 46,
-    "test_interrupted.py": 45,
-    "test_optics.py": 44,
-    "test_docs.py": 42,
-    "test_api.py": 38,
-    "test_cli_detect.py": 31,
-    "test_ramp.py": 28,
-    "test_visibility.py": 26,
-    "test_detector_linear.py": 22,
+    "test_fit_outcomes.py": 215,
+    "test_train_level2.py": 204,
+    "test_manifest.py": 193,
+    "test_ramp_fit.py": 166,
+    "test_cli_demo.py": 147,
+    "test_companions_search.py": 132,
+    "test_first_group_cli.py": 131,
+    "test_companions_posterior.py": 130,
+    "test_newton.py": 118,
+    "test_calibration.py": 95,
+    "test_cli_train.py": 82,
+    "test_fuzz_inputs.py": 79,
+    "test_train_stripes.py": 72,
+    "test_fit_synthetic.py": 64,
+    "test_interrupted.py": 48,
+    "test_cli_detect.py": 48,
+    "test_train_sharding.py": 47,
+    "test_dark_residual.py": 37,
+    "test_optics.py": 35,
+    "test_docs.py": 34,
+    "test_api.py": 28,
+    "test_basemodel.py": 27,
+    "test_ramp.py": 26,
+    "test_stripes.py": 23,
+    "test_visibility.py": 19,
+    "test_detector_linear.py": 14,
+    "test_boundary_shift.py": 13,
     "test_pipeline_slope.py": 12,
+    "test_basis.py": 12,
 }
 
 
