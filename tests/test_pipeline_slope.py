@@ -631,3 +631,21 @@ def test_model_slope_with_the_steps_groups_against_stcal():
     assert cut.sum() > 5
     change = 1.0 - full[cut] / ours[cut]
     assert 0.003 < change.min() and change.max() < 0.02
+
+
+def test_no_saturation_map_is_every_group_usable():
+    """``saturated=None`` (every group usable, its count written as a constant) gives what
+    an all-false map gives through the prefix count: the same groups and weights, and the
+    same products to float32 rounding (XLA simplifies arithmetic on a constant count
+    differently: measured, the exposure's products within 4e-7, the integrations' equal)."""
+    rng = np.random.default_rng(12)
+    read_noise, gain = _detector(rng, 3, 4)
+    ramps = _simulate(rng, 2, 6, np.logspace(0.5, 3.5, 12).reshape(3, 4), read_noise, gain)
+    kw = {"group_time": TFRAME, "read_noise": read_noise, "gain": gain}
+    implicit = pipeline_slopes(ramps, **kw)
+    explicit = pipeline_slopes(ramps, np.zeros(ramps.shape, bool), **kw)
+    assert implicit.ngood.dtype == explicit.ngood.dtype
+    np.testing.assert_array_equal(np.asarray(implicit.ngood), 6)
+    np.testing.assert_array_equal(np.asarray(implicit.power), np.asarray(explicit.power))
+    for a, b in zip(implicit, explicit, strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=2e-6)
