@@ -233,8 +233,9 @@ def pipeline_slopes(
         # Every group: written as the constant it is. The prefix's cumulative product of
         # an all-true array is a constant too, which XLA folded while compiling: 1.3 s for
         # 12 groups of 80 x 80 pixels, and an error-level "slow operation" message on the
-        # user's terminal (2-core AMD EPYC, 2026-12-02).
-        ngood = jnp.full((ramps.shape[0], *image_shape), ngroups, dtype=jnp.int32)
+        # user's terminal (2-core AMD EPYC, 2026-12-02). The default integer, as the sum
+        # below gives (int64 where x64 is on).
+        ngood = jnp.full((ramps.shape[0], *image_shape), ngroups, dtype=int)
     else:
         usable = ~jnp.asarray(saturated, dtype=bool)
         ngood = jnp.sum(jnp.cumprod(usable.astype(jnp.int32), axis=1), axis=1)
