@@ -82,7 +82,8 @@ def pytest_runtest_logreport(report):
 
 
 #: Seconds each of the longest test files takes on one worker (2-core AMD EPYC without
-#: AVX-512, 2026-12-02, -n 2, summed from --durations=0 at 284fe3f).
+#: AVX-512, 2026-12-02 evening, -n 2, summed from a --junitxml report at 5e637c8;
+#: the two workers' sums, 2136 s, against a wall time of 1100 s).
 #: pytest-xdist (--dist loadfile) hands whole files to the two workers in collection
 #: order, so a long file collected last runs alone at the end while the other worker
 #: idles (the Dask manifest file, 513 s, did); collecting the longest first
@@ -91,35 +92,35 @@ def pytest_runtest_logreport(report):
 #: previous table, of 2026-11-28, had no entry for two files of 72 and 130 s and ranked
 #: the level-2 training file, 204 s, at 84 s).
 LONG_FILES_S = {
-    "test_fit_outcomes.py": 215,
-    "test_train_level2.py": 204,
-    "test_manifest.py": 193,
-    "test_ramp_fit.py": 166,
-    "test_cli_demo.py": 147,
-    "test_companions_search.py": 132,
-    "test_first_group_cli.py": 131,
-    "test_companions_posterior.py": 130,
-    "test_newton.py": 118,
+    "test_fit_outcomes.py": 203,
+    "test_train_level2.py": 187,
+    "test_manifest.py": 174,
+    "test_companions_search.py": 142,
+    "test_ramp_fit.py": 126,
+    "test_newton.py": 123,
+    "test_companions_posterior.py": 120,
+    "test_cli_demo.py": 115,
     "test_calibration.py": 95,
-    "test_cli_train.py": 82,
-    "test_fuzz_inputs.py": 79,
-    "test_train_stripes.py": 72,
-    "test_fit_synthetic.py": 64,
-    "test_interrupted.py": 48,
-    "test_cli_detect.py": 48,
-    "test_train_sharding.py": 47,
-    "test_dark_residual.py": 37,
-    "test_optics.py": 35,
+    "test_first_group_cli.py": 93,
+    "test_train_stripes.py": 74,
+    "test_fuzz_inputs.py": 71,
+    "test_cli_train.py": 66,
+    "test_cli_detect.py": 49,
+    "test_fit_synthetic.py": 47,
+    "test_optics.py": 46,
+    "test_interrupted.py": 36,
+    "test_train_sharding.py": 36,
     "test_docs.py": 34,
-    "test_api.py": 28,
-    "test_basemodel.py": 27,
-    "test_ramp.py": 26,
+    "test_api.py": 30,
+    "test_dark_residual.py": 27,
     "test_stripes.py": 23,
+    "test_ramp.py": 21,
+    "test_basemodel.py": 20,
     "test_visibility.py": 19,
-    "test_detector_linear.py": 14,
+    "test_pipeline_slope.py": 15,
+    "test_detector_linear.py": 13,
     "test_boundary_shift.py": 13,
-    "test_pipeline_slope.py": 12,
-    "test_basis.py": 12,
+    "test_basis.py": 11,
 }
 
 
@@ -127,9 +128,9 @@ LONG_FILES_S = {
 #: start beside it. The two workers start with the first two files; had both been fits
 #: of the small level-2 configuration (3 wavelengths, 27 x 27 knots), both would compile
 #: it cold at once (measured: the per-filter outcomes and the Dask manifest, 350 -> 441 s
-#: and 513 -> 542 s). xdist queues a second file on each worker at the start (the third
-#: file on the first worker): third, the manifest runs after the per-filter outcomes on
-#: the same worker and finds the programs in the suite's compilation cache.
+#: and 513 -> 542 s). Behind the demo (seventh of the long files in the table of
+#: 2026-12-02 evening) the manifest starts minutes after the per-filter outcomes began,
+#: and finds their programs in the suite's compilation cache.
 AFTER = {"test_manifest.py": "test_cli_demo.py"}
 
 
